@@ -1,0 +1,56 @@
+# Small helpers so every module is declared the same way (COLMAP's colmap_add_library pattern).
+
+set(PRISM_WARNING_FLAGS -Wall -Wextra)
+if(PRISM_WERROR)
+  list(APPEND PRISM_WARNING_FLAGS -Werror)
+endif()
+
+# prism_add_library(NAME name SRCS ... [PUBLIC_LINK ...] [PRIVATE_LINK ...])
+function(prism_add_library)
+  cmake_parse_arguments(ARG "" "NAME" "SRCS;PUBLIC_LINK;PRIVATE_LINK" ${ARGN})
+  add_library(${ARG_NAME} STATIC ${ARG_SRCS})
+  target_include_directories(${ARG_NAME} PUBLIC ${PROJECT_SOURCE_DIR})
+  target_compile_options(${ARG_NAME} PRIVATE ${PRISM_WARNING_FLAGS})
+  set_target_properties(${ARG_NAME} PROPERTIES POSITION_INDEPENDENT_CODE ON)
+  target_link_libraries(${ARG_NAME} PUBLIC ${ARG_PUBLIC_LINK} PRIVATE ${ARG_PRIVATE_LINK})
+endfunction()
+
+# prism_add_executable(NAME name SRCS ... [LINK ...])
+function(prism_add_executable)
+  cmake_parse_arguments(ARG "" "NAME" "SRCS;LINK" ${ARGN})
+  add_executable(${ARG_NAME} ${ARG_SRCS})
+  target_compile_options(${ARG_NAME} PRIVATE ${PRISM_WARNING_FLAGS})
+  target_link_libraries(${ARG_NAME} PRIVATE ${ARG_LINK})
+endfunction()
+
+# prism_add_test(NAME name SRCS ... [LINK ...] [LABELS unit|integration|slow ...])
+# Each GoogleTest case becomes its own CTest test carrying the labels.
+function(prism_add_test)
+  if(NOT PRISM_BUILD_TESTS)
+    return()
+  endif()
+  cmake_parse_arguments(ARG "" "NAME" "SRCS;LINK;LABELS" ${ARGN})
+  if(NOT ARG_LABELS)
+    set(ARG_LABELS unit)
+  endif()
+  add_executable(${ARG_NAME} ${ARG_SRCS})
+  target_compile_options(${ARG_NAME} PRIVATE ${PRISM_WARNING_FLAGS})
+  target_link_libraries(${ARG_NAME} PRIVATE ${ARG_LINK} GTest::gtest GTest::gtest_main)
+  target_compile_definitions(${ARG_NAME} PRIVATE
+    PRISM_SHARED_DATA_DIR="${PRISM_SHARED_DATA_DIR}"
+    PRISM_BINARY_DIR="${CMAKE_BINARY_DIR}")
+  gtest_discover_tests(${ARG_NAME}
+    PROPERTIES LABELS "${ARG_LABELS}"
+    DISCOVERY_TIMEOUT 60)
+endfunction()
+
+# prism_add_benchmark(NAME name SRCS ... [LINK ...])
+function(prism_add_benchmark)
+  if(NOT PRISM_BUILD_BENCHMARKS)
+    return()
+  endif()
+  cmake_parse_arguments(ARG "" "NAME" "SRCS;LINK" ${ARGN})
+  add_executable(${ARG_NAME} ${ARG_SRCS})
+  target_compile_options(${ARG_NAME} PRIVATE ${PRISM_WARNING_FLAGS})
+  target_link_libraries(${ARG_NAME} PRIVATE ${ARG_LINK} benchmark::benchmark)
+endfunction()

@@ -1,0 +1,40 @@
+// A fixed-size worker pool and ParallelFor over an index range (COLMAP's ThreadPool, reduced).
+// One process-wide pool is meant to be shared; ParallelFor without a pool runs inline.
+#pragma once
+
+#include <condition_variable>
+#include <cstddef>
+#include <functional>
+#include <mutex>
+#include <queue>
+#include <thread>
+#include <vector>
+
+namespace prism {
+
+class ThreadPool {
+ public:
+  // num_threads <= 0 means std::thread::hardware_concurrency().
+  explicit ThreadPool(int num_threads = 0);
+  ~ThreadPool();
+  ThreadPool(const ThreadPool&) = delete;
+  ThreadPool& operator=(const ThreadPool&) = delete;
+
+  int num_threads() const { return static_cast<int>(workers_.size()); }
+
+  // Runs fn(i) for i in [begin, end) on the pool and the calling thread; returns when all are done.
+  // Indices are handed out in chunks of `grain`. An exception in fn is rethrown here (the first one).
+  void ParallelFor(std::ptrdiff_t begin, std::ptrdiff_t end, const std::function<void(std::ptrdiff_t)>& fn,
+                   std::ptrdiff_t grain = 1);
+
+ private:
+  void WorkerLoop();
+
+  std::vector<std::thread> workers_;
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  std::queue<std::function<void()>> tasks_;  // Guarded by mutex_.
+  bool stop_ = false;                        // Guarded by mutex_.
+};
+
+}  // namespace prism

@@ -1,0 +1,66 @@
+#include <atomic>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "core/util/status.h"
+#include "core/util/thread_pool.h"
+
+namespace prism {
+namespace {
+
+StatusOr<int> ParsePositive(int v) {
+  if (v <= 0) return InvalidArgumentError("value must be positive, got " + std::to_string(v));
+  return v;
+}
+
+Status UsesMacros(int v, int* out) {
+  PRISM_ASSIGN_OR_RETURN(*out, ParsePositive(v));
+  return Status::Ok();
+}
+
+TEST(StatusTest, OkAndErrorsCarryCodeAndMessage) {
+  EXPECT_TRUE(Status::Ok().ok());
+  const Status s = NotFoundError("no such session 42");
+  EXPECT_FALSE(s.ok());
+  EXPECT_EQ(s.code(), StatusCode::kNotFound);
+  EXPECT_EQ(s.ToString(), "NOT_FOUND: no such session 42");
+}
+
+TEST(StatusTest, AssignOrReturnPropagates) {
+  int out = 0;
+  EXPECT_TRUE(UsesMacros(3, &out).ok());
+  EXPECT_EQ(out, 3);
+  const Status s = UsesMacros(-1, &out);
+  EXPECT_EQ(s.code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(out, 3);
+}
+
+TEST(CheckTest, FailedCheckThrowsWithMessage) {
+  EXPECT_THROW(PRISM_CHECK(1 == 2) << "context", CheckError);
+  try {
+    PRISM_CHECK_LT(5, 2) << "five";
+  } catch (const CheckError& e) {
+    EXPECT_NE(std::string(e.what()).find("five"), std::string::npos);
+  }
+  PRISM_CHECK(true) << "never evaluated";
+}
+
+TEST(ThreadPoolTest, ParallelForVisitsEveryIndexOnce) {
+  ThreadPool pool(3);
+  std::vector<std::atomic<int>> hits(1000);
+  pool.ParallelFor(0, 1000, [&](std::ptrdiff_t i) { hits[i]++; }, 7);
+  for (auto& h : hits) EXPECT_EQ(h.load(), 1);
+}
+
+TEST(ThreadPoolTest, ExceptionIsRethrown) {
+  ThreadPool pool(2);
+  EXPECT_THROW(pool.ParallelFor(0, 100, [](std::ptrdiff_t i) { PRISM_CHECK(i != 50); }), CheckError);
+  // The pool still works afterwards.
+  std::atomic<int> n{0};
+  pool.ParallelFor(0, 10, [&](std::ptrdiff_t) { n++; });
+  EXPECT_EQ(n.load(), 10);
+}
+
+}  // namespace
+}  // namespace prism
