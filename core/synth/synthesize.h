@@ -1,0 +1,28 @@
+// Renders a whole sequence of a SynthSetup to disk in the TUM layout (core/io/sequence.h), plus
+// scene.yaml (preset, seed, object centre and size, path length).
+#pragma once
+
+#include <string>
+
+#include "core/synth/presets.h"
+#include "core/util/status.h"
+
+namespace prism {
+class ThreadPool;
+}
+
+namespace prism::synth {
+
+struct SynthesizeSummary {
+  int frames = 0;
+  double seconds = 0.0;          // wall time of rendering and writing
+  double path_length_m = 0.0;
+  double object_radius_m = 0.0;  // radius of the sphere bounding the object(s)
+};
+
+// Frames are rendered in parallel on `pool` (one frame per task) when given. Deterministic for the
+// setup's seed whatever the thread count.
+StatusOr<SynthesizeSummary> SynthesizeSequence(const SynthSetup& setup, uint32_t seed, const std::string& out_dir,
+                                               ThreadPool* pool);
+
+}  // namespace prism::synth
