@@ -21,6 +21,7 @@ function(prism_add_executable)
   add_executable(${ARG_NAME} ${ARG_SRCS})
   target_compile_options(${ARG_NAME} PRIVATE ${PRISM_WARNING_FLAGS})
   target_link_libraries(${ARG_NAME} PRIVATE ${ARG_LINK})
+  install(TARGETS ${ARG_NAME} RUNTIME DESTINATION bin)
 endfunction()
 
 # prism_add_test(NAME name SRCS ... [LINK ...] [LABELS unit|integration|slow ...])

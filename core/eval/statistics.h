@@ -1,6 +1,7 @@
 // Summary statistics of error lists, with numpy's conventions so numbers match the public Python tools.
 #pragma once
 
+#include <cstddef>
 #include <vector>
 
 namespace prism {

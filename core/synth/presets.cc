@@ -99,10 +99,10 @@ StatusOr<TriangleMesh> LoadNamedMesh(const std::string& file, const std::string&
 }
 
 Status AddMesh(const Ctx& ctx, const std::string& file, int up_axis, double up_sign, double yaw_deg,
-               const AlbedoOptions& albedo, Scene* scene) {
+               const AlbedoOptions& albedo, Scene* scene, double size_m = 0.2) {
   PRISM_ASSIGN_OR_RETURN(TriangleMesh mesh, LoadNamedMesh(file, ctx.options.mesh_dir));
   mesh.ComputeVertexNormals();
-  NormaliseMesh(up_axis, up_sign, 0.2, &mesh);
+  NormaliseMesh(up_axis, up_sign, size_m, &mesh);
   SceneObject o;
   o.shape = ShapeKind::kMesh;
   o.mesh = std::make_shared<MeshBvh>(std::move(mesh));
@@ -182,7 +182,7 @@ const std::vector<PresetDef>& Definitions() {
                  },
                  TrajectoryStart::kSideways, 0.08, 120, nullptr});
     d.push_back({{"armadillo-textured-forward", "armadillo, textured albedo, forward start"},
-                 [](const Ctx& c, Scene* s) { return AddMesh(c, "armadillo.off", 1, 1, 180, Textured(c.seed), s); },
+                 [](const Ctx& c, Scene* s) { return AddMesh(c, "armadillo.off", 1, 1, 180, Textured(c.seed), s, 0.25); },
                  TrajectoryStart::kForward, 0.08, 120, nullptr});
     d.push_back({{"sphere-robust-sideways",
                   "multi-coloured sphere with ambient light, mild specularity and more noise (robustness)"},

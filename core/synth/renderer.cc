@@ -1,7 +1,6 @@
 #include "core/synth/renderer.h"
 
 #include <cmath>
-#include <random>
 #include <sstream>
 
 #include "core/util/thread_pool.h"
@@ -24,43 +23,112 @@ Status RenderOptions::Check() const {
   return InvalidArgumentError(e.str());
 }
 
-Eigen::Vector3d ShadePoint(const Scene& scene, const RigCalibration& rig, const Rigid3d& world_from_camera,
-                           const SurfaceHit& hit, const RenderOptions& options) {
+namespace {
+
+// Per-frame constants of the shading model, computed once per frame instead of once per pixel.
+struct FrameContext {
+  Rigid3d world_from_camera;
+  Rigid3d camera_from_world;
+  Eigen::Vector3d light_in_world[3];
+};
+
+FrameContext MakeContext(const RigCalibration& rig, const Rigid3d& world_from_camera) {
+  FrameContext c;
+  c.world_from_camera = world_from_camera;
+  c.camera_from_world = world_from_camera.Inverse();
+  for (int l = 0; l < 3; ++l) c.light_in_world[l] = world_from_camera * rig.lights[l].position_in_camera;
+  return c;
+}
+
+Eigen::Vector3d Shade(const Scene& scene, const RigCalibration& rig, const FrameContext& ctx, const SurfaceHit& hit,
+                      const RenderOptions& options) {
   const SceneObject& obj = scene.objects()[hit.object];
   const Eigen::Vector3d rho = obj.albedo.Evaluate(hit.point_in_object);
   const Eigen::Vector3d& n = hit.normal_in_world;
-  const Eigen::Vector3d view = (world_from_camera.translation - hit.point_in_world).normalized();
-  const Rigid3d camera_from_world = world_from_camera.Inverse();
-  const Eigen::Vector3d point_in_camera = camera_from_world * hit.point_in_world;
   const double specular = obj.specular * options.specular_scale;
+  Eigen::Vector3d view = Eigen::Vector3d::Zero();
+  if (specular > 0) view = (ctx.world_from_camera.translation - hit.point_in_world).normalized();
 
-  Eigen::Vector3d diffuse_per_light = Eigen::Vector3d::Zero();
-  Eigen::Vector3d specular_per_light = Eigen::Vector3d::Zero();
+  Eigen::Vector3d per_light = Eigen::Vector3d::Zero();
   for (int l = 0; l < 3; ++l) {
-    Eigen::Vector3d to_light_cam;
-    double irradiance;
-    rig.lights[l].Illuminate(point_in_camera, &to_light_cam, &irradiance);
-    const Eigen::Vector3d to_light = world_from_camera.rotation * to_light_cam;
+    const Light& light = rig.lights[l];
+    Eigen::Vector3d to_light;
+    double irradiance, dist;
+    if (light.type == LightType::kPoint) {
+      to_light = ctx.light_in_world[l] - hit.point_in_world;
+      const double d2 = to_light.squaredNorm();
+      dist = std::sqrt(d2);
+      to_light /= dist;
+      irradiance = light.intensity / d2;
+    } else {
+      to_light = ctx.world_from_camera.rotation * light.direction_in_camera.normalized();
+      irradiance = light.intensity;
+      dist = options.max_depth_m;
+    }
     const double cosine = n.dot(to_light);
-    if (cosine <= 0 || irradiance <= 0) continue;
+    if (cosine <= 0 || irradiance <= 0) continue;  // attached shadow
     // The geometric normal must also face the light, else the interpolated normal lies.
     if (hit.geometric_normal_in_world.dot(to_light) <= 0) continue;
     if (options.cast_shadows) {
-      const double dist = rig.lights[l].type == LightType::kPoint
-                              ? (rig.lights[l].position_in_camera - point_in_camera).norm()
-                              : options.max_depth_m;
       const Eigen::Vector3d origin = hit.point_in_world + options.shadow_bias_m * hit.geometric_normal_in_world;
       if (scene.Occluded(origin, to_light, 1e-9, dist)) continue;
     }
-    diffuse_per_light[l] = rho[l] * irradiance * cosine;
+    per_light[l] = rho[l] * irradiance * cosine;
     if (specular > 0) {
       const Eigen::Vector3d h = (to_light + view).normalized();
-      specular_per_light[l] = specular * irradiance * std::pow(std::max(0.0, n.dot(h)), obj.shininess);
+      per_light[l] += specular * irradiance * std::pow(std::max(0.0, n.dot(h)), obj.shininess);
     }
   }
-  Eigen::Vector3d radiance = rig.crosstalk * (diffuse_per_light + specular_per_light);
-  radiance += options.ambient * rho;
-  return radiance;
+  return rig.crosstalk * per_light + options.ambient * rho;
+}
+
+// SplitMix64-seeded xoshiro256+ with Box-Muller: a fast, deterministic Gaussian source.
+class FastGaussian {
+ public:
+  explicit FastGaussian(uint64_t seed) {
+    for (uint64_t& w : s_) {
+      seed += 0x9E3779B97F4A7C15ull;
+      uint64_t z = seed;
+      z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+      z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+      w = z ^ (z >> 31);
+    }
+  }
+  double operator()() {
+    if (has_spare_) {
+      has_spare_ = false;
+      return spare_;
+    }
+    const double u1 = (static_cast<double>(Next() >> 11) + 0.5) * 0x1.0p-53;
+    const double u2 = static_cast<double>(Next() >> 11) * 0x1.0p-53;
+    const double r = std::sqrt(-2.0 * std::log(u1));
+    spare_ = r * std::sin(2 * M_PI * u2);
+    has_spare_ = true;
+    return r * std::cos(2 * M_PI * u2);
+  }
+
+ private:
+  uint64_t Next() {
+    const uint64_t result = s_[0] + s_[3];
+    const uint64_t t = s_[1] << 17;
+    s_[2] ^= s_[0];
+    s_[3] ^= s_[1];
+    s_[1] ^= s_[2];
+    s_[0] ^= s_[3];
+    s_[2] ^= t;
+    s_[3] = (s_[3] << 45) | (s_[3] >> 19);
+    return result;
+  }
+  uint64_t s_[4];
+  double spare_ = 0;
+  bool has_spare_ = false;
+};
+
+}  // namespace
+
+Eigen::Vector3d ShadePoint(const Scene& scene, const RigCalibration& rig, const Rigid3d& world_from_camera,
+                           const SurfaceHit& hit, const RenderOptions& options) {
+  return Shade(scene, rig, MakeContext(rig, world_from_camera), hit, options);
 }
 
 RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const Rigid3d& world_from_camera,
@@ -73,11 +141,11 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
   f.normals.create(cam.height, cam.width, CV_32FC3);
   f.mask.create(cam.height, cam.width, CV_8U);
   const Eigen::Quaterniond camera_from_world_rot = world_from_camera.rotation.conjugate();
+  const FrameContext ctx = MakeContext(rig, world_from_camera);
 
   auto render_row = [&](std::ptrdiff_t y) {
     // Per-row noise stream: deterministic whatever the thread schedule.
-    std::mt19937_64 rng(noise_seed * 0x9E3779B97F4A7C15ull + static_cast<uint64_t>(y) + 1);
-    std::normal_distribution<double> gauss(0.0, 1.0);
+    FastGaussian gauss(noise_seed * 0x9E3779B97F4A7C15ull + static_cast<uint64_t>(y) + 1);
     cv::Vec3b* rgb = f.rgb.ptr<cv::Vec3b>(static_cast<int>(y));
     cv::Vec3f* rad = f.radiance.ptr<cv::Vec3f>(static_cast<int>(y));
     float* depth = f.depth.ptr<float>(static_cast<int>(y));
@@ -90,7 +158,7 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
       SurfaceHit hit;
       Eigen::Vector3d radiance = Eigen::Vector3d::Zero();
       if (scene.Intersect(world_from_camera.translation, dir, 1e-6, options.max_depth_m, &hit)) {
-        radiance = ShadePoint(scene, rig, world_from_camera, hit, options);
+        radiance = Shade(scene, rig, ctx, hit, options);
         depth[x] = static_cast<float>(hit.t * dir_cam.z());
         const Eigen::Vector3d n_cam = camera_from_world_rot * hit.normal_in_world;
         nrm[x] = cv::Vec3f(static_cast<float>(n_cam.x()), static_cast<float>(n_cam.y()), static_cast<float>(n_cam.z()));
@@ -104,7 +172,7 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
         rad[x][c] = static_cast<float>(radiance[c]);
         const double signal = 255.0 * radiance[c];
         const double sigma = std::sqrt(options.noise_sigma * options.noise_sigma + options.shot_noise * std::max(0.0, signal));
-        const double v = std::round(signal + sigma * gauss(rng));
+        const double v = std::round(signal + sigma * gauss());
         rgb[x][c] = static_cast<uint8_t>(std::min(255.0, std::max(0.0, v)));
       }
     }

@@ -20,7 +20,8 @@ class ThreadPool {
   ThreadPool(const ThreadPool&) = delete;
   ThreadPool& operator=(const ThreadPool&) = delete;
 
-  int num_threads() const { return static_cast<int>(workers_.size()); }
+  // Threads that run ParallelFor work: the workers plus the calling thread.
+  int num_threads() const { return static_cast<int>(workers_.size()) + 1; }
 
   // Runs fn(i) for i in [begin, end) on the pool and the calling thread; returns when all are done.
   // Indices are handed out in chunks of `grain`. An exception in fn is rethrown here (the first one).
