@@ -233,8 +233,8 @@ int RunTraj(const std::vector<std::string>& args) {
     std::fputs(kTrajUsage, stdout);
     return kExitOk;
   }
-  auto flags = Flags::Parse(args, {"gt", "est", "align", "max-diff", "delta", "delta-unit", "gt-times", "est-times"},
-                            {});
+  auto flags =
+      Flags::Parse(args, {"gt", "est", "align", "max-diff", "delta", "delta-unit", "gt-times", "est-times"}, {});
   if (!flags.ok()) return Fail(cmd, kExitUsage, flags.status());
   TrajectoryEvalOptions options;
   auto gt_path = flags->Required("gt");
@@ -412,8 +412,8 @@ struct MatchedFiles {
   size_t unmatched = 0;
 };
 
-StatusOr<MatchedFiles> MatchFrames(const std::string& dir, const Sequence& sequence,
-                                   std::string SequenceFrame::*member, const std::string& what) {
+StatusOr<MatchedFiles> MatchFrames(const std::string& dir, const Sequence& sequence, std::string SequenceFrame::*member,
+                                   const std::string& what) {
   std::error_code ec;
   if (!fs::is_directory(dir, ec)) return NotFoundError("'" + dir + "' is not a directory");
   std::map<std::string, size_t> frame_by_name;
@@ -437,8 +437,8 @@ StatusOr<MatchedFiles> MatchFrames(const std::string& dir, const Sequence& seque
     out.matches.emplace_back((fs::path(dir) / name).string(), it->second);
   }
   if (out.matches.empty())
-    return NotFoundError("no file in '" + dir + "' has the name of one of the sequence's " + what +
-                         " (e.g. '" + frame_by_name.begin()->first + "')");
+    return NotFoundError("no file in '" + dir + "' has the name of one of the sequence's " + what + " (e.g. '" +
+                         frame_by_name.begin()->first + "')");
   return out;
 }
 

@@ -14,8 +14,7 @@ Status CheckSets(const std::vector<Eigen::Vector3d>& source, const std::vector<E
                                 std::to_string(target.size()) + " target points");
   if (source.size() < min_points)
     return InvalidArgumentError("alignment: needs at least " + std::to_string(min_points) +
-                                " corresponding points, got " +
-                                std::to_string(source.size()));
+                                " corresponding points, got " + std::to_string(source.size()));
   for (size_t i = 0; i < source.size(); ++i)
     if (!source[i].allFinite() || !target[i].allFinite())
       return InvalidArgumentError("alignment: point " + std::to_string(i) + " is not finite");

@@ -30,14 +30,14 @@ struct CloudEvalOptions {
 
 struct CloudMetrics {
   double tau_m = 0.0;
-  size_t points = 0;              // reconstructed points evaluated (finite ones)
-  size_t non_finite_points = 0;   // reconstructed points skipped because a coordinate is NaN/inf
+  size_t points = 0;             // reconstructed points evaluated (finite ones)
+  size_t non_finite_points = 0;  // reconstructed points skipped because a coordinate is NaN/inf
   size_t gt_samples = 0;
-  double accuracy_mean_m = 0.0;   // mean distance reconstruction -> ground truth
+  double accuracy_mean_m = 0.0;  // mean distance reconstruction -> ground truth
   double accuracy_median_m = 0.0;
-  double precision = 0.0;         // in [0, 1]
-  double completeness = 0.0;      // in [0, 1]
-  double fscore = 0.0;            // 2 P C / (P + C), 0 when both are 0
+  double precision = 0.0;     // in [0, 1]
+  double completeness = 0.0;  // in [0, 1]
+  double fscore = 0.0;        // 2 P C / (P + C), 0 when both are 0
 };
 
 // INVALID_ARGUMENT when either set is empty (after dropping non-finite reconstructed points), a
@@ -77,8 +77,7 @@ StatusOr<SurfaceSamples> SampleGroundTruthSurface(const Sequence& sequence, cons
 
 // Axis-aligned bounds of the back-projected points SampleGroundTruthSurface would use (before
 // downsampling; options.voxel_size_m is ignored). Same errors.
-StatusOr<Eigen::AlignedBox3d> GroundTruthSurfaceBounds(const Sequence& sequence,
-                                                       const SurfaceSamplingOptions& options);
+StatusOr<Eigen::AlignedBox3d> GroundTruthSurfaceBounds(const Sequence& sequence, const SurfaceSamplingOptions& options);
 
 struct PixelCoverage {
   size_t object_pixels = 0;   // pixels with mask == kMaskObject

@@ -29,13 +29,13 @@ struct DepthEvalOptions {
 };
 
 struct DepthErrorStats {
-  double scale = 1.0;            // factor applied to the estimate
-  size_t pixels = 0;             // pixels with both depths valid (inside the mask)
-  size_t gt_pixels = 0;          // pixels with valid ground truth inside the mask
-  double coverage = 0.0;         // pixels / gt_pixels, in [0, 1]
-  double rmse_m = 0.0;           // sqrt(mean (s est - gt)^2)
-  double mean_abs_m = 0.0;       // mean |s est - gt|
-  double median_rel_error = 0.0; // median |s est - gt| / gt
+  double scale = 1.0;             // factor applied to the estimate
+  size_t pixels = 0;              // pixels with both depths valid (inside the mask)
+  size_t gt_pixels = 0;           // pixels with valid ground truth inside the mask
+  double coverage = 0.0;          // pixels / gt_pixels, in [0, 1]
+  double rmse_m = 0.0;            // sqrt(mean (s est - gt)^2)
+  double mean_abs_m = 0.0;        // mean |s est - gt|
+  double median_rel_error = 0.0;  // median |s est - gt| / gt
 };
 
 // Collects valid depth pairs over many frames; the scale and statistics are computed once at the end.
@@ -48,7 +48,7 @@ class DepthErrorAccumulator {
   StatusOr<DepthErrorStats> Summarize(const DepthEvalOptions& options) const;
 
  private:
-  std::vector<float> estimate_m_;      // parallel to ground_truth_m_, pixels with both valid
+  std::vector<float> estimate_m_;  // parallel to ground_truth_m_, pixels with both valid
   std::vector<float> ground_truth_m_;
   size_t gt_pixels_ = 0;
 };

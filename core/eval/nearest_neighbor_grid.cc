@@ -54,6 +54,8 @@ NearestNeighborGrid::NearestNeighborGrid(const std::vector<Eigen::Vector3f>& poi
       level0.nodes.push_back({key, static_cast<uint32_t>(k), static_cast<uint32_t>(k)});
     level0.nodes.back().end = static_cast<uint32_t>(k + 1);
   }
+  cell_index_.reserve(level0.nodes.size());
+  for (size_t i = 0; i < level0.nodes.size(); ++i) cell_index_.emplace(level0.nodes[i].key, static_cast<uint32_t>(i));
   levels_.push_back(std::move(level0));
 
   // Coarser levels until few cells remain.
@@ -62,8 +64,7 @@ NearestNeighborGrid::NearestNeighborGrid(const std::vector<Eigen::Vector3f>& poi
     std::vector<std::pair<Key, uint32_t>> parents(below.nodes.size());
     for (size_t i = 0; i < below.nodes.size(); ++i) {
       const Key& k = below.nodes[i].key;
-      parents[i] = {{FloorDiv(k.x, kBranch), FloorDiv(k.y, kBranch), FloorDiv(k.z, kBranch)},
-                    static_cast<uint32_t>(i)};
+      parents[i] = {{FloorDiv(k.x, kBranch), FloorDiv(k.y, kBranch), FloorDiv(k.z, kBranch)}, static_cast<uint32_t>(i)};
     }
     std::sort(parents.begin(), parents.end(), [&](const auto& a, const auto& b) {
       if (!(a.first == b.first)) return key_less(a.first, b.first);
@@ -94,15 +95,57 @@ double NearestNeighborGrid::BoxDistanceSquared(const Eigen::Vector3d& query, con
   return d2;
 }
 
+void NearestNeighborGrid::ScanNode(const Node& node, const Eigen::Vector3d& query, double* best_sq, bool* found) const {
+  for (uint32_t k = node.begin; k < node.end; ++k) {
+    const double d2 = (points_[k].cast<double>() - query).squaredNorm();
+    if (d2 <= *best_sq) {
+      *best_sq = d2;
+      *found = true;
+    }
+  }
+}
+
 double NearestNeighborGrid::NearestDistance(const Eigen::Vector3f& query, double max_distance_m) const {
-  if (points_.empty()) return std::numeric_limits<double>::infinity();
+  constexpr double kInfinity = std::numeric_limits<double>::infinity();
+  if (points_.empty()) return kInfinity;
   const Eigen::Vector3d q = query.cast<double>();
-  // Cell boxes are computed from integer keys while points were binned with floor(p / cell); shrink the
-  // lower bounds by a hair so rounding can never prune the cell that holds the nearest point.
-  const double slack = 1e-9 * cell_size_m_;
   double best_sq = max_distance_m * max_distance_m;
   bool found = false;
 
+  // 1. The 3x3x3 cells around the query. Any point outside them is at least one cell size away (up to
+  // rounding at cell borders, hence the slack), so a hit within that distance is the answer.
+  const Eigen::Vector3d c = (q / cell_size_m_).array().floor();
+  if (c.cwiseAbs().maxCoeff() <= kMaxCellIndex) {
+    const Key center{static_cast<int64_t>(c.x()), static_cast<int64_t>(c.y()), static_cast<int64_t>(c.z())};
+    // Squared distance from the query to the neighbour slab on each side, per axis (index d + 1).
+    double axis_sq[3][3];
+    for (int a = 0; a < 3; ++a) {
+      const double below = std::max(0.0, q[a] - c[a] * cell_size_m_);
+      const double above = std::max(0.0, (c[a] + 1.0) * cell_size_m_ - q[a]);
+      axis_sq[a][0] = below * below;
+      axis_sq[a][1] = 0.0;
+      axis_sq[a][2] = above * above;
+    }
+    // The query's own cell first, then the neighbours that can still hold a closer point.
+    auto scan = [&](int64_t dx, int64_t dy, int64_t dz) {
+      const double lower_bound_sq = axis_sq[0][dx + 1] + axis_sq[1][dy + 1] + axis_sq[2][dz + 1];
+      if (lower_bound_sq * (1.0 - 1e-9) > best_sq) return;
+      const auto it = cell_index_.find({center.x + dx, center.y + dy, center.z + dz});
+      if (it != cell_index_.end()) ScanNode(levels_[0].nodes[it->second], q, &best_sq, &found);
+    };
+    scan(0, 0, 0);
+    for (int64_t dz = -1; dz <= 1; ++dz)
+      for (int64_t dy = -1; dy <= 1; ++dy)
+        for (int64_t dx = -1; dx <= 1; ++dx)
+          if (dx != 0 || dy != 0 || dz != 0) scan(dx, dy, dz);
+    const double settled = cell_size_m_ * (1.0 - 1e-9);
+    if (best_sq <= settled * settled) return found ? std::sqrt(best_sq) : kInfinity;
+  }
+
+  // 2. Best-first search over the levels, from the coarsest, pruning cells farther than the best so far.
+  // Cell boxes are computed from integer keys while points were binned with floor(p / cell); shrink the
+  // lower bounds by a hair so rounding can never prune the cell that holds the nearest point.
+  const double slack = 1e-9 * cell_size_m_;
   struct Entry {
     double lower_bound_sq;
     int level;
@@ -123,19 +166,12 @@ double NearestNeighborGrid::NearestDistance(const Eigen::Vector3f& query, double
     if (e.lower_bound_sq > best_sq) break;
     const Level& l = levels_[static_cast<size_t>(e.level)];
     const Node& node = l.nodes[e.node];
-    if (e.level == 0) {
-      for (uint32_t k = node.begin; k < node.end; ++k) {
-        const double d2 = (points_[k].cast<double>() - q).squaredNorm();
-        if (d2 <= best_sq) {
-          best_sq = d2;
-          found = true;
-        }
-      }
-    } else {
+    if (e.level == 0)
+      ScanNode(node, q, &best_sq, &found);
+    else
       for (uint32_t k = node.begin; k < node.end; ++k) push(e.level - 1, l.children[k]);
-    }
   }
-  return found ? std::sqrt(best_sq) : std::numeric_limits<double>::infinity();
+  return found ? std::sqrt(best_sq) : kInfinity;
 }
 
 }  // namespace prism

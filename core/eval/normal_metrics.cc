@@ -34,8 +34,8 @@ Status NormalErrorAccumulator::Add(const cv::Mat& estimate, const cv::Mat& groun
     return InvalidArgumentError("normal maps must be CV_32FC3");
   if (estimate.size() != ground_truth.size())
     return InvalidArgumentError("normal map sizes differ: estimate " + std::to_string(estimate.cols) + "x" +
-                                std::to_string(estimate.rows) + ", ground truth " +
-                                std::to_string(ground_truth.cols) + "x" + std::to_string(ground_truth.rows));
+                                std::to_string(estimate.rows) + ", ground truth " + std::to_string(ground_truth.cols) +
+                                "x" + std::to_string(ground_truth.rows));
   if (!mask.empty() && (mask.type() != CV_8UC1 || mask.size() != estimate.size()))
     return InvalidArgumentError("mask must be CV_8UC1 of the normal maps' size");
   for (int y = 0; y < estimate.rows; ++y) {

@@ -12,9 +12,9 @@
 namespace prism {
 
 struct AngularErrorStats {
-  size_t count = 0;          // compared pixels
+  size_t count = 0;  // compared pixels
   double mean_deg = 0.0;
-  double median_deg = 0.0;   // mean of the two middle values for an even count
+  double median_deg = 0.0;  // mean of the two middle values for an even count
   double rmse_deg = 0.0;
   double pct_under_5 = 0.0;  // percent of pixels with error < 5 degrees, in [0, 100]
   double pct_under_10 = 0.0;

@@ -66,8 +66,27 @@ size_t FindClosestIndex(const std::vector<double>& sorted, double t) {
   return best;
 }
 
-// Relative transform inv(a) * b of 4x4 poses (TUM ominus).
-Eigen::Matrix4d Ominus(const Eigen::Matrix4d& a, const Eigen::Matrix4d& b) { return a.inverse() * b; }
+// Rotation angle of a rotation matrix in [0, pi]. The script's arccos(clamp((trace(R) - 1) / 2, -1, 1))
+// resolves angles near 0 only to ~2e-8 rad (1e-6 deg); atan2 of sin and cos, with sin from the
+// antisymmetric part, is the same angle for a rotation matrix and exact near 0.
+double RotationMatrixAngle(const Eigen::Matrix3d& r) {
+  const double cos_angle = 0.5 * (r.trace() - 1.0);
+  const double sin_angle = 0.5 * Eigen::Vector3d(r(2, 1) - r(1, 2), r(0, 2) - r(2, 0), r(1, 0) - r(0, 1)).norm();
+  return std::atan2(sin_angle, cos_angle);
+}
+
+// A rigid transform as rotation matrix and translation.
+struct Motion {
+  Eigen::Matrix3d rotation;
+  Eigen::Vector3d translation;
+};
+
+// TUM's ominus(a, b) = inv(a) * b for rigid transforms, with the inverse taken in closed form
+// (R^T, -R^T t) rather than numpy's general 4x4 inverse: the same value up to rounding, and identical
+// inputs give bit-identical motions, hence an error of exactly zero.
+Motion Ominus(const Motion& a, const Motion& b) {
+  return {a.rotation.transpose() * b.rotation, a.rotation.transpose() * (b.translation - a.translation)};
+}
 
 }  // namespace
 
@@ -185,7 +204,8 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
   result.pairs = matches.size();
   PRISM_ASSIGN_OR_RETURN(result.gt_from_est, AlignPoints(est_positions, gt_positions, options.alignment));
   std::vector<double> errors(matches.size());
-  for (size_t k = 0; k < matches.size(); ++k) errors[k] = (result.gt_from_est * est_positions[k] - gt_positions[k]).norm();
+  for (size_t k = 0; k < matches.size(); ++k)
+    errors[k] = (result.gt_from_est * est_positions[k] - gt_positions[k]).norm();
   result.error_m = ComputeErrorStatistics(errors);
   for (size_t k = 1; k < gt_positions.size(); ++k)
     result.trajectory_length_m += (gt_positions[k] - gt_positions[k - 1]).norm();
@@ -220,10 +240,11 @@ StatusOr<RpeResult> ComputeRpe(const Trajectory& groundtruth, const Trajectory& 
   for (size_t k = 1; k < gt_stamps.size(); ++k) intervals[k - 1] = gt_stamps[k] - gt_stamps[k - 1];
   const double gt_max_time_difference_s = 2.0 * Median(intervals);
 
-  std::vector<Eigen::Matrix4d> est_matrices(est.size());
-  std::vector<Eigen::Matrix4d> gt_matrices(gt.size());
-  for (size_t i = 0; i < est.size(); ++i) est_matrices[i] = est[i].world_from_camera.ToMatrix();
-  for (size_t i = 0; i < gt.size(); ++i) gt_matrices[i] = gt[i].world_from_camera.ToMatrix();
+  auto to_motion = [](const Rigid3d& pose) { return Motion{pose.RotationMatrix(), pose.translation}; };
+  std::vector<Motion> est_poses(est.size());
+  std::vector<Motion> gt_poses(gt.size());
+  for (size_t i = 0; i < est.size(); ++i) est_poses[i] = to_motion(est[i].world_from_camera);
+  for (size_t i = 0; i < gt.size(); ++i) gt_poses[i] = to_motion(gt[i].world_from_camera);
 
   std::vector<double> trans_errors;
   std::vector<double> rot_errors;
@@ -233,13 +254,13 @@ StatusOr<RpeResult> ComputeRpe(const Trajectory& groundtruth, const Trajectory& 
     if (std::abs(gt_stamps[gi] - est_stamps[i]) > gt_max_time_difference_s ||
         std::abs(gt_stamps[gj] - est_stamps[j]) > gt_max_time_difference_s)
       continue;
-    Eigen::Matrix4d est_motion = Ominus(est_matrices[j], est_matrices[i]);
-    est_motion.block<3, 1>(0, 3) *= estimate_scale;
-    const Eigen::Matrix4d gt_motion = Ominus(gt_matrices[gj], gt_matrices[gi]);
-    const Eigen::Matrix4d error = Ominus(est_motion, gt_motion);
-    trans_errors.push_back(error.block<3, 1>(0, 3).norm());
-    const double cos_angle = std::min(1.0, std::max(-1.0, (error.block<3, 3>(0, 0).trace() - 1.0) / 2.0));
-    rot_errors.push_back(std::acos(cos_angle) * kRadToDeg);
+    // evaluate_rpe.py: ominus(scale(ominus(E_j, E_i), s), ominus(G_j, G_i)).
+    Motion est_motion = Ominus(est_poses[j], est_poses[i]);
+    est_motion.translation *= estimate_scale;
+    const Motion gt_motion = Ominus(gt_poses[gj], gt_poses[gi]);
+    const Motion error = Ominus(est_motion, gt_motion);
+    trans_errors.push_back(error.translation.norm());
+    rot_errors.push_back(RotationMatrixAngle(error.rotation) * kRadToDeg);
   }
   if (trans_errors.empty())
     return FailedPreconditionError("RPE: no pose pair has ground truth within " +

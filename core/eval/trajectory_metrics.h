@@ -40,7 +40,7 @@ struct TrajectoryEvalOptions {
   // Unit of rpe_delta.
   RpeDeltaUnit rpe_delta_unit = RpeDeltaUnit::kFrames;
 
-  Status Check() const;  // "TrajectoryEvalOptions.rpe_delta = 0; violated: > 0"
+  Status Check() const;  // "TrajectoryEvalOptions.rpe_delta = 0; violated: in (0, inf)"
 };
 
 // Indices of one associated pair: first_stamps[first] <-> second_stamps[second].
@@ -57,16 +57,16 @@ std::vector<TimestampPair> AssociateTimestamps(const std::vector<double>& first_
                                                double second_offset_s = 0.0);
 
 struct AteResult {
-  size_t pairs = 0;              // associated pose pairs
-  ErrorStatistics error_m;       // |gt position - aligned estimate position| per pair, metres
-  Sim3d gt_from_est;             // alignment applied to the estimate (identity for kNone)
+  size_t pairs = 0;                  // associated pose pairs
+  ErrorStatistics error_m;           // |gt position - aligned estimate position| per pair, metres
+  Sim3d gt_from_est;                 // alignment applied to the estimate (identity for kNone)
   double trajectory_length_m = 0.0;  // ground-truth path length over the associated poses
 };
 
 struct RpeResult {
-  size_t pairs = 0;                // evaluated pose pairs
-  ErrorStatistics trans_error_m;   // translational part of each relative error, metres
-  ErrorStatistics rot_error_deg;   // rotation angle of each relative error, degrees
+  size_t pairs = 0;               // evaluated pose pairs
+  ErrorStatistics trans_error_m;  // translational part of each relative error, metres
+  ErrorStatistics rot_error_deg;  // rotation angle of each relative error, degrees
 };
 
 struct TrajectoryEvalResult {
@@ -86,7 +86,8 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
 // 2 x the median ground-truth interval. With 4x4 world_from_camera poses, the error is the script's
 //   error = inv(inv(E_j) E_i) * (inv(G_j) G_i)
 // with the estimate's relative translation multiplied by `estimate_scale` (TUM --scale); translational
-// error = |translation(error)|, rotational error = arccos(clamp((trace(R) - 1) / 2, -1, 1)).
+// error = |translation(error)|, rotational error = the angle of its rotation (the script's
+// arccos((trace(R) - 1) / 2), computed as atan2(sin, cos) so that it stays exact near 0).
 // (inv(inv(E_i) E_j) * inv(G_i) G_j, evo's form up to inversion, has the same angle but a slightly
 // different translation norm: 0.0057597 instead of the script's 0.0057634 m on fr1/xyz rgbdslam.)
 // FAILED_PRECONDITION when no pair survives.

@@ -223,9 +223,9 @@ RigCalibration MakeDefaultRig(int width, int height) {
   RigCalibration rig;
   rig.camera = PinholeCamera::FromFov(width, height, 50.0);
   // Camera frame: x right, y down, z forward. Red left, green right (both slightly below), blue above.
-  rig.lights[0] = {"red", LightType::kPoint, {-0.20, 0.08, 0.0}, {0, 0, -1}, {1, 0, 0}, 0.26};
-  rig.lights[1] = {"green", LightType::kPoint, {0.20, 0.08, 0.0}, {0, 0, -1}, {0, 1, 0}, 0.22};
-  rig.lights[2] = {"blue", LightType::kPoint, {0.0, -0.20, 0.0}, {0, 0, -1}, {0, 0, 1}, 0.30};
+  rig.lights[0] = {"red", LightType::kPoint, {-0.20, 0.08, 0.0}, {0, 0, -1}, {1, 0, 0}, 0.12};
+  rig.lights[1] = {"green", LightType::kPoint, {0.20, 0.08, 0.0}, {0, 0, -1}, {0, 1, 0}, 0.10};
+  rig.lights[2] = {"blue", LightType::kPoint, {0.0, -0.20, 0.0}, {0, 0, -1}, {0, 0, 1}, 0.13};
   // Response of camera channel (row) to light (column): the sensor's dyes overlap.
   rig.crosstalk << 1.00, 0.12, 0.02,
                    0.10, 1.00, 0.14,

@@ -22,7 +22,8 @@ void BM_RenderFrame(benchmark::State& state, const std::string& preset) {
   const Trajectory t = MakeTrajectory(setup->trajectory);
   size_t i = 0;
   for (auto _ : state) {
-    RenderedFrame f = RenderFrame(setup->scene, setup->rig, t[i++ % t.size()].world_from_camera, setup->render, i);
+    RenderedFrame f = RenderFrame(setup->scene, setup->rig, t[i % t.size()].world_from_camera, setup->render, i);
+    ++i;
     benchmark::DoNotOptimize(f.rgb.data);
   }
   state.counters["frames_per_s"] = benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);

@@ -1,0 +1,481 @@
+#include "core/photometric/photometric_stereo.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <random>
+#include <sstream>
+
+#include <Eigen/Dense>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/ximgproc/slic.hpp>
+
+namespace prism {
+namespace {
+
+// One pixel used for fitting.
+struct FitPixel {
+  int x, y;
+  Eigen::Vector3d q;       // demixed colour (per light band), [0, 1] units
+  Eigen::Vector3d n0;      // prior normal, camera frame
+  Eigen::Vector3d ray;     // (u, v, 1) ray of the pixel
+  double inverse_depth;    // dense prior
+  int label = -1;
+};
+
+double Median(std::vector<double>& v) {
+  if (v.empty()) return 0.0;
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+// Per-band shading E_l * max(0, l_l . n) at the point `ray / inverse_depth * scale`.
+Eigen::Vector3d NearLightShading(const RigCalibration& rig, const Eigen::Vector3d& point, const Eigen::Vector3d& n) {
+  Eigen::Vector3d a;
+  for (int l = 0; l < 3; ++l) {
+    Eigen::Vector3d to_light;
+    double irradiance;
+    rig.lights[l].Illuminate(point, &to_light, &irradiance);
+    a[l] = irradiance * std::max(0.0, to_light.dot(n));
+  }
+  return a;
+}
+
+// S(p): rows E_l l_l^T.
+Eigen::Matrix3d NearLightMatrix(const RigCalibration& rig, const Eigen::Vector3d& point) {
+  Eigen::Matrix3d s;
+  for (int l = 0; l < 3; ++l) {
+    Eigen::Vector3d to_light;
+    double irradiance;
+    rig.lights[l].Illuminate(point, &to_light, &irradiance);
+    s.row(l) = irradiance * to_light.transpose();
+  }
+  return s;
+}
+
+// Per-band albedo estimate of a pixel under scale s (NaN components where a band is unlit).
+Eigen::Vector3d AlbedoEstimate(const RigCalibration& rig, const FitPixel& p, double scale) {
+  const Eigen::Vector3d a = NearLightShading(rig, p.ray * (scale / p.inverse_depth), p.n0);
+  Eigen::Vector3d rho;
+  for (int l = 0; l < 3; ++l) rho[l] = a[l] > 1e-4 ? p.q[l] / a[l] : std::nan("");
+  return rho;
+}
+
+Eigen::Vector2d Chromaticity(const Eigen::Vector3d& v) {
+  const double s = v.x() + v.y() + v.z();
+  return Eigen::Vector2d(v.x() / s, v.y() / s);
+}
+
+// k-means with BIC model selection on 2D chromaticities; returns centres.
+std::vector<Eigen::Vector2d> ClusterChromaticities(const std::vector<Eigen::Vector2d>& samples,
+                                                   const std::vector<float>& weights, int max_clusters, uint32_t seed) {
+  const int n = static_cast<int>(samples.size());
+  if (n == 0) return {};
+  cv::Mat data(n, 2, CV_32F);
+  for (int i = 0; i < n; ++i) {
+    data.at<float>(i, 0) = static_cast<float>(samples[i].x());
+    data.at<float>(i, 1) = static_cast<float>(samples[i].y());
+  }
+  double total_w = 0;
+  for (float w : weights) total_w += w;
+  double best_bic = std::numeric_limits<double>::infinity();
+  std::vector<Eigen::Vector2d> best;
+  for (int k = 1; k <= std::min(max_clusters, n); ++k) {
+    cv::Mat labels, centres;
+    cv::theRNG().state = 0x1234567ull + seed;
+    cv::kmeans(data, k, labels, cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-6), 3,
+               cv::KMEANS_PP_CENTERS, centres);
+    double sse = 0;
+    for (int i = 0; i < n; ++i) {
+      const int c = labels.at<int>(i);
+      const double dx = data.at<float>(i, 0) - centres.at<float>(c, 0), dy = data.at<float>(i, 1) - centres.at<float>(c, 1);
+      sse += weights[i] * (dx * dx + dy * dy);
+    }
+    // Isotropic Gaussian per cluster, shared variance; parameters: k centres (2 each) + k-1 weights.
+    const double var = std::max(sse / (2 * total_w), 1e-10);
+    const double bic = 2 * total_w * std::log(var) + (3.0 * k - 1) * std::log(total_w);
+    if (bic < best_bic) {
+      best_bic = bic;
+      best.clear();
+      for (int c = 0; c < k; ++c) best.emplace_back(centres.at<float>(c, 0), centres.at<float>(c, 1));
+    }
+  }
+  return best;
+}
+
+int Nearest(const std::vector<Eigen::Vector2d>& centres, const Eigen::Vector2d& v) {
+  int best = -1;
+  double bd = std::numeric_limits<double>::infinity();
+  for (size_t c = 0; c < centres.size(); ++c) {
+    const double d = (centres[c] - v).squaredNorm();
+    if (d < bd) {
+      bd = d;
+      best = static_cast<int>(c);
+    }
+  }
+  return best;
+}
+
+}  // namespace
+
+Status PhotometricOptions::Check() const {
+  PRISM_RETURN_IF_ERROR(densify.Check());
+  PRISM_RETURN_IF_ERROR(prior.Check());
+  std::ostringstream e;
+  if (!(min_level >= 0 && min_level <= 255)) e << "PhotometricOptions.min_level = " << min_level << "; violated: in [0, 255]";
+  else if (!(saturation_level > min_level && saturation_level <= 255))
+    e << "PhotometricOptions.saturation_level = " << saturation_level << "; violated: in (min_level, 255]";
+  else if (max_clusters < 1 || max_clusters > 16) e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
+  else if (superpixel_size_px < 0 || superpixel_size_px > 100)
+    e << "PhotometricOptions.superpixel_size_px = " << superpixel_size_px << "; violated: in [0, 100]";
+  else if (max_fit_pixels < 100 || max_fit_pixels > 1000000)
+    e << "PhotometricOptions.max_fit_pixels = " << max_fit_pixels << "; violated: in [100, 1e6]";
+  else if (min_cluster_pixels < 10) e << "PhotometricOptions.min_cluster_pixels = " << min_cluster_pixels << "; violated: >= 10";
+  else if (!(min_normal_spread >= 0 && min_normal_spread <= 1))
+    e << "PhotometricOptions.min_normal_spread = " << min_normal_spread << "; violated: in [0, 1]";
+  else if (!(depth_scale > 0)) e << "PhotometricOptions.depth_scale = " << depth_scale << "; violated: > 0";
+  else if (!(depth_scale_search_factor > 1))
+    e << "PhotometricOptions.depth_scale_search_factor = " << depth_scale_search_factor << "; violated: > 1";
+  if (e.str().empty()) return Status::Ok();
+  return InvalidArgumentError(e.str());
+}
+
+bool FitLightingMatrix(const std::vector<Eigen::Vector3d>& colors, const std::vector<Eigen::Vector3d>& normals,
+                       Eigen::Matrix3d* lighting) {
+  const size_t n = colors.size();
+  if (n < 6 || normals.size() != n) return false;
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  for (const auto& nn : normals) scatter += nn * nn.transpose();
+  scatter /= static_cast<double>(n);
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(scatter);
+  if (eig.eigenvalues().minCoeff() < 1e-4) return false;
+  Eigen::Matrix3d m = Eigen::Matrix3d::Zero();
+  std::vector<double> w(n, 1.0);
+  for (int iter = 0; iter < 6; ++iter) {
+    for (int c = 0; c < 3; ++c) {
+      Eigen::Matrix3d a = Eigen::Matrix3d::Zero();
+      Eigen::Vector3d b = Eigen::Vector3d::Zero();
+      for (size_t i = 0; i < n; ++i) {
+        a += w[i] * normals[i] * normals[i].transpose();
+        b += w[i] * colors[i][c] * normals[i];
+      }
+      m.row(c) = a.ldlt().solve(b).transpose();
+    }
+    // Huber weights on the residual norm, threshold 1.345 x robust sigma (MAD).
+    std::vector<double> r(n);
+    for (size_t i = 0; i < n; ++i) r[i] = (colors[i] - m * normals[i]).norm();
+    std::vector<double> rr = r;
+    const double sigma = std::max(1e-6, 1.4826 * Median(rr));
+    const double k = 1.345 * sigma;
+    for (size_t i = 0; i < n; ++i) w[i] = r[i] <= k ? 1.0 : k / r[i];
+  }
+  *lighting = m;
+  return true;
+}
+
+StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior, const RigCalibration& rig,
+                                            const PhotometricOptions& options) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  if (rgb.type() != CV_8UC3) return InvalidArgumentError("EstimateNormals: image must be 8-bit RGB (CV_8UC3)");
+  if (prior.inverse_depth.type() != CV_32F || prior.variance.type() != CV_32F ||
+      prior.inverse_depth.size() != rgb.size() || prior.variance.size() != rgb.size())
+    return InvalidArgumentError("EstimateNormals: depth prior must be two CV_32F maps of the image's size");
+  if (rig.camera.width != rgb.cols || rig.camera.height != rgb.rows)
+    return InvalidArgumentError("EstimateNormals: camera size differs from the image size");
+  const bool calibrated = options.mode == PhotometricMode::kCalibrated;
+  if (calibrated) PRISM_RETURN_IF_ERROR(rig.Check());
+
+  PhotometricResult result;
+  result.dense_inverse_depth = DensifyInverseDepth(prior, options.densify);
+  result.prior_normals = PriorNormals(result.dense_inverse_depth, rig.camera, options.prior);
+  const Eigen::Matrix3d demix = calibrated ? Eigen::Matrix3d(rig.crosstalk.inverse()) : Eigen::Matrix3d::Identity();
+  const int w = rgb.cols, h = rgb.rows;
+
+  // Reliable pixels: prior normal present, neither dark nor saturated.
+  std::vector<FitPixel> fit;
+  for (int y = 0; y < h; ++y) {
+    const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
+    const cv::Vec3f* n0 = result.prior_normals.ptr<cv::Vec3f>(y);
+    const float* inv = result.dense_inverse_depth.ptr<float>(y);
+    for (int x = 0; x < w; ++x) {
+      if (n0[x][2] == 0 && n0[x][0] == 0) continue;
+      const int mx = std::max({c[x][0], c[x][1], c[x][2]});
+      if (mx < options.min_level || mx >= options.saturation_level) continue;
+      FitPixel p;
+      p.x = x;
+      p.y = y;
+      p.q = demix * Eigen::Vector3d(c[x][0], c[x][1], c[x][2]) / 255.0;
+      p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
+      p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
+      p.inverse_depth = inv[x];
+      fit.push_back(p);
+    }
+  }
+  if (fit.size() < 50) return FailedPreconditionError("EstimateNormals: fewer than 50 pixels with a reliable prior");
+  std::mt19937 rng(options.seed);
+  if (static_cast<int>(fit.size()) > options.max_fit_pixels) {
+    std::shuffle(fit.begin(), fit.end(), rng);
+    fit.resize(options.max_fit_pixels);
+  }
+
+  // Chromaticity of each fit pixel (normal-independent albedo direction).
+  double scale = options.depth_scale;
+  Eigen::Matrix3d global_m = Eigen::Matrix3d::Identity();
+  auto chroma_of = [&](const FitPixel& p, Eigen::Vector2d* out) {
+    Eigen::Vector3d r;
+    if (calibrated) {
+      r = AlbedoEstimate(rig, p, scale);
+    } else {
+      const Eigen::Vector3d pred = global_m * p.n0;
+      for (int l = 0; l < 3; ++l) r[l] = pred[l] > 1e-4 ? p.q[l] / pred[l] : std::nan("");
+    }
+    if (!r.allFinite() || r.minCoeff() <= 0) return false;
+    *out = Chromaticity(r);
+    return true;
+  };
+  if (!calibrated) {
+    std::vector<Eigen::Vector3d> cs, ns;
+    for (const FitPixel& p : fit) {
+      cs.push_back(p.q);
+      ns.push_back(p.n0);
+    }
+    if (!FitLightingMatrix(cs, ns, &global_m))
+      return FailedPreconditionError("EstimateNormals: prior normals too uniform to fit the lighting");
+  }
+
+  // Superpixels (SLIC) give spatially coherent clusters.
+  cv::Mat sp_labels;
+  int num_sp = 0;
+  if (options.superpixel_size_px > 0) {
+    cv::Mat lab;
+    cv::cvtColor(rgb, lab, cv::COLOR_RGB2Lab);
+    auto slic = cv::ximgproc::createSuperpixelSLIC(lab, cv::ximgproc::SLICO, options.superpixel_size_px);
+    slic->iterate(5);
+    slic->getLabels(sp_labels);
+    num_sp = slic->getNumberOfSuperpixels();
+  }
+
+  auto cluster = [&]() {
+    std::vector<Eigen::Vector2d> samples;
+    std::vector<float> weights;
+    std::vector<Eigen::Vector2d> pixel_chroma(fit.size());
+    std::vector<bool> has(fit.size(), false);
+    for (size_t i = 0; i < fit.size(); ++i) has[i] = chroma_of(fit[i], &pixel_chroma[i]);
+    if (num_sp > 0) {
+      std::vector<Eigen::Vector2d> sum(num_sp, Eigen::Vector2d::Zero());
+      std::vector<int> count(num_sp, 0);
+      for (size_t i = 0; i < fit.size(); ++i) {
+        if (!has[i]) continue;
+        const int s = sp_labels.at<int>(fit[i].y, fit[i].x);
+        sum[s] += pixel_chroma[i];
+        count[s]++;
+      }
+      for (int s = 0; s < num_sp; ++s)
+        if (count[s] > 0) {
+          samples.push_back(sum[s] / count[s]);
+          weights.push_back(static_cast<float>(count[s]));
+        }
+      const auto centres = ClusterChromaticities(samples, weights, options.max_clusters, options.seed);
+      std::vector<int> sp_cluster(num_sp, -1);
+      for (int s = 0; s < num_sp; ++s)
+        if (count[s] > 0) sp_cluster[s] = Nearest(centres, sum[s] / count[s]);
+      return std::make_pair(centres, sp_cluster);
+    }
+    for (size_t i = 0; i < fit.size(); ++i)
+      if (has[i]) {
+        samples.push_back(pixel_chroma[i]);
+        weights.push_back(1.f);
+      }
+    return std::make_pair(ClusterChromaticities(samples, weights, options.max_clusters, options.seed), std::vector<int>());
+  };
+
+  std::vector<Eigen::Vector2d> centres;
+  std::vector<int> sp_cluster;
+  auto label_fit_pixels = [&]() {
+    for (FitPixel& p : fit) {
+      if (num_sp > 0) {
+        p.label = sp_cluster[sp_labels.at<int>(p.y, p.x)];
+      } else {
+        Eigen::Vector2d ch;
+        p.label = chroma_of(p, &ch) ? Nearest(centres, ch) : -1;
+      }
+    }
+  };
+
+  // Per-cluster albedo (calibrated) as the per-band median of the pixel estimates.
+  std::vector<Eigen::Vector3d> albedo;
+  auto estimate_albedo = [&](double s) {
+    const int k = static_cast<int>(centres.size());
+    std::vector<std::vector<double>> band[3];
+    for (auto& b : band) b.assign(k + 1, {});
+    for (const FitPixel& p : fit) {
+      const Eigen::Vector3d r = AlbedoEstimate(rig, p, s);
+      for (int l = 0; l < 3; ++l) {
+        if (!std::isfinite(r[l])) continue;
+        if (p.label >= 0) band[l][p.label].push_back(r[l]);
+        band[l][k].push_back(r[l]);  // global
+      }
+    }
+    albedo.assign(k + 1, Eigen::Vector3d::Ones());
+    for (int c = 0; c <= k; ++c)
+      for (int l = 0; l < 3; ++l) {
+        auto& v = band[l][c].size() >= static_cast<size_t>(options.min_cluster_pixels / 3) ? band[l][c] : band[l][k];
+        albedo[c][l] = Median(v);
+      }
+  };
+  auto scale_cost = [&](double s) {
+    estimate_albedo(s);
+    double cost = 0;
+    const int k = static_cast<int>(centres.size());
+    for (const FitPixel& p : fit) {
+      const Eigen::Vector3d a = NearLightShading(rig, p.ray * (s / p.inverse_depth), p.n0);
+      const Eigen::Vector3d& rho = albedo[p.label >= 0 ? p.label : k];
+      cost += (p.q - rho.cwiseProduct(a)).cwiseAbs().sum() / std::max(1e-3, p.q.sum());
+    }
+    return cost;
+  };
+
+  auto clustered = cluster();
+  centres = clustered.first;
+  sp_cluster = clustered.second;
+  label_fit_pixels();
+  if (calibrated && options.estimate_depth_scale) {
+    // Log-grid search, then golden-section refinement; re-cluster once at the found scale.
+    for (int pass = 0; pass < 2; ++pass) {
+      const double lo = std::log(options.depth_scale / options.depth_scale_search_factor);
+      const double hi = std::log(options.depth_scale * options.depth_scale_search_factor);
+      const int steps = 25;
+      double best = std::numeric_limits<double>::infinity(), best_t = 0;
+      for (int i = 0; i <= steps; ++i) {
+        const double t = lo + (hi - lo) * i / steps;
+        const double c = scale_cost(std::exp(t));
+        if (c < best) {
+          best = c;
+          best_t = t;
+        }
+      }
+      double a = best_t - (hi - lo) / steps, b = best_t + (hi - lo) / steps;
+      const double g = 0.5 * (std::sqrt(5.0) - 1);
+      double x1 = b - g * (b - a), x2 = a + g * (b - a);
+      double f1 = scale_cost(std::exp(x1)), f2 = scale_cost(std::exp(x2));
+      for (int i = 0; i < 20; ++i) {
+        if (f1 < f2) {
+          b = x2;
+          x2 = x1;
+          f2 = f1;
+          x1 = b - g * (b - a);
+          f1 = scale_cost(std::exp(x1));
+        } else {
+          a = x1;
+          x1 = x2;
+          f1 = f2;
+          x2 = a + g * (b - a);
+          f2 = scale_cost(std::exp(x2));
+        }
+      }
+      scale = std::exp(0.5 * (a + b));
+      if (pass == 0) {
+        clustered = cluster();
+        centres = clustered.first;
+        sp_cluster = clustered.second;
+        label_fit_pixels();
+      }
+    }
+  }
+  const int k = static_cast<int>(centres.size());
+  result.num_clusters = k;
+  result.depth_scale = scale;
+
+  // Per-cluster models.
+  std::vector<Eigen::Matrix3d> m_inv(k + 1, Eigen::Matrix3d::Identity());
+  if (calibrated) {
+    estimate_albedo(scale);
+    result.cluster_albedo.assign(albedo.begin(), albedo.begin() + k);
+  } else {
+    std::vector<std::vector<Eigen::Vector3d>> cs(k), ns(k);
+    for (const FitPixel& p : fit)
+      if (p.label >= 0) {
+        cs[p.label].push_back(p.q);
+        ns[p.label].push_back(p.n0);
+      }
+    result.cluster_lighting.assign(k, global_m);
+    for (int c = 0; c < k; ++c) {
+      Eigen::Matrix3d m;
+      bool ok = static_cast<int>(cs[c].size()) >= options.min_cluster_pixels;
+      if (ok) {
+        Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+        for (const auto& n : ns[c]) scatter += n * n.transpose();
+        scatter /= static_cast<double>(ns[c].size());
+        ok = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(scatter).eigenvalues().minCoeff() * 3 >= options.min_normal_spread;
+      }
+      if (ok && FitLightingMatrix(cs[c], ns[c], &m) && std::abs(m.determinant()) > 1e-12) result.cluster_lighting[c] = m;
+      m_inv[c] = result.cluster_lighting[c].inverse();
+    }
+    m_inv[k] = global_m.inverse();
+  }
+
+  // Label every pixel: its superpixel's cluster, or the nearest centre by its own chromaticity.
+  result.labels = cv::Mat(h, w, CV_32S, cv::Scalar(-1));
+  result.normals = cv::Mat(h, w, CV_32FC3, cv::Scalar(0, 0, 0));
+  result.confidence = cv::Mat(h, w, CV_32F, cv::Scalar(0));
+  for (int y = 0; y < h; ++y) {
+    const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
+    const float* inv = result.dense_inverse_depth.ptr<float>(y);
+    const cv::Vec3f* n0 = result.prior_normals.ptr<cv::Vec3f>(y);
+    int* lab = result.labels.ptr<int>(y);
+    cv::Vec3f* out = result.normals.ptr<cv::Vec3f>(y);
+    float* conf = result.confidence.ptr<float>(y);
+    for (int x = 0; x < w; ++x) {
+      const int mx = std::max({c[x][0], c[x][1], c[x][2]});
+      if (mx < options.min_level) continue;
+      int label = num_sp > 0 ? sp_cluster[sp_labels.at<int>(y, x)] : -1;
+      FitPixel p;
+      p.x = x;
+      p.y = y;
+      p.q = demix * Eigen::Vector3d(c[x][0], c[x][1], c[x][2]) / 255.0;
+      p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
+      p.inverse_depth = inv[x];
+      p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
+      if (label < 0 && p.n0.squaredNorm() > 0 && (!calibrated || p.inverse_depth > 0)) {
+        Eigen::Vector2d ch;
+        if (chroma_of(p, &ch)) label = Nearest(centres, ch);
+      }
+      lab[x] = label;
+      const int model = label >= 0 ? label : k;
+      Eigen::Vector3d n;
+      double quality = 1.0;
+      if (calibrated) {
+        if (!(p.inverse_depth > 0)) continue;
+        const Eigen::Vector3d point = p.ray * (scale / p.inverse_depth);
+        const Eigen::Matrix3d s = NearLightMatrix(rig, point);
+        const Eigen::Vector3d b = p.q.cwiseQuotient(albedo[model].cwiseMax(1e-3));
+        n = s.partialPivLu().solve(b);
+        // |n| = 1 when the model holds; far from 1 means shadow, wrong albedo or wrong depth.
+        const double len = n.norm();
+        quality = std::exp(-std::pow((len - 1.0) / 0.25, 2));
+        // A light that contributes nothing (shadow) makes the 3-light solve unreliable.
+        const Eigen::Vector3d expected = s * (n / std::max(len, 1e-9));
+        for (int l = 0; l < 3; ++l)
+          if (b[l] < 0.15 * std::max(expected[l], 1e-6)) quality *= 0.2;
+      } else {
+        n = m_inv[model] * p.q;
+      }
+      const double len = n.norm();
+      if (!(len > 1e-9) || !n.allFinite()) continue;
+      n /= len;
+      if (n.dot(p.ray) > 0) {  // facing away: flip, and trust it less
+        n = -n;
+        quality *= 0.2;
+      }
+      if (mx >= options.saturation_level) quality *= 0.2;
+      if (label < 0) quality *= 0.5;
+      quality *= std::min(1.0, mx / (3.0 * std::max(1.0, options.min_level)));
+      out[x] = cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
+      conf[x] = static_cast<float>(std::clamp(quality, 0.0, 1.0));
+    }
+  }
+  return result;
+}
+
+}  // namespace prism

@@ -1,0 +1,79 @@
+// Multispectral (colour) photometric stereo from one RGB keyframe (paper §3.3; Anderson, Stenger,
+// Cipolla, ICCV 2011), with the SLAM depth prior standing in for the calibration object.
+//
+// Per pixel, camera colour c = X diag(rho) S(p) n: X the crosstalk, rho the albedo per light band,
+// S(p) rows = E_l(p) l_l(p)^T (irradiance times direction of light l at the surface point).
+//   kCalibrated:   X, the light positions and intensities come from the rig calibration; S(p) is
+//                  evaluated per pixel from the densified depth (near point lights), the unknown
+//                  SLAM depth scale is estimated, and rho per chromaticity cluster.
+//   kUncalibrated: the paper's model c = M_k n with one 3x3 M_k per chromaticity cluster (distant
+//                  lights), fitted by robust least squares to the prior normals.
+#pragma once
+
+#include <vector>
+
+#include <Eigen/Core>
+#include <opencv2/core.hpp>
+
+#include "core/io/calibration_io.h"
+#include "core/photometric/depth_prior.h"
+#include "core/util/status.h"
+
+namespace prism {
+
+enum class PhotometricMode { kCalibrated, kUncalibrated };
+
+struct PhotometricOptions {
+  PhotometricMode mode = PhotometricMode::kCalibrated;
+  DensifyOptions densify;
+  PriorNormalOptions prior;
+  // Pixels darker than this (max channel, 8-bit levels) are not used for fitting and get low
+  // confidence, in [0, 255].
+  double min_level = 12.0;
+  // Pixels with a channel at or above this (8-bit levels) are saturated, in [0, 255].
+  double saturation_level = 250.0;
+  // Maximum number of chromaticity clusters (model selection by BIC picks 1..max), in [1, 16].
+  int max_clusters = 6;
+  // SLIC superpixel size in pixels (0 = cluster pixels directly), in [0, 100].
+  int superpixel_size_px = 12;
+  // Pixels sampled per fit (robust least squares, scale search), in [100, 1e6].
+  int max_fit_pixels = 20000;
+  // Minimum pixels with reliable priors for a cluster's own model; else the global model is used.
+  int min_cluster_pixels = 200;
+  // Minimum smallest eigenvalue of the prior normals' scatter (x3) for a cluster's own M
+  // (kUncalibrated): the normals must be varied enough, in [0, 1].
+  double min_normal_spread = 0.05;
+  // kCalibrated: estimate the scale between SLAM depth units and metres (else it is `depth_scale`).
+  bool estimate_depth_scale = true;
+  // Metres per SLAM depth unit when not estimated, or the centre of the search, > 0.
+  double depth_scale = 1.0;
+  // Search range of the scale around depth_scale (factor), > 1.
+  double depth_scale_search_factor = 4.0;
+  uint32_t seed = 1;
+
+  Status Check() const;
+};
+
+struct PhotometricResult {
+  cv::Mat normals;              // CV_32FC3, camera frame, facing the camera; (0,0,0) = none
+  cv::Mat confidence;           // CV_32F in [0, 1]
+  cv::Mat labels;               // CV_32S chromaticity cluster per pixel, -1 = none
+  cv::Mat dense_inverse_depth;  // CV_32F, the densified prior
+  cv::Mat prior_normals;        // CV_32FC3, from the densified prior
+  int num_clusters = 0;
+  double depth_scale = 1.0;                         // metres per depth unit used (kCalibrated)
+  std::vector<Eigen::Vector3d> cluster_albedo;      // kCalibrated, per cluster
+  std::vector<Eigen::Matrix3d> cluster_lighting;    // kUncalibrated, M_k per cluster
+};
+
+// rgb: CV_8UC3 (RGB order). The prior must have the image's size. rig: camera and, in
+// kCalibrated mode, the lights and crosstalk.
+StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior,
+                                            const RigCalibration& rig, const PhotometricOptions& options);
+
+// Robust (Huber IRLS) least-squares fit of M in c = M n over corresponding colours and unit
+// normals; false when the normals do not span 3D well enough.
+bool FitLightingMatrix(const std::vector<Eigen::Vector3d>& colors, const std::vector<Eigen::Vector3d>& normals,
+                       Eigen::Matrix3d* lighting);
+
+}  // namespace prism

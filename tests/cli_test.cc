@@ -1,0 +1,178 @@
+// The command-line contract of prism-synth and prism-eval, run as real processes: a rendered
+// sequence evaluated against itself gives zeros, against a perturbed copy gives the perturbation.
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <regex>
+#include <string>
+
+#include <gtest/gtest.h>
+#include <opencv2/core.hpp>
+
+#include "core/io/image_io.h"
+#include "core/io/ply_io.h"
+#include "core/io/sequence.h"
+#include "core/io/trajectory_io.h"
+
+namespace prism {
+namespace {
+namespace fs = std::filesystem;
+
+struct ProcessResult {
+  int exit_code = -1;
+  std::string out;  // stdout and stderr
+};
+
+ProcessResult Execute(const std::string& command) {
+  ProcessResult r;
+  FILE* p = popen((command + " 2>&1").c_str(), "r");
+  if (!p) return r;
+  char buf[4096];
+  size_t n;
+  while ((n = fread(buf, 1, sizeof(buf), p)) > 0) r.out.append(buf, n);
+  const int status = pclose(p);
+  r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
+}
+
+std::string Bin(const std::string& name) { return std::string(PRISM_BINARY_DIR) + "/bin/" + name; }
+
+// The number after "key": in a JSON text (NaN when absent).
+double JsonNumber(const std::string& json, const std::string& key) {
+  const std::regex re("\"" + key + "\"\\s*:\\s*([-+0-9.eE]+)");
+  std::smatch m;
+  if (!std::regex_search(json, m, re)) return std::nan("");
+  return std::stod(m[1]);
+}
+
+class CliTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new fs::path(fs::temp_directory_path() / ("prism_cli_test_" + std::to_string(::getpid())));
+    fs::remove_all(*dir_);
+    fs::create_directories(*dir_);
+    const ProcessResult r = Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --frames 24 --size 128x96 --seed 3" +
+                          " --out " + Seq() + " --gt-cloud " + (*dir_ / "gt.ply").string());
+    ASSERT_EQ(r.exit_code, 0) << r.out;
+  }
+  static void TearDownTestSuite() {
+    fs::remove_all(*dir_);
+    delete dir_;
+  }
+  static std::string Seq() { return (*dir_ / "seq").string(); }
+  static std::string P(const std::string& name) { return (*dir_ / name).string(); }
+  static fs::path* dir_;
+};
+fs::path* CliTest::dir_ = nullptr;
+
+TEST_F(CliTest, ListPresetsPrintsOneNamePerLineDemoFirst) {
+  const ProcessResult r = Execute(Bin("prism-synth") + " --list-presets");
+  ASSERT_EQ(r.exit_code, 0);
+  EXPECT_EQ(r.out.substr(0, r.out.find('\n')), "bunny-multicolor-forward");
+  EXPECT_GE(std::count(r.out.begin(), r.out.end(), '\n'), 10);
+  EXPECT_EQ(r.out.find(' '), std::string::npos) << "names only, one per line";
+}
+
+TEST_F(CliTest, BadArgumentsAndInputsFailWithAMessage) {
+  const std::pair<std::string, std::string> cases[] = {
+      {Bin("prism-synth") + " --frames many --preset x --out /tmp/x", "--frames"},
+      {Bin("prism-synth") + " --preset no-such-preset --out " + P("none"), "unknown preset"},
+      {Bin("prism-synth") + " --bogus", "unknown argument"},
+      {Bin("prism-eval") + " traj --gt " + P("missing.txt") + " --est " + P("missing.txt"), "missing.txt"},
+      {Bin("prism-eval") + " traj --gt " + Seq() + "/groundtruth.txt", "--est"},
+      {Bin("prism-eval") + " cloud --sequence " + P("nope") + " --cloud " + P("gt.ply"), "nope"},
+      {Bin("prism-eval") + " frobnicate", "frobnicate"},
+  };
+  for (const auto& [cmd, needle] : cases) {
+    const ProcessResult r = Execute(cmd);
+    EXPECT_NE(r.exit_code, 0) << cmd;
+    EXPECT_NE(r.out.find(needle), std::string::npos) << cmd << " said: " << r.out;
+  }
+  for (const char* tool : {"prism-synth", "prism-eval"}) {
+    const ProcessResult r = Execute(Bin(tool) + " --help");
+    EXPECT_EQ(r.exit_code, 0) << tool;
+    EXPECT_NE(r.out.find("sage:"), std::string::npos) << tool;  // "usage:" or "Usage:"
+  }
+}
+
+TEST_F(CliTest, TrajectoryAgainstItselfIsZeroAndAgainstAPerturbedCopyIsThePerturbation) {
+  const std::string gt = Seq() + "/groundtruth.txt";
+  ProcessResult r = Execute(Bin("prism-eval") + " traj --gt " + gt + " --est " + gt + " --align none");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "ate_rmse_m"), 0.0);
+  EXPECT_EQ(JsonNumber(r.out, "rpe_trans_rmse_m"), 0.0);
+  EXPECT_EQ(JsonNumber(r.out, "rpe_rot_rmse_deg"), 0.0);
+  EXPECT_EQ(JsonNumber(r.out, "pairs"), 24);
+
+  // Every position moved by 1 cm: unaligned ATE is exactly 1 cm, RPE stays 0, SE(3) alignment removes it.
+  Trajectory traj = ReadTumTrajectory(gt).value();
+  for (TimedPose& p : traj) p.world_from_camera.translation += Eigen::Vector3d(0.006, 0.0, 0.008);
+  ASSERT_TRUE(WriteTumTrajectory(P("shifted.txt"), traj).ok());
+  r = Execute(Bin("prism-eval") + " traj --gt " + gt + " --est " + P("shifted.txt") + " --align none");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NEAR(JsonNumber(r.out, "ate_rmse_m"), 0.01, /*file rounding=*/1e-6);
+  EXPECT_NEAR(JsonNumber(r.out, "rpe_trans_rmse_m"), 0.0, 1e-6);
+  r = Execute(Bin("prism-eval") + " traj --gt " + gt + " --est " + P("shifted.txt") + " --align se3");
+  EXPECT_NEAR(JsonNumber(r.out, "ate_rmse_m"), 0.0, 1e-6);
+
+  // A similarity transform (scale 2.5) is undone by Sim(3) alignment, which reports the scale.
+  const Sim3d s(2.5, Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, -2, 0.5).normalized())),
+                Eigen::Vector3d(1, 2, -3));
+  traj = ReadTumTrajectory(gt).value();
+  for (TimedPose& p : traj) p.world_from_camera = s.TransformPose(p.world_from_camera);
+  ASSERT_TRUE(WriteTumTrajectory(P("sim3.txt"), traj).ok());
+  r = Execute(Bin("prism-eval") + " traj --gt " + gt + " --est " + P("sim3.txt") + " --align sim3");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NEAR(JsonNumber(r.out, "ate_rmse_m"), 0.0, 1e-5);
+  EXPECT_NEAR(JsonNumber(r.out, "scale"), 1 / 2.5, 1e-6);
+}
+
+TEST_F(CliTest, NormalsAgainstItselfIsZeroAndRotatedByFiveDegreesIsFive) {
+  ProcessResult r = Execute(Bin("prism-eval") + " normals --sequence " + Seq() + " --normals " + Seq() + "/normals");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "mean_deg"), 0.0);
+  EXPECT_EQ(JsonNumber(r.out, "frames"), 24);
+
+  const Sequence seq = LoadSequence(Seq()).value();
+  fs::create_directories(P("rotated"));
+  for (size_t i = 0; i < seq.frames.size(); i += 6) {
+    cv::Mat n = seq.ReadNormals(i).value();
+    n.forEach<cv::Vec3f>([&](cv::Vec3f& v, const int*) {
+      if (v[0] == 0 && v[1] == 0 && v[2] == 0) return;
+      // Rotate by 5 degrees about an axis perpendicular to the normal: the angle is exactly 5.
+      const Eigen::Vector3f n(v[0], v[1], v[2]);
+      Eigen::Vector3f axis = n.cross(Eigen::Vector3f::UnitX());
+      if (axis.norm() < 1e-3f) axis = n.cross(Eigen::Vector3f::UnitY());
+      const Eigen::Vector3f w = Eigen::AngleAxisf(5.0f * static_cast<float>(M_PI) / 180.f, axis.normalized()) * n;
+      v = cv::Vec3f(w.x(), w.y(), w.z());
+    });
+    ASSERT_TRUE(WriteNormalPng(P("rotated/") + fs::path(seq.frames[i].normal_file).filename().string(), n).ok());
+  }
+  r = Execute(Bin("prism-eval") + " normals --sequence " + Seq() + " --normals " + P("rotated") + " --object-only");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NEAR(JsonNumber(r.out, "mean_deg"), 5.0, /*quantisation=*/0.01);
+  EXPECT_NEAR(JsonNumber(r.out, "median_deg"), 5.0, 0.01);
+  EXPECT_EQ(JsonNumber(r.out, "frames"), 4);
+}
+
+TEST_F(CliTest, CloudAgainstTheSurfaceIsPerfectAndAShiftedCopyIsOffByTheShift) {
+  ProcessResult r = Execute(Bin("prism-eval") + " cloud --sequence " + Seq() + " --cloud " + P("gt.ply"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_LT(JsonNumber(r.out, "accuracy_m"), /*voxel averaging=*/0.001);
+  EXPECT_GT(JsonNumber(r.out, "completeness"), 0.99);
+  EXPECT_GT(JsonNumber(r.out, "fscore"), 0.99);
+
+  PointCloud cloud = ReadPointCloudPly(P("gt.ply")).value();
+  for (auto& p : cloud.positions) p.z() += 0.02f;  // 2 cm up: far beyond tau = 5 mm
+  ASSERT_TRUE(WritePointCloudPly(P("shifted.ply"), cloud).ok());
+  r = Execute(Bin("prism-eval") + " cloud --sequence " + Seq() + " --cloud " + P("shifted.ply"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  // Points on the ground move straight up by 2 cm; object points end nearer other surface.
+  EXPECT_GT(JsonNumber(r.out, "accuracy_median_m"), 0.015);
+  EXPECT_LE(JsonNumber(r.out, "accuracy_median_m"), 0.0205);
+  EXPECT_LT(JsonNumber(r.out, "fscore"), 0.2);
+}
+
+}  // namespace
+}  // namespace prism
