@@ -117,6 +117,39 @@ int Nearest(const std::vector<Eigen::Vector2d>& centres, const Eigen::Vector2d& 
   return best;
 }
 
+
+// Refines u = 1/rho of one cluster so that the photometric normals n_i = S_i^-1 diag(q_i) u have unit
+// length (Gauss-Newton, Huber weights). Needs no prior normals: the unit-norm constraint alone
+// calibrates the albedo once the light geometry S_i is known. Returns the robust cost.
+double RefineInverseAlbedo(const std::vector<Eigen::Matrix3d>& a, Eigen::Vector3d* u) {
+  double cost = 0;
+  for (int iter = 0; iter < 8; ++iter) {
+    Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d g = Eigen::Vector3d::Zero();
+    std::vector<double> res(a.size());
+    for (size_t i = 0; i < a.size(); ++i) res[i] = std::abs((a[i] * *u).norm() - 1.0);
+    std::vector<double> tmp = res;
+    const double sigma = std::max(1e-3, 1.4826 * Median(tmp));
+    const double k = 1.345 * sigma;
+    cost = 0;
+    for (size_t i = 0; i < a.size(); ++i) {
+      const Eigen::Vector3d n = a[i] * *u;
+      const double len = n.norm();
+      if (len < 1e-9) continue;
+      const double r = len - 1.0;
+      const double w = std::abs(r) <= k ? 1.0 : k / std::abs(r);
+      cost += std::abs(r) <= k ? 0.5 * r * r : k * (std::abs(r) - 0.5 * k);
+      const Eigen::RowVector3d j = n.transpose() * a[i] / len;
+      h += w * j.transpose() * j;
+      g += w * j.transpose() * r;
+    }
+    const Eigen::Vector3d step = (h + 1e-9 * Eigen::Matrix3d::Identity()).ldlt().solve(-g);
+    *u += step;
+    if (step.norm() < 1e-8 * u->norm()) break;
+  }
+  return cost / std::max<size_t>(1, a.size());
+}
+
 }  // namespace
 
 Status PhotometricOptions::Check() const {
@@ -324,17 +357,38 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         albedo[c][l] = Median(v);
       }
   };
-  auto scale_cost = [&](double s) {
+  // Calibrated albedo at scale s: the median estimate refined by the unit-norm constraint.
+  auto refine_albedo = [&](double s) {
     estimate_albedo(s);
-    double cost = 0;
     const int k = static_cast<int>(centres.size());
+    std::vector<std::vector<Eigen::Matrix3d>> a(k + 1);
     for (const FitPixel& p : fit) {
-      const Eigen::Vector3d a = NearLightShading(rig, p.ray * (s / p.inverse_depth), p.n0);
-      const Eigen::Vector3d& rho = albedo[p.label >= 0 ? p.label : k];
-      cost += (p.q - rho.cwiseProduct(a)).cwiseAbs().sum() / std::max(1e-3, p.q.sum());
+      const Eigen::Matrix3d sm = NearLightMatrix(rig, p.ray * (s / p.inverse_depth));
+      const Eigen::Matrix3d am = sm.partialPivLu().inverse() * p.q.asDiagonal();
+      if (!am.allFinite()) continue;
+      a[p.label >= 0 ? p.label : k].push_back(am);
+      if (p.label >= 0) a[k].push_back(am);
     }
-    return cost;
+    double total = 0;
+    size_t count = 0;
+    for (int c = 0; c <= k; ++c) {
+      if (a[c].size() < static_cast<size_t>(std::max(10, options.min_cluster_pixels / 4))) {
+        if (c < k) albedo[c] = albedo[k];
+        continue;
+      }
+      Eigen::Vector3d u = albedo[c].cwiseMax(1e-3).cwiseInverse();
+      const double cost = RefineInverseAlbedo(a[c], &u);
+      if (u.allFinite() && u.minCoeff() > 0) {
+        albedo[c] = u.cwiseInverse();
+        if (c < k) {
+          total += cost * a[c].size();
+          count += a[c].size();
+        }
+      }
+    }
+    return count ? total / count : std::numeric_limits<double>::infinity();
   };
+  auto scale_cost = [&](double s) { return refine_albedo(s); };
 
   auto clustered = cluster();
   centres = clustered.first;
@@ -390,7 +444,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // Per-cluster models.
   std::vector<Eigen::Matrix3d> m_inv(k + 1, Eigen::Matrix3d::Identity());
   if (calibrated) {
-    estimate_albedo(scale);
+    refine_albedo(scale);
     result.cluster_albedo.assign(albedo.begin(), albedo.begin() + k);
   } else {
     std::vector<std::vector<Eigen::Vector3d>> cs(k), ns(k);

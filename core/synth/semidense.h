@@ -15,7 +15,7 @@ namespace prism::synth {
 struct SemiDenseOptions {
   // Minimum intensity-gradient magnitude (grey levels per pixel, central differences) for a pixel
   // to get depth, in [0, 255].
-  double min_gradient = 6.0;
+  double min_gradient = 3.0;
   // Relative standard deviation of the inverse-depth noise, in [0, 0.5].
   double relative_noise = 0.01;
   // Unknown scale: the output is in units of `scale` metres (SLAM units), > 0.
