@@ -69,7 +69,8 @@ Eigen::Vector2d Chromaticity(const Eigen::Vector3d& v) {
 
 // k-means with BIC model selection on 2D chromaticities; returns centres.
 std::vector<Eigen::Vector2d> ClusterChromaticities(const std::vector<Eigen::Vector2d>& samples,
-                                                   const std::vector<float>& weights, int max_clusters, uint32_t seed) {
+                                                   const std::vector<float>& weights, int max_clusters, double min_sigma,
+                                                   uint32_t seed) {
   const int n = static_cast<int>(samples.size());
   if (n == 0) return {};
   cv::Mat data(n, 2, CV_32F);
@@ -93,7 +94,9 @@ std::vector<Eigen::Vector2d> ClusterChromaticities(const std::vector<Eigen::Vect
       sse += weights[i] * (dx * dx + dy * dy);
     }
     // Isotropic Gaussian per cluster, shared variance; parameters: k centres (2 each) + k-1 weights.
-    const double var = std::max(sse / (2 * total_w), 1e-10);
+    // The variance floor stands for the chromaticity noise that the prior normals' errors cause:
+    // spread below it is shading error, not albedo, and must not create clusters.
+    const double var = std::max(sse / (2 * total_w), std::max(1e-10, min_sigma * min_sigma));
     const double bic = 2 * total_w * std::log(var) + (3.0 * k - 1) * std::log(total_w);
     if (bic < best_bic) {
       best_bic = bic;
@@ -118,38 +121,6 @@ int Nearest(const std::vector<Eigen::Vector2d>& centres, const Eigen::Vector2d& 
 }
 
 
-// Refines u = 1/rho of one cluster so that the photometric normals n_i = S_i^-1 diag(q_i) u have unit
-// length (Gauss-Newton, Huber weights). Needs no prior normals: the unit-norm constraint alone
-// calibrates the albedo once the light geometry S_i is known. Returns the robust cost.
-double RefineInverseAlbedo(const std::vector<Eigen::Matrix3d>& a, Eigen::Vector3d* u) {
-  double cost = 0;
-  for (int iter = 0; iter < 8; ++iter) {
-    Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
-    Eigen::Vector3d g = Eigen::Vector3d::Zero();
-    std::vector<double> res(a.size());
-    for (size_t i = 0; i < a.size(); ++i) res[i] = std::abs((a[i] * *u).norm() - 1.0);
-    std::vector<double> tmp = res;
-    const double sigma = std::max(1e-3, 1.4826 * Median(tmp));
-    const double k = 1.345 * sigma;
-    cost = 0;
-    for (size_t i = 0; i < a.size(); ++i) {
-      const Eigen::Vector3d n = a[i] * *u;
-      const double len = n.norm();
-      if (len < 1e-9) continue;
-      const double r = len - 1.0;
-      const double w = std::abs(r) <= k ? 1.0 : k / std::abs(r);
-      cost += std::abs(r) <= k ? 0.5 * r * r : k * (std::abs(r) - 0.5 * k);
-      const Eigen::RowVector3d j = n.transpose() * a[i] / len;
-      h += w * j.transpose() * j;
-      g += w * j.transpose() * r;
-    }
-    const Eigen::Vector3d step = (h + 1e-9 * Eigen::Matrix3d::Identity()).ldlt().solve(-g);
-    *u += step;
-    if (step.norm() < 1e-8 * u->norm()) break;
-  }
-  return cost / std::max<size_t>(1, a.size());
-}
-
 }  // namespace
 
 Status PhotometricOptions::Check() const {
@@ -159,6 +130,16 @@ Status PhotometricOptions::Check() const {
   if (!(min_level >= 0 && min_level <= 255)) e << "PhotometricOptions.min_level = " << min_level << "; violated: in [0, 255]";
   else if (!(saturation_level > min_level && saturation_level <= 255))
     e << "PhotometricOptions.saturation_level = " << saturation_level << "; violated: in (min_level, 255]";
+  else if (!(image_smoothing_sigma_px >= 0 && image_smoothing_sigma_px <= 5))
+    e << "PhotometricOptions.image_smoothing_sigma_px = " << image_smoothing_sigma_px << "; violated: in [0, 5]";
+  else if (!(min_prior_support >= 0 && min_prior_support <= 1))
+    e << "PhotometricOptions.min_prior_support = " << min_prior_support << "; violated: in [0, 1]";
+  else if (!(min_band_fraction >= 0 && min_band_fraction < 1))
+    e << "PhotometricOptions.min_band_fraction = " << min_band_fraction << "; violated: in [0, 1)";
+  else if (reassignment_rounds < 0 || reassignment_rounds > 10)
+    e << "PhotometricOptions.reassignment_rounds = " << reassignment_rounds << "; violated: in [0, 10]";
+  else if (!(min_chromaticity_sigma >= 0 && min_chromaticity_sigma <= 0.5))
+    e << "PhotometricOptions.min_chromaticity_sigma = " << min_chromaticity_sigma << "; violated: in [0, 0.5]";
   else if (max_clusters < 1 || max_clusters > 16) e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
   else if (superpixel_size_px < 0 || superpixel_size_px > 100)
     e << "PhotometricOptions.superpixel_size_px = " << superpixel_size_px << "; violated: in [0, 100]";
@@ -219,13 +200,32 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   const bool calibrated = options.mode == PhotometricMode::kCalibrated;
   if (calibrated) PRISM_RETURN_IF_ERROR(rig.Check());
 
+  // Linear colour in [0, 1] (optionally smoothed), before demixing.
+  cv::Mat color;
+  rgb.convertTo(color, CV_32FC3, 1.0 / 255.0);
+  if (options.image_smoothing_sigma_px > 0) {
+    const int ksize = static_cast<int>(std::ceil(3 * options.image_smoothing_sigma_px)) * 2 + 1;
+    cv::GaussianBlur(color, color, cv::Size(ksize, ksize), options.image_smoothing_sigma_px);
+  }
+
   PhotometricResult result;
   result.dense_inverse_depth = DensifyInverseDepth(prior, options.densify);
   result.prior_normals = PriorNormals(result.dense_inverse_depth, rig.camera, options.prior);
   const Eigen::Matrix3d demix = calibrated ? Eigen::Matrix3d(rig.crosstalk.inverse()) : Eigen::Matrix3d::Identity();
   const int w = rgb.cols, h = rgb.rows;
 
-  // Reliable pixels: prior normal present, neither dark nor saturated.
+  // Support: the local density of real (semi-dense) samples. Far from samples the densified depth
+  // is an extrapolation and its normals are not a usable prior.
+  cv::Mat support;
+  {
+    cv::Mat samples;
+    cv::Mat(prior.inverse_depth > 0).convertTo(samples, CV_32F, 1.0 / 255.0);
+    const double sigma = std::max(2.0, 2.0 * options.prior.step_px);
+    const int ksize = static_cast<int>(std::ceil(3 * sigma)) * 2 + 1;
+    cv::GaussianBlur(samples, support, cv::Size(ksize, ksize), sigma);
+  }
+  // Reliable pixels: prior normal present near real samples, neither dark nor saturated, lit by all
+  // three lights (a band near zero is an attached or cast shadow).
   std::vector<FitPixel> fit;
   for (int y = 0; y < h; ++y) {
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
@@ -235,13 +235,16 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       if (n0[x][2] == 0 && n0[x][0] == 0) continue;
       const int mx = std::max({c[x][0], c[x][1], c[x][2]});
       if (mx < options.min_level || mx >= options.saturation_level) continue;
+      if (support.at<float>(y, x) < options.min_prior_support) continue;
       FitPixel p;
       p.x = x;
       p.y = y;
-      p.q = demix * Eigen::Vector3d(c[x][0], c[x][1], c[x][2]) / 255.0;
+      const cv::Vec3f cf = color.at<cv::Vec3f>(y, x);
+      p.q = demix * Eigen::Vector3d(cf[0], cf[1], cf[2]);
       p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
       p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
       p.inverse_depth = inv[x];
+      if (p.q.minCoeff() < options.min_band_fraction * p.q.maxCoeff()) continue;
       fit.push_back(p);
     }
   }
@@ -309,7 +312,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
           samples.push_back(sum[s] / count[s]);
           weights.push_back(static_cast<float>(count[s]));
         }
-      const auto centres = ClusterChromaticities(samples, weights, options.max_clusters, options.seed);
+      const auto centres = ClusterChromaticities(samples, weights, options.max_clusters, options.min_chromaticity_sigma, options.seed);
       std::vector<int> sp_cluster(num_sp, -1);
       for (int s = 0; s < num_sp; ++s)
         if (count[s] > 0) sp_cluster[s] = Nearest(centres, sum[s] / count[s]);
@@ -320,7 +323,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         samples.push_back(pixel_chroma[i]);
         weights.push_back(1.f);
       }
-    return std::make_pair(ClusterChromaticities(samples, weights, options.max_clusters, options.seed), std::vector<int>());
+    return std::make_pair(ClusterChromaticities(samples, weights, options.max_clusters, options.min_chromaticity_sigma, options.seed), std::vector<int>());
   };
 
   std::vector<Eigen::Vector2d> centres;
@@ -336,59 +339,99 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     }
   };
 
-  // Per-cluster albedo (calibrated) as the per-band median of the pixel estimates.
-  std::vector<Eigen::Vector3d> albedo;
-  auto estimate_albedo = [&](double s) {
+  // Calibrated fit of each cluster's relative albedo. Only the albedo's chromaticity matters for the
+  // normal's direction (n = normalize(S^-1 diag(1/rho) q)), so brightness variation inside a
+  // cluster (texture) is harmless. With u = 1/rho, the photometric normal A_i u (A_i = S_i^-1
+  // diag(q_i)) should be parallel to the prior normal n0_i: (I - n0 n0^T) A_i u = 0 is linear in u,
+  // and u is the smallest eigenvector of sum_i w_i A_i^T (I - n0 n0^T) A_i (IRLS with Cauchy weights
+  // on the angle). This uses the noisy prior normals only through an average over many pixels.
+  std::vector<Eigen::Vector3d> inverse_albedo;
+  constexpr double kCauchyScale = 0.2;  // sine of the angle at which a prior normal counts half
+  std::vector<Eigen::Matrix3d> a;  // A_i at the scale of the last fit_directions call
+  std::vector<bool> usable;
+  auto fit_directions = [&](double s) {
     const int k = static_cast<int>(centres.size());
-    std::vector<std::vector<double>> band[3];
-    for (auto& b : band) b.assign(k + 1, {});
-    for (const FitPixel& p : fit) {
-      const Eigen::Vector3d r = AlbedoEstimate(rig, p, s);
-      for (int l = 0; l < 3; ++l) {
-        if (!std::isfinite(r[l])) continue;
-        if (p.label >= 0) band[l][p.label].push_back(r[l]);
-        band[l][k].push_back(r[l]);  // global
-      }
+    a.assign(fit.size(), Eigen::Matrix3d::Zero());
+    usable.assign(fit.size(), false);
+    for (size_t i = 0; i < fit.size(); ++i) {
+      const Eigen::Matrix3d sm = NearLightMatrix(rig, fit[i].ray * (s / fit[i].inverse_depth));
+      Eigen::FullPivLU<Eigen::Matrix3d> lu(sm);
+      if (!lu.isInvertible()) continue;
+      a[i] = lu.inverse() * fit[i].q.asDiagonal();
+      usable[i] = a[i].allFinite();
     }
-    albedo.assign(k + 1, Eigen::Vector3d::Ones());
-    for (int c = 0; c <= k; ++c)
-      for (int l = 0; l < 3; ++l) {
-        auto& v = band[l][c].size() >= static_cast<size_t>(options.min_cluster_pixels / 3) ? band[l][c] : band[l][k];
-        albedo[c][l] = Median(v);
-      }
-  };
-  // Calibrated albedo at scale s: the median estimate refined by the unit-norm constraint.
-  auto refine_albedo = [&](double s) {
-    estimate_albedo(s);
-    const int k = static_cast<int>(centres.size());
-    std::vector<std::vector<Eigen::Matrix3d>> a(k + 1);
-    for (const FitPixel& p : fit) {
-      const Eigen::Matrix3d sm = NearLightMatrix(rig, p.ray * (s / p.inverse_depth));
-      const Eigen::Matrix3d am = sm.partialPivLu().inverse() * p.q.asDiagonal();
-      if (!am.allFinite()) continue;
-      a[p.label >= 0 ? p.label : k].push_back(am);
-      if (p.label >= 0) a[k].push_back(am);
-    }
-    double total = 0;
-    size_t count = 0;
-    for (int c = 0; c <= k; ++c) {
-      if (a[c].size() < static_cast<size_t>(std::max(10, options.min_cluster_pixels / 4))) {
-        if (c < k) albedo[c] = albedo[k];
-        continue;
-      }
-      Eigen::Vector3d u = albedo[c].cwiseMax(1e-3).cwiseInverse();
-      const double cost = RefineInverseAlbedo(a[c], &u);
-      if (u.allFinite() && u.minCoeff() > 0) {
-        albedo[c] = u.cwiseInverse();
-        if (c < k) {
-          total += cost * a[c].size();
-          count += a[c].size();
+    inverse_albedo.assign(k + 1, Eigen::Vector3d::Ones());
+    double cost = 0;
+    double weight_sum = 0;
+    for (int iter = 0; iter < 6; ++iter) {
+      std::vector<Eigen::Matrix3d> h(k + 1, Eigen::Matrix3d::Zero());
+      std::vector<int> counts(k + 1, 0);
+      cost = 0;
+      weight_sum = 0;
+      for (size_t i = 0; i < fit.size(); ++i) {
+        if (!usable[i]) continue;
+        const Eigen::Matrix3d proj = Eigen::Matrix3d::Identity() - fit[i].n0 * fit[i].n0.transpose();
+        for (int m : {fit[i].label, k}) {
+          if (m < 0) continue;
+          const Eigen::Vector3d n = a[i] * inverse_albedo[m];
+          const double len = n.norm();
+          if (len < 1e-9) continue;
+          const double r = (proj * n).norm() / len;
+          const double w = 1.0 / (1.0 + (r / kCauchyScale) * (r / kCauchyScale));
+          h[m] += (w / (len * len)) * a[i].transpose() * proj * a[i];
+          counts[m]++;
+          if (m == (fit[i].label >= 0 ? fit[i].label : k)) {
+            cost += std::log1p((r / kCauchyScale) * (r / kCauchyScale));
+            weight_sum += 1;
+          }
         }
       }
+      for (int m = k; m >= 0; --m) {
+        const bool own = counts[m] >= options.min_cluster_pixels || m == k;
+        if (!own || counts[m] < 3) {
+          inverse_albedo[m] = inverse_albedo[k];
+          continue;
+        }
+        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(h[m]);
+        Eigen::Vector3d u = eig.eigenvectors().col(0);
+        if (u.sum() < 0) u = -u;
+        if (u.minCoeff() <= 0 || !u.allFinite()) {
+          inverse_albedo[m] = inverse_albedo[k];
+          continue;
+        }
+        inverse_albedo[m] = u / u.sum() * 3.0;
+      }
     }
-    return count ? total / count : std::numeric_limits<double>::infinity();
+    return weight_sum > 0 ? cost / weight_sum : std::numeric_limits<double>::infinity();
   };
-  auto scale_cost = [&](double s) { return refine_albedo(s); };
+  auto scale_cost = [&](double s) { return fit_directions(s); };
+  // Reassigns each superpixel to the cluster whose albedo explains its prior normals best: the
+  // chromaticity clusters come from noisy per-pixel estimates and can mix similar colours (an
+  // off-white object on a beige floor); the model fit separates them.
+  auto reassign_superpixels = [&]() {
+    const int k = static_cast<int>(centres.size());
+    if (num_sp == 0 || k < 2) return;
+    std::vector<double> cost(static_cast<size_t>(num_sp) * k, 0.0);
+    std::vector<int> count(num_sp, 0);
+    for (size_t i = 0; i < fit.size(); ++i) {
+      if (!usable[i]) continue;
+      const int sp = sp_labels.at<int>(fit[i].y, fit[i].x);
+      count[sp]++;
+      const Eigen::Matrix3d proj = Eigen::Matrix3d::Identity() - fit[i].n0 * fit[i].n0.transpose();
+      for (int m = 0; m < k; ++m) {
+        const Eigen::Vector3d n = a[i] * inverse_albedo[m];
+        const double len = n.norm();
+        const double r = len > 1e-9 ? (proj * n).norm() / len : 1.0;
+        cost[static_cast<size_t>(sp) * k + m] += std::log1p((r / kCauchyScale) * (r / kCauchyScale));
+      }
+    }
+    for (int sp = 0; sp < num_sp; ++sp) {
+      if (count[sp] == 0) continue;
+      const double* c = &cost[static_cast<size_t>(sp) * k];
+      sp_cluster[sp] = static_cast<int>(std::min_element(c, c + k) - c);
+    }
+    label_fit_pixels();
+  };
 
   auto clustered = cluster();
   centres = clustered.first;
@@ -444,8 +487,15 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // Per-cluster models.
   std::vector<Eigen::Matrix3d> m_inv(k + 1, Eigen::Matrix3d::Identity());
   if (calibrated) {
-    refine_albedo(scale);
-    result.cluster_albedo.assign(albedo.begin(), albedo.begin() + k);
+    fit_directions(scale);
+    for (int round = 0; round < options.reassignment_rounds; ++round) {
+      reassign_superpixels();
+      fit_directions(scale);
+    }
+    for (int c = 0; c < k; ++c) {
+      const Eigen::Vector3d rho = inverse_albedo[c].cwiseInverse();
+      result.cluster_albedo.push_back(rho / rho.sum());
+    }
   } else {
     std::vector<std::vector<Eigen::Vector3d>> cs(k), ns(k);
     for (const FitPixel& p : fit)
@@ -487,7 +537,8 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       FitPixel p;
       p.x = x;
       p.y = y;
-      p.q = demix * Eigen::Vector3d(c[x][0], c[x][1], c[x][2]) / 255.0;
+      const cv::Vec3f cf = color.at<cv::Vec3f>(y, x);
+      p.q = demix * Eigen::Vector3d(cf[0], cf[1], cf[2]);
       p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
       p.inverse_depth = inv[x];
       p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
@@ -503,15 +554,13 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         if (!(p.inverse_depth > 0)) continue;
         const Eigen::Vector3d point = p.ray * (scale / p.inverse_depth);
         const Eigen::Matrix3d s = NearLightMatrix(rig, point);
-        const Eigen::Vector3d b = p.q.cwiseQuotient(albedo[model].cwiseMax(1e-3));
+        const Eigen::Vector3d b = p.q.cwiseProduct(inverse_albedo[model]);
         n = s.partialPivLu().solve(b);
-        // |n| = 1 when the model holds; far from 1 means shadow, wrong albedo or wrong depth.
+        // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light
+        // solve unreliable: compare each band with the others, relative to its irradiance.
         const double len = n.norm();
-        quality = std::exp(-std::pow((len - 1.0) / 0.25, 2));
-        // A light that contributes nothing (shadow) makes the 3-light solve unreliable.
-        const Eigen::Vector3d expected = s * (n / std::max(len, 1e-9));
-        for (int l = 0; l < 3; ++l)
-          if (b[l] < 0.15 * std::max(expected[l], 1e-6)) quality *= 0.2;
+        const Eigen::Vector3d shading = s * (n / std::max(len, 1e-9));
+        if (shading.minCoeff() < 0.1 * shading.maxCoeff()) quality *= 0.2;
       } else {
         n = m_inv[model] * p.q;
       }

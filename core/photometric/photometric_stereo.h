@@ -32,8 +32,24 @@ struct PhotometricOptions {
   double min_level = 12.0;
   // Pixels with a channel at or above this (8-bit levels) are saturated, in [0, 255].
   double saturation_level = 250.0;
+  // Gaussian smoothing of the colour image before solving, pixels (0 = none), in [0, 5]. Single-shot
+  // photometric stereo inherits the sensor noise directly (2.4 deg median at 8 bits with prism-synth's
+  // default noise, even with perfect albedo and depth); a sigma of 1 averages about 6 pixels.
+  double image_smoothing_sigma_px = 1.0;
+  // Minimum local density of real depth samples (Gaussian-weighted fraction of pixels within about
+  // two stencil widths) for a pixel's prior normal to be used in fitting, in [0, 1].
+  double min_prior_support = 0.05;
+  // Pixels whose weakest demixed band is below this fraction of the strongest are treated as
+  // shadowed in one light and not used in fitting, in [0, 1).
+  double min_band_fraction = 0.1;
+  // Rounds of reassigning superpixels to the cluster whose model fits them best, then refitting,
+  // in [0, 10].
+  int reassignment_rounds = 0;
   // Maximum number of chromaticity clusters (model selection by BIC picks 1..max), in [1, 16].
-  int max_clusters = 6;
+  int max_clusters = 8;
+  // Chromaticity spread (standard deviation, in chromaticity units r/(r+g+b)) that the model
+  // selection attributes to noise: clusters closer than this are not split, in [0, 0.5].
+  double min_chromaticity_sigma = 0.04;
   // SLIC superpixel size in pixels (0 = cluster pixels directly), in [0, 100].
   int superpixel_size_px = 12;
   // Pixels sampled per fit (robust least squares, scale search), in [100, 1e6].
