@@ -292,7 +292,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     num_sp = slic->getNumberOfSuperpixels();
   }
 
-  auto cluster = [&]() {
+  auto cluster = [&](double min_sigma) {
     std::vector<Eigen::Vector2d> samples;
     std::vector<float> weights;
     std::vector<Eigen::Vector2d> pixel_chroma(fit.size());
@@ -312,7 +312,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
           samples.push_back(sum[s] / count[s]);
           weights.push_back(static_cast<float>(count[s]));
         }
-      const auto centres = ClusterChromaticities(samples, weights, options.max_clusters, options.min_chromaticity_sigma, options.seed);
+      const auto centres = ClusterChromaticities(samples, weights, options.max_clusters, min_sigma, options.seed);
       std::vector<int> sp_cluster(num_sp, -1);
       for (int s = 0; s < num_sp; ++s)
         if (count[s] > 0) sp_cluster[s] = Nearest(centres, sum[s] / count[s]);
@@ -323,7 +323,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         samples.push_back(pixel_chroma[i]);
         weights.push_back(1.f);
       }
-    return std::make_pair(ClusterChromaticities(samples, weights, options.max_clusters, options.min_chromaticity_sigma, options.seed), std::vector<int>());
+    return std::make_pair(ClusterChromaticities(samples, weights, options.max_clusters, min_sigma, options.seed), std::vector<int>());
   };
 
   std::vector<Eigen::Vector2d> centres;
@@ -349,26 +349,28 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   constexpr double kCauchyScale = 0.2;  // sine of the angle at which a prior normal counts half
   std::vector<Eigen::Matrix3d> a;  // A_i at the scale of the last fit_directions call
   std::vector<bool> usable;
-  auto fit_directions = [&](double s) {
+  // Uses the first `num_pixels` fit pixels (they are shuffled) and `iterations` IRLS rounds.
+  auto fit_directions = [&](double s, size_t num_pixels, int iterations) {
     const int k = static_cast<int>(centres.size());
+    const size_t n_fit = std::min(num_pixels, fit.size());
     a.assign(fit.size(), Eigen::Matrix3d::Zero());
     usable.assign(fit.size(), false);
-    for (size_t i = 0; i < fit.size(); ++i) {
+    for (size_t i = 0; i < n_fit; ++i) {
       const Eigen::Matrix3d sm = NearLightMatrix(rig, fit[i].ray * (s / fit[i].inverse_depth));
-      Eigen::FullPivLU<Eigen::Matrix3d> lu(sm);
-      if (!lu.isInvertible()) continue;
-      a[i] = lu.inverse() * fit[i].q.asDiagonal();
+      const double det = sm.determinant();
+      if (!(std::abs(det) > 1e-12)) continue;
+      a[i] = sm.inverse() * fit[i].q.asDiagonal();  // closed-form 3x3 inverse
       usable[i] = a[i].allFinite();
     }
     inverse_albedo.assign(k + 1, Eigen::Vector3d::Ones());
     double cost = 0;
     double weight_sum = 0;
-    for (int iter = 0; iter < 6; ++iter) {
+    for (int iter = 0; iter < iterations; ++iter) {
       std::vector<Eigen::Matrix3d> h(k + 1, Eigen::Matrix3d::Zero());
       std::vector<int> counts(k + 1, 0);
       cost = 0;
       weight_sum = 0;
-      for (size_t i = 0; i < fit.size(); ++i) {
+      for (size_t i = 0; i < n_fit; ++i) {
         if (!usable[i]) continue;
         const Eigen::Matrix3d proj = Eigen::Matrix3d::Identity() - fit[i].n0 * fit[i].n0.transpose();
         for (int m : {fit[i].label, k}) {
@@ -404,7 +406,8 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     }
     return weight_sum > 0 ? cost / weight_sum : std::numeric_limits<double>::infinity();
   };
-  auto scale_cost = [&](double s) { return fit_directions(s); };
+  // The scale search runs on a subsample with fewer IRLS rounds; the final fit uses every fit pixel.
+  auto scale_cost = [&](double s) { return fit_directions(s, options.scale_search_pixels, 4); };
   // Reassigns each superpixel to the cluster whose albedo explains its prior normals best: the
   // chromaticity clusters come from noisy per-pixel estimates and can mix similar colours (an
   // off-white object on a beige floor); the model fit separates them.
@@ -433,16 +436,17 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     label_fit_pixels();
   };
 
-  auto clustered = cluster();
+  auto clustered = cluster(options.min_chromaticity_sigma);
   centres = clustered.first;
   sp_cluster = clustered.second;
   label_fit_pixels();
   if (calibrated && options.estimate_depth_scale) {
-    // Log-grid search, then golden-section refinement; re-cluster once at the found scale.
+    // Log-grid search, then golden-section refinement; re-cluster once at the found scale and
+    // search again.
     for (int pass = 0; pass < 2; ++pass) {
       const double lo = std::log(options.depth_scale / options.depth_scale_search_factor);
       const double hi = std::log(options.depth_scale * options.depth_scale_search_factor);
-      const int steps = 25;
+      const int steps = 16;
       double best = std::numeric_limits<double>::infinity(), best_t = 0;
       for (int i = 0; i <= steps; ++i) {
         const double t = lo + (hi - lo) * i / steps;
@@ -456,7 +460,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       const double g = 0.5 * (std::sqrt(5.0) - 1);
       double x1 = b - g * (b - a), x2 = a + g * (b - a);
       double f1 = scale_cost(std::exp(x1)), f2 = scale_cost(std::exp(x2));
-      for (int i = 0; i < 20; ++i) {
+      for (int i = 0; i < 12; ++i) {
         if (f1 < f2) {
           b = x2;
           x2 = x1;
@@ -473,7 +477,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       }
       scale = std::exp(0.5 * (a + b));
       if (pass == 0) {
-        clustered = cluster();
+        clustered = cluster(options.min_chromaticity_sigma);
         centres = clustered.first;
         sp_cluster = clustered.second;
         label_fit_pixels();
@@ -487,10 +491,10 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // Per-cluster models.
   std::vector<Eigen::Matrix3d> m_inv(k + 1, Eigen::Matrix3d::Identity());
   if (calibrated) {
-    fit_directions(scale);
+    fit_directions(scale, fit.size(), 6);
     for (int round = 0; round < options.reassignment_rounds; ++round) {
       reassign_superpixels();
-      fit_directions(scale);
+      fit_directions(scale, fit.size(), 6);
     }
     for (int c = 0; c < k; ++c) {
       const Eigen::Vector3d rho = inverse_albedo[c].cwiseInverse();

@@ -63,6 +63,10 @@ struct PhotometricOptions {
   bool estimate_depth_scale = true;
   // Metres per SLAM depth unit when not estimated, or the centre of the search, > 0.
   double depth_scale = 1.0;
+  // Fit pixels used by the scale search (the final fit uses max_fit_pixels), in [100, 1e6]. The scale
+  // is a per-session quantity: a pipeline estimates it on its first keyframes and then passes it
+  // with estimate_depth_scale = false, which is much cheaper.
+  int scale_search_pixels = 20000;
   // Search range of the scale around depth_scale (factor), > 1.
   double depth_scale_search_factor = 4.0;
   uint32_t seed = 1;
