@@ -44,29 +44,47 @@ cv::Mat DensifyInverseDepth(const InverseDepthMap& sparse, const DensifyOptions&
   if (cs.empty()) return dense;
   std::nth_element(cs.begin(), cs.begin() + cs.size() / 2, cs.end());
   certainty /= cs[cs.size() / 2];
-  cv::Mat weighted = certainty.mul(d);
+  // Coarse levels run on a pyramid (area-averaged sums, a fixed Gaussian per level) instead of ever
+  // wider Gaussians at full resolution: the same filter up to resampling, at a fraction of the cost.
+  cv::Mat num = certainty.mul(d), den = certainty;
   cv::Mat filled(d.size(), CV_8U, cv::Scalar(0));
-  double sigma = options.sigma_px;
+  const double sigma = options.sigma_px;
+  const int ksize = static_cast<int>(std::ceil(3 * sigma)) * 2 + 1;
   for (int level = 0; level < options.levels; ++level) {
-    cv::Mat num, den;
-    const int k = static_cast<int>(std::ceil(3 * sigma)) * 2 + 1;
-    cv::GaussianBlur(weighted, num, cv::Size(k, k), sigma, sigma, cv::BORDER_CONSTANT);
-    cv::GaussianBlur(certainty, den, cv::Size(k, k), sigma, sigma, cv::BORDER_CONSTANT);
-    // A Gaussian's peak weight is 1/(2 pi sigma^2); a pixel counts as filled when its neighbourhood
-    // holds at least min_certainty of one median-certainty sample at the peak.
-    const float threshold = static_cast<float>(options.min_certainty / (2 * M_PI * sigma * sigma));
+    if (level > 0) {
+      if (num.cols < 4 || num.rows < 4) break;
+      cv::resize(num, num, cv::Size((num.cols + 1) / 2, (num.rows + 1) / 2), 0, 0, cv::INTER_AREA);
+      cv::resize(den, den, cv::Size((den.cols + 1) / 2, (den.rows + 1) / 2), 0, 0, cv::INTER_AREA);
+    }
+    cv::Mat bn, bd;
+    cv::GaussianBlur(num, bn, cv::Size(ksize, ksize), sigma, sigma, cv::BORDER_CONSTANT);
+    cv::GaussianBlur(den, bd, cv::Size(ksize, ksize), sigma, sigma, cv::BORDER_CONSTANT);
+    if (level > 0) {
+      cv::resize(bn, bn, d.size(), 0, 0, cv::INTER_LINEAR);
+      cv::resize(bd, bd, d.size(), 0, 0, cv::INTER_LINEAR);
+    }
+    // A Gaussian's peak weight is 1/(2 pi sigma^2), and area averaging divides a sample by 4 per
+    // level: a pixel counts as filled when its neighbourhood holds at least min_certainty of one
+    // median-certainty sample at the peak (the same rule as a Gaussian of sigma * 2^level).
+    const float threshold =
+        static_cast<float>(options.min_certainty / (2 * M_PI * sigma * sigma * std::pow(4.0, level)));
+    bool all_filled = true;
     for (int y = 0; y < d.rows; ++y) {
-      const float* n = num.ptr<float>(y);
-      const float* w = den.ptr<float>(y);
+      const float* n = bn.ptr<float>(y);
+      const float* w = bd.ptr<float>(y);
       float* out = dense.ptr<float>(y);
       uint8_t* f = filled.ptr<uint8_t>(y);
       for (int x = 0; x < d.cols; ++x) {
-        if (f[x] || w[x] < threshold) continue;
+        if (f[x]) continue;
+        if (w[x] < threshold) {
+          all_filled = false;
+          continue;
+        }
         out[x] = n[x] / w[x];
         f[x] = 1;
       }
     }
-    sigma *= 2;
+    if (all_filled) break;
   }
   return dense;
 }

@@ -1,6 +1,7 @@
 #include "core/photometric/photometric_stereo.h"
 
 #include <algorithm>
+#include <functional>
 #include <cmath>
 #include <numeric>
 #include <random>
@@ -138,6 +139,10 @@ Status PhotometricOptions::Check() const {
     e << "PhotometricOptions.min_band_fraction = " << min_band_fraction << "; violated: in [0, 1)";
   else if (reassignment_rounds < 0 || reassignment_rounds > 10)
     e << "PhotometricOptions.reassignment_rounds = " << reassignment_rounds << "; violated: in [0, 10]";
+  else if (!(max_merge_chromaticity_distance >= 0 && max_merge_chromaticity_distance <= 1))
+    e << "PhotometricOptions.max_merge_chromaticity_distance = " << max_merge_chromaticity_distance << "; violated: in [0, 1]";
+  else if (!(min_albedo_edge >= 0 && min_albedo_edge <= 1))
+    e << "PhotometricOptions.min_albedo_edge = " << min_albedo_edge << "; violated: in [0, 1]";
   else if (!(min_chromaticity_sigma >= 0 && min_chromaticity_sigma <= 0.5))
     e << "PhotometricOptions.min_chromaticity_sigma = " << min_chromaticity_sigma << "; violated: in [0, 0.5]";
   else if (max_clusters < 1 || max_clusters > 16) e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
@@ -153,6 +158,16 @@ Status PhotometricOptions::Check() const {
     e << "PhotometricOptions.depth_scale_search_factor = " << depth_scale_search_factor << "; violated: > 1";
   if (e.str().empty()) return Status::Ok();
   return InvalidArgumentError(e.str());
+}
+
+void SessionDepthScale::Add(double keyframe_estimate) {
+  if (std::isfinite(keyframe_estimate) && keyframe_estimate > 0) estimates_.push_back(keyframe_estimate);
+}
+
+double SessionDepthScale::value() const {
+  PRISM_CHECK(!estimates_.empty()) << "SessionDepthScale::value() without estimates";
+  std::vector<double> v = estimates_;
+  return Median(v);
 }
 
 bool FitLightingMatrix(const std::vector<Eigen::Vector3d>& colors, const std::vector<Eigen::Vector3d>& normals,
@@ -436,26 +451,110 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     label_fit_pixels();
   };
 
+  // Chromaticity edges validate cluster splits: albedo boundaries are sharp steps of the image
+  // chromaticity, while the errors of the prior normals (which can also split a cluster) vary
+  // smoothly. Two clusters whose shared superpixel boundaries show no step are merged.
+  cv::Mat chroma_gradient;
+  if (num_sp > 0) {
+    cv::Mat chroma(h, w, CV_32FC2);
+    for (int y = 0; y < h; ++y)
+      for (int x = 0; x < w; ++x) {
+        const cv::Vec3f c = color.at<cv::Vec3f>(y, x);
+        const float sum = std::max(1e-4f, c[0] + c[1] + c[2]);
+        chroma.at<cv::Vec2f>(y, x) = cv::Vec2f(c[0] / sum, c[1] / sum);
+      }
+    chroma_gradient = cv::Mat(h, w, CV_32F, cv::Scalar(0));
+    for (int y = 1; y < h - 1; ++y)
+      for (int x = 1; x < w - 1; ++x) {
+        const cv::Vec2f dx = 0.5f * (chroma.at<cv::Vec2f>(y, x + 1) - chroma.at<cv::Vec2f>(y, x - 1));
+        const cv::Vec2f dy = 0.5f * (chroma.at<cv::Vec2f>(y + 1, x) - chroma.at<cv::Vec2f>(y - 1, x));
+        chroma_gradient.at<float>(y, x) = std::sqrt(dx.dot(dx) + dy.dot(dy));
+      }
+  }
+  auto merge_by_edges = [&]() {
+    const int k = static_cast<int>(centres.size());
+    if (num_sp == 0 || k < 2) return;
+    // Per cluster pair: gradient samples on boundaries between their superpixels (dark pixels,
+    // whose chromaticity is noise, are skipped).
+    std::vector<std::vector<float>> steps(static_cast<size_t>(k) * k);
+    for (int y = 1; y < h - 1; ++y)
+      for (int x = 1; x < w - 1; ++x) {
+        const int sa = sp_labels.at<int>(y, x);
+        const int ca = sp_cluster[sa];
+        if (ca < 0) continue;
+        const cv::Vec3b c = rgb.at<cv::Vec3b>(y, x);
+        if (std::max({c[0], c[1], c[2]}) < options.min_level) continue;
+        for (const auto& [nx, ny] : {std::pair<int, int>{x + 1, y}, std::pair<int, int>{x, y + 1}}) {
+          const int cb = sp_cluster[sp_labels.at<int>(ny, nx)];
+          if (cb < 0 || cb == ca) continue;
+          const float g = std::max(chroma_gradient.at<float>(y, x), chroma_gradient.at<float>(ny, nx));
+          steps[static_cast<size_t>(std::min(ca, cb)) * k + std::max(ca, cb)].push_back(g);
+        }
+      }
+    std::vector<int> parent(k);
+    std::iota(parent.begin(), parent.end(), 0);
+    std::function<int(int)> find = [&](int i) { return parent[i] == i ? i : parent[i] = find(parent[i]); };
+    for (int a = 0; a < k; ++a)
+      for (int b = a + 1; b < k; ++b) {
+        auto& v = steps[static_cast<size_t>(a) * k + b];
+        if (v.size() < 20) continue;  // not neighbours (or barely): leave them apart
+        // A real albedo edge is a step along most of the shared boundary: use the median.
+        std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+        // Only clusters of similar chromaticity can be one albedo split by prior-normal errors.
+        const bool similar = (centres[a] - centres[b]).norm() < options.max_merge_chromaticity_distance;
+        if (similar && v[v.size() / 2] < options.min_albedo_edge) parent[find(a)] = find(b);
+      }
+    std::vector<int> new_index(k, -1);
+    std::vector<Eigen::Vector2d> merged;
+    std::vector<double> weight;
+    for (int c = 0; c < k; ++c) {
+      const int r = find(c);
+      if (new_index[r] < 0) {
+        new_index[r] = static_cast<int>(merged.size());
+        merged.push_back(Eigen::Vector2d::Zero());
+        weight.push_back(0);
+      }
+    }
+    std::vector<int> count(k, 0);
+    for (int sp = 0; sp < num_sp; ++sp)
+      if (sp_cluster[sp] >= 0) count[sp_cluster[sp]]++;
+    for (int c = 0; c < k; ++c) {
+      const int m = new_index[find(c)];
+      merged[m] += (count[c] + 1e-9) * centres[c];
+      weight[m] += count[c] + 1e-9;
+    }
+    for (size_t m = 0; m < merged.size(); ++m) merged[m] /= weight[m];
+    for (int sp = 0; sp < num_sp; ++sp)
+      if (sp_cluster[sp] >= 0) sp_cluster[sp] = new_index[find(sp_cluster[sp])];
+    centres = merged;
+    label_fit_pixels();
+  };
+
   auto clustered = cluster(options.min_chromaticity_sigma);
   centres = clustered.first;
   sp_cluster = clustered.second;
   label_fit_pixels();
+  merge_by_edges();
   if (calibrated && options.estimate_depth_scale) {
     // Log-grid search, then golden-section refinement; re-cluster once at the found scale and
-    // search again.
+    // search again. Where the shading constrains the scale poorly the cost is flat and a single
+    // keyframe's estimate can be far off: sessions should use SessionDepthScale.
     for (int pass = 0; pass < 2; ++pass) {
       const double lo = std::log(options.depth_scale / options.depth_scale_search_factor);
       const double hi = std::log(options.depth_scale * options.depth_scale_search_factor);
       const int steps = 16;
-      double best = std::numeric_limits<double>::infinity(), best_t = 0;
-      for (int i = 0; i <= steps; ++i) {
-        const double t = lo + (hi - lo) * i / steps;
-        const double c = scale_cost(std::exp(t));
-        if (c < best) {
-          best = c;
-          best_t = t;
+      std::vector<double> grid_cost(steps + 1);
+      for (int i = 0; i <= steps; ++i) grid_cost[i] = scale_cost(std::exp(lo + (hi - lo) * i / steps));
+      // Prefer the lowest interior local minimum: towards very small scales the points approach the
+      // lights and the model can bend to fit anything, so a minimum at the range's end is suspect.
+      int best_i = static_cast<int>(std::min_element(grid_cost.begin(), grid_cost.end()) - grid_cost.begin());
+      double best_interior = std::numeric_limits<double>::infinity();
+      for (int i = 1; i < steps; ++i)
+        if (grid_cost[i] < grid_cost[i - 1] && grid_cost[i] <= grid_cost[i + 1] && grid_cost[i] < best_interior) {
+          best_interior = grid_cost[i];
+          best_i = i;
         }
-      }
+      const double best_t = lo + (hi - lo) * best_i / steps;
       double a = best_t - (hi - lo) / steps, b = best_t + (hi - lo) / steps;
       const double g = 0.5 * (std::sqrt(5.0) - 1);
       double x1 = b - g * (b - a), x2 = a + g * (b - a);
@@ -481,6 +580,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         centres = clustered.first;
         sp_cluster = clustered.second;
         label_fit_pixels();
+        merge_by_edges();
       }
     }
   }

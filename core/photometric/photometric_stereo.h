@@ -49,7 +49,13 @@ struct PhotometricOptions {
   int max_clusters = 8;
   // Chromaticity spread (standard deviation, in chromaticity units r/(r+g+b)) that the model
   // selection attributes to noise: clusters closer than this are not split, in [0, 0.5].
-  double min_chromaticity_sigma = 0.04;
+  double min_chromaticity_sigma = 0.02;
+  // Median chromaticity gradient (per pixel, after image smoothing) along the boundary between two
+  // clusters below which they are merged: albedo edges are steps, prior-normal errors are smooth.
+  // In chromaticity units per pixel, in [0, 1]; 0 disables merging.
+  double min_albedo_edge = 0.01;
+  // ... and only when their chromaticity centres are closer than this (chromaticity units), [0, 1].
+  double max_merge_chromaticity_distance = 0.1;
   // SLIC superpixel size in pixels (0 = cluster pixels directly), in [0, 100].
   int superpixel_size_px = 12;
   // Pixels sampled per fit (robust least squares, scale search), in [100, 1e6].
@@ -90,6 +96,22 @@ struct PhotometricResult {
 // kCalibrated mode, the lights and crosstalk.
 StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior,
                                             const RigCalibration& rig, const PhotometricOptions& options);
+
+// The depth scale (metres per SLAM depth unit) of a session: the median of per-keyframe estimates
+// (PhotometricResult::depth_scale with estimate_depth_scale = true). A single keyframe whose
+// shading constrains the scale poorly can be far off; the median is not. Once it has a value, a
+// pipeline passes it as PhotometricOptions::depth_scale with estimate_depth_scale = false, which is
+// also several times cheaper. Not thread-safe.
+class SessionDepthScale {
+ public:
+  void Add(double keyframe_estimate);  // ignores non-finite or non-positive values
+  bool has_value() const { return !estimates_.empty(); }
+  int count() const { return static_cast<int>(estimates_.size()); }
+  double value() const;  // requires has_value()
+
+ private:
+  std::vector<double> estimates_;
+};
 
 // Robust (Huber IRLS) least-squares fit of M in c = M n over corresponding colours and unit
 // normals; false when the normals do not span 3D well enough.
