@@ -12,6 +12,8 @@
 #include <opencv2/imgproc.hpp>
 #include <opencv2/ximgproc/slic.hpp>
 
+#include "core/util/thread_pool.h"
+
 namespace prism {
 namespace {
 
@@ -145,6 +147,8 @@ Status PhotometricOptions::Check() const {
     e << "PhotometricOptions.min_albedo_edge = " << min_albedo_edge << "; violated: in [0, 1]";
   else if (!(min_chromaticity_sigma >= 0 && min_chromaticity_sigma <= 0.5))
     e << "PhotometricOptions.min_chromaticity_sigma = " << min_chromaticity_sigma << "; violated: in [0, 0.5]";
+  else if (superpixel_downsample < 1 || superpixel_downsample > 4)
+    e << "PhotometricOptions.superpixel_downsample = " << superpixel_downsample << "; violated: in [1, 4]";
   else if (max_clusters < 1 || max_clusters > 16) e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
   else if (superpixel_size_px < 0 || superpixel_size_px > 100)
     e << "PhotometricOptions.superpixel_size_px = " << superpixel_size_px << "; violated: in [0, 100]";
@@ -204,7 +208,7 @@ bool FitLightingMatrix(const std::vector<Eigen::Vector3d>& colors, const std::ve
 }
 
 StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior, const RigCalibration& rig,
-                                            const PhotometricOptions& options) {
+                                            const PhotometricOptions& options, ThreadPool* pool) {
   PRISM_RETURN_IF_ERROR(options.Check());
   if (rgb.type() != CV_8UC3) return InvalidArgumentError("EstimateNormals: image must be 8-bit RGB (CV_8UC3)");
   if (prior.inverse_depth.type() != CV_32F || prior.variance.type() != CV_32F ||
@@ -299,12 +303,19 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   cv::Mat sp_labels;
   int num_sp = 0;
   if (options.superpixel_size_px > 0) {
+    // SLIC runs on an image downsampled by superpixel_downsample (it dominates the cost at full
+    // resolution: ~50 ms at 512x512); labels are upsampled by nearest neighbour.
+    const int f = options.superpixel_downsample;
+    cv::Mat small = rgb;
+    if (f > 1) cv::resize(rgb, small, cv::Size((w + f - 1) / f, (h + f - 1) / f), 0, 0, cv::INTER_AREA);
     cv::Mat lab;
-    cv::cvtColor(rgb, lab, cv::COLOR_RGB2Lab);
-    auto slic = cv::ximgproc::createSuperpixelSLIC(lab, cv::ximgproc::SLICO, options.superpixel_size_px);
+    cv::cvtColor(small, lab, cv::COLOR_RGB2Lab);
+    auto slic = cv::ximgproc::createSuperpixelSLIC(lab, cv::ximgproc::SLICO,
+                                                   std::max(2, options.superpixel_size_px / f));
     slic->iterate(5);
     slic->getLabels(sp_labels);
     num_sp = slic->getNumberOfSuperpixels();
+    if (f > 1) cv::resize(sp_labels, sp_labels, cv::Size(w, h), 0, 0, cv::INTER_NEAREST);
   }
 
   auto cluster = [&](double min_sigma) {
@@ -627,7 +638,8 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   result.labels = cv::Mat(h, w, CV_32S, cv::Scalar(-1));
   result.normals = cv::Mat(h, w, CV_32FC3, cv::Scalar(0, 0, 0));
   result.confidence = cv::Mat(h, w, CV_32F, cv::Scalar(0));
-  for (int y = 0; y < h; ++y) {
+  auto solve_row = [&](std::ptrdiff_t row) {
+    const int y = static_cast<int>(row);
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
     const cv::Vec3f* n0 = result.prior_normals.ptr<cv::Vec3f>(y);
@@ -659,7 +671,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         const Eigen::Vector3d point = p.ray * (scale / p.inverse_depth);
         const Eigen::Matrix3d s = NearLightMatrix(rig, point);
         const Eigen::Vector3d b = p.q.cwiseProduct(inverse_albedo[model]);
-        n = s.partialPivLu().solve(b);
+        n = s.inverse() * b;  // closed-form 3x3
         // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light
         // solve unreliable: compare each band with the others, relative to its irradiance.
         const double len = n.norm();
@@ -681,6 +693,11 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       out[x] = cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
       conf[x] = static_cast<float>(std::clamp(quality, 0.0, 1.0));
     }
+  };
+  if (pool) {
+    pool->ParallelFor(0, h, solve_row, 8);
+  } else {
+    for (int y = 0; y < h; ++y) solve_row(y);
   }
   return result;
 }

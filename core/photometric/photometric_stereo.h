@@ -21,6 +21,8 @@
 
 namespace prism {
 
+class ThreadPool;
+
 enum class PhotometricMode { kCalibrated, kUncalibrated };
 
 struct PhotometricOptions {
@@ -57,7 +59,9 @@ struct PhotometricOptions {
   // ... and only when their chromaticity centres are closer than this (chromaticity units), [0, 1].
   double max_merge_chromaticity_distance = 0.1;
   // SLIC superpixel size in pixels (0 = cluster pixels directly), in [0, 100].
-  int superpixel_size_px = 12;
+  int superpixel_size_px = 20;
+  // SLIC runs on the image downsampled by this factor, in [1, 4].
+  int superpixel_downsample = 2;
   // Pixels sampled per fit (robust least squares, scale search), in [100, 1e6].
   int max_fit_pixels = 20000;
   // Minimum pixels with reliable priors for a cluster's own model; else the global model is used.
@@ -93,9 +97,10 @@ struct PhotometricResult {
 };
 
 // rgb: CV_8UC3 (RGB order). The prior must have the image's size. rig: camera and, in
-// kCalibrated mode, the lights and crosstalk.
+// kCalibrated mode, the lights and crosstalk. The per-pixel solve is spread over `pool` when given.
 StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior,
-                                            const RigCalibration& rig, const PhotometricOptions& options);
+                                            const RigCalibration& rig, const PhotometricOptions& options,
+                                            ThreadPool* pool = nullptr);
 
 // The depth scale (metres per SLAM depth unit) of a session: the median of per-keyframe estimates
 // (PhotometricResult::depth_scale with estimate_depth_scale = true). A single keyframe whose
