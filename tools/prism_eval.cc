@@ -318,7 +318,9 @@ constexpr char kCloudUsage[] =
     "  --cloud FILE        reconstructed cloud, PLY (required)\n"
     "  --tau M             distance threshold in metres (default: 1% of the ground-truth samples'\n"
     "                      bounding-box diagonal with --object-only, else 0.005)\n"
-    "  --object-only       ground truth from object pixels only (mask == 255)\n"
+    "  --object-only       ground truth from object pixels only (mask == 255), and only the\n"
+    "                      reconstructed points seen on the object in those frames (not hidden\n"
+    "                      more than 3 tau behind its surface)\n"
     "  --frame-step K      use every K-th frame for the ground truth (default 10)\n"
     "  --threads N         worker threads for the distance queries (default 0 = all cores)\n"
     "\n"
@@ -380,7 +382,16 @@ int RunCloud(const std::vector<std::string>& args) {
 
   std::unique_ptr<ThreadPool> pool;
   if (*threads != 1) pool = std::make_unique<ThreadPool>(*threads);
-  auto metrics = EvaluateCloud(cloud->positions, samples->points_in_world, options, pool.get());
+  // Object-only: the reconstruction is restricted to the points seen on the object (see
+  // SelectPointsSeenOnObject), so the floor around it neither helps nor hurts.
+  std::vector<Eigen::Vector3f> evaluated = cloud->positions;
+  if (sampling.object_only) {
+    auto selected = SelectPointsSeenOnObject(*sequence, cloud->positions, sampling, 3.0 * options.tau_m);
+    if (!selected.ok()) return Fail(cmd, kExitFailure, selected.status());
+    evaluated.clear();
+    for (size_t i : *selected) evaluated.push_back(cloud->positions[i]);
+  }
+  auto metrics = EvaluateCloud(evaluated, samples->points_in_world, options, pool.get());
   if (!metrics.ok()) return Fail(cmd, kExitFailure, metrics.status());
 
   JsonObject json;
@@ -390,6 +401,7 @@ int RunCloud(const std::vector<std::string>& args) {
   json.Number("completeness", metrics->completeness);
   json.Number("fscore", metrics->fscore);
   json.Integer("points", static_cast<long long>(metrics->points));
+  json.Integer("cloud_points", static_cast<long long>(cloud->size()));
   json.Integer("non_finite_points", static_cast<long long>(metrics->non_finite_points));
   json.Number("tau_m", metrics->tau_m);
   json.String("tau_source", tau_source);

@@ -284,3 +284,42 @@ StatusOr<PixelCoverage> ObjectPixelCoverage(const std::vector<Eigen::Vector3f>& 
 }
 
 }  // namespace prism
+
+namespace prism {
+
+StatusOr<std::vector<size_t>> SelectPointsSeenOnObject(const Sequence& sequence,
+                                                       const std::vector<Eigen::Vector3f>& points_in_world,
+                                                       const SurfaceSamplingOptions& options, double behind_margin_m) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  if (!sequence.has_calibration) return FailedPreconditionError("sequence has no camera.yaml");
+  const PinholeCamera& camera = sequence.calibration.camera;
+  std::vector<char> keep(points_in_world.size(), 0);
+  size_t frames = 0;
+  for (size_t i = 0; i < sequence.frames.size(); i += options.frame_step) {
+    auto pose = sequence.GroundTruthPose(i);
+    auto depth = sequence.ReadDepth(i);
+    auto mask = sequence.ReadMask(i);
+    if (!pose.ok() || !depth.ok() || !mask.ok()) continue;
+    ++frames;
+    const Rigid3d camera_from_world = pose->Inverse();
+    for (size_t p = 0; p < points_in_world.size(); ++p) {
+      if (keep[p] || !points_in_world[p].allFinite()) continue;
+      const Eigen::Vector3d pc = camera_from_world * points_in_world[p].cast<double>();
+      if (pc.z() <= 0) continue;
+      const Eigen::Vector2d uv = camera.Project(pc);
+      const int u = static_cast<int>(std::lround(uv.x())), v = static_cast<int>(std::lround(uv.y()));
+      if (u < 0 || v < 0 || u >= camera.width || v >= camera.height) continue;
+      if (mask->at<uint8_t>(v, u) != kMaskObject) continue;
+      const float surface = depth->at<float>(v, u);
+      if (surface > 0 && pc.z() > surface + behind_margin_m) continue;  // hidden behind the object here
+      keep[p] = 1;
+    }
+  }
+  if (frames == 0) return FailedPreconditionError("no sampled frame has depth, a pose and a mask");
+  std::vector<size_t> out;
+  for (size_t p = 0; p < keep.size(); ++p)
+    if (keep[p]) out.push_back(p);
+  return out;
+}
+
+}  // namespace prism

@@ -94,3 +94,17 @@ StatusOr<PixelCoverage> ObjectPixelCoverage(const std::vector<Eigen::Vector3f>& 
                                             const cv::Mat& mask);
 
 }  // namespace prism
+
+namespace prism {
+
+// For object-only evaluation of a scene reconstruction: the indices of the points that are seen on
+// the object, i.e. that project onto an object pixel (mask == kMaskObject) of at least one sampled
+// frame (every options.frame_step-th) without lying more than `behind_margin_m` behind the
+// ground-truth surface there (a point behind it is hidden in that frame, e.g. floor behind the
+// object). Points floating in front of the object are kept, so they still count against precision.
+// FAILED_PRECONDITION without calibration, or when no sampled frame has depth, pose and mask.
+StatusOr<std::vector<size_t>> SelectPointsSeenOnObject(const Sequence& sequence,
+                                                       const std::vector<Eigen::Vector3f>& points_in_world,
+                                                       const SurfaceSamplingOptions& options, double behind_margin_m);
+
+}  // namespace prism
