@@ -24,6 +24,7 @@ struct FitPixel {
   Eigen::Vector3d n0;      // prior normal, camera frame
   Eigen::Vector3d ray;     // (u, v, 1) ray of the pixel
   double inverse_depth;    // dense prior
+  double support = 1.0;
   int label = -1;
 };
 
@@ -147,6 +148,13 @@ Status PhotometricOptions::Check() const {
     e << "PhotometricOptions.min_albedo_edge = " << min_albedo_edge << "; violated: in [0, 1]";
   else if (!(min_chromaticity_sigma >= 0 && min_chromaticity_sigma <= 0.5))
     e << "PhotometricOptions.min_chromaticity_sigma = " << min_chromaticity_sigma << "; violated: in [0, 0.5]";
+  else if (plane_radius_px < 2 || plane_radius_px > 50)
+    e << "PhotometricOptions.plane_radius_px = " << plane_radius_px << "; violated: in [2, 50]";
+  else if (min_plane_samples < 3) e << "PhotometricOptions.min_plane_samples = " << min_plane_samples << "; violated: >= 3";
+  else if (!(max_plane_residual > 0 && max_plane_residual <= 1))
+    e << "PhotometricOptions.max_plane_residual = " << max_plane_residual << "; violated: in (0, 1]";
+  else if (!(min_plane_spread >= 0 && min_plane_spread <= 1))
+    e << "PhotometricOptions.min_plane_spread = " << min_plane_spread << "; violated: in [0, 1]";
   else if (superpixel_downsample < 1 || superpixel_downsample > 4)
     e << "PhotometricOptions.superpixel_downsample = " << superpixel_downsample << "; violated: in [1, 4]";
   else if (max_clusters < 1 || max_clusters > 16) e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
@@ -243,6 +251,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     const int ksize = static_cast<int>(std::ceil(3 * sigma)) * 2 + 1;
     cv::GaussianBlur(samples, support, cv::Size(ksize, ksize), sigma);
   }
+  const bool plane_priors = options.prior_normals == PriorNormalSource::kPlaneFit;
   // Reliable pixels: prior normal present near real samples, neither dark nor saturated, lit by all
   // three lights (a band near zero is an attached or cast shadow).
   std::vector<FitPixel> fit;
@@ -251,10 +260,11 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     const cv::Vec3f* n0 = result.prior_normals.ptr<cv::Vec3f>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
     for (int x = 0; x < w; ++x) {
-      if (n0[x][2] == 0 && n0[x][0] == 0) continue;
+      if (!plane_priors && n0[x][2] == 0 && n0[x][0] == 0) continue;
+      if (!(inv[x] > 0)) continue;
       const int mx = std::max({c[x][0], c[x][1], c[x][2]});
       if (mx < options.min_level || mx >= options.saturation_level) continue;
-      if (support.at<float>(y, x) < options.min_prior_support) continue;
+      if (!plane_priors && support.at<float>(y, x) < options.min_prior_support) continue;
       FitPixel p;
       p.x = x;
       p.y = y;
@@ -267,8 +277,66 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       fit.push_back(p);
     }
   }
-  if (fit.size() < 50) return FailedPreconditionError("EstimateNormals: fewer than 50 pixels with a reliable prior");
   std::mt19937 rng(options.seed);
+  if (plane_priors) {
+    // Prior normals fitted as planes to the real SLAM samples in a window. A plane's inverse depth is
+    // linear in the normalised image coordinates: 1/z = A x + B y + C with (A, B, C) parallel to its
+    // normal, and SLAM's noise is in inverse depth, so a linear least-squares fit (box-filtered
+    // moments) has the right noise model. With ~10% of pixels holding a sample, a +-8 px window
+    // averages ~30 samples, where finite differences of the interpolated depth see one or two.
+    // Windows whose samples lie along one curve (semi-dense points follow edges) or whose residual is
+    // too large for a plane (a depth edge) are rejected.
+    const int r = options.plane_radius_px;
+    constexpr int kMoments = 9;  // 1, x, y, xx, xy, yy, w, xw, yw
+    cv::Mat moments[kMoments];
+    for (cv::Mat& m : moments) m = cv::Mat(h, w, CV_64F, cv::Scalar(0));
+    cv::Mat ww(h, w, CV_64F, cv::Scalar(0));  // w^2, for the residual
+    for (int y = 0; y < h; ++y)
+      for (int x = 0; x < w; ++x) {
+        const float id = prior.inverse_depth.at<float>(y, x);
+        if (!(id > 0)) continue;
+        const double px = (x - rig.camera.cx) / rig.camera.fx, py = (y - rig.camera.cy) / rig.camera.fy;
+        const double v[kMoments] = {1, px, py, px * px, px * py, py * py, id, px * id, py * id};
+        for (int k = 0; k < kMoments; ++k) moments[k].at<double>(y, x) = v[k];
+        ww.at<double>(y, x) = static_cast<double>(id) * id;
+      }
+    // Shuffle first so the per-pixel solves run only on the pixels kept.
+    std::shuffle(fit.begin(), fit.end(), rng);
+    const cv::Size box(2 * r + 1, 2 * r + 1);
+    for (cv::Mat& m : moments) cv::boxFilter(m, m, CV_64F, box, cv::Point(-1, -1), false);
+    cv::boxFilter(ww, ww, CV_64F, box, cv::Point(-1, -1), false);
+    std::vector<FitPixel> kept;
+    for (FitPixel& p : fit) {
+      const double n = moments[0].at<double>(p.y, p.x);
+      if (n < options.min_plane_samples) continue;
+      double m[kMoments];
+      for (int k = 0; k < kMoments; ++k) m[k] = moments[k].at<double>(p.y, p.x);
+      // Spread of the samples in the image: both principal variances of (x, y) must be sizeable.
+      const double mx = m[1] / n, my = m[2] / n;
+      Eigen::Matrix2d cxy;
+      cxy << m[3] / n - mx * mx, m[4] / n - mx * my, m[4] / n - mx * my, m[5] / n - my * my;
+      Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> e2;
+      e2.computeDirect(cxy);
+      if (!(e2.eigenvalues()[0] > options.min_plane_spread * e2.eigenvalues()[1])) continue;
+      Eigen::Matrix3d ata;
+      ata << m[3], m[4], m[1], m[4], m[5], m[2], m[1], m[2], n;
+      const Eigen::Vector3d atb(m[7], m[8], m[6]);
+      const Eigen::Vector3d abc = ata.ldlt().solve(atb);
+      if (!abc.allFinite()) continue;
+      // Residual: sum (w - A x - B y - C)^2 = sum w^2 - 2 abc.atb + abc' ata abc.
+      const double sse = ww.at<double>(p.y, p.x) - 2 * abc.dot(atb) + abc.dot(ata * abc);
+      const double mean_w = m[6] / n;
+      if (!(mean_w > 0) || std::sqrt(std::max(0.0, sse) / n) > options.max_plane_residual * mean_w) continue;
+      // (A, B, C) . (x, y, 1) = 1/z > 0 for visible points: the normal facing the camera is -(A, B, C).
+      Eigen::Vector3d normal = -abc.normalized();
+      if (normal.dot(p.ray) > 0) continue;
+      p.n0 = normal;
+      kept.push_back(p);
+      if (static_cast<int>(kept.size()) >= options.max_fit_pixels) break;
+    }
+    fit.swap(kept);
+  }
+  if (fit.size() < 50) return FailedPreconditionError("EstimateNormals: fewer than 50 pixels with a reliable prior");
   if (static_cast<int>(fit.size()) > options.max_fit_pixels) {
     std::shuffle(fit.begin(), fit.end(), rng);
     fit.resize(options.max_fit_pixels);

@@ -25,6 +25,12 @@ class ThreadPool;
 
 enum class PhotometricMode { kCalibrated, kUncalibrated };
 
+// Where the prior normals that calibrate the model come from.
+enum class PriorNormalSource {
+  kPlaneFit,    // planes fitted to the real SLAM points around each pixel (robust to sparse depth)
+  kDenseDepth,  // finite differences of the densified depth (PriorNormals)
+};
+
 struct PhotometricOptions {
   PhotometricMode mode = PhotometricMode::kCalibrated;
   DensifyOptions densify;
@@ -34,6 +40,15 @@ struct PhotometricOptions {
   double min_level = 12.0;
   // Pixels with a channel at or above this (8-bit levels) are saturated, in [0, 255].
   double saturation_level = 250.0;
+  PriorNormalSource prior_normals = PriorNormalSource::kPlaneFit;
+  // kPlaneFit: half-width of the window, pixels, in [2, 50]; minimum SLAM samples in it, >= 3;
+  // minimum ratio of the smaller to the larger principal variance of their image positions (spread
+  // in two directions, not along one edge curve), in [0, 1]; maximum RMS residual of the plane fit
+  // relative to the mean inverse depth (rejects depth edges; SLAM noise is ~1%), in (0, 1].
+  int plane_radius_px = 8;
+  int min_plane_samples = 15;
+  double min_plane_spread = 0.2;
+  double max_plane_residual = 0.02;
   // Gaussian smoothing of the colour image before solving, pixels (0 = none), in [0, 5]. Single-shot
   // photometric stereo inherits the sensor noise directly (2.4 deg median at 8 bits with prism-synth's
   // default noise, even with perfect albedo and depth); a sigma of 1 averages about 6 pixels.
