@@ -1,6 +1,7 @@
 #include "core/photometric/photometric_stereo.h"
 
 #include <algorithm>
+#include <array>
 #include <functional>
 #include <cmath>
 #include <numeric>
@@ -155,6 +156,8 @@ Status PhotometricOptions::Check() const {
     e << "PhotometricOptions.max_plane_residual = " << max_plane_residual << "; violated: in (0, 1]";
   else if (!(min_plane_spread >= 0 && min_plane_spread <= 1))
     e << "PhotometricOptions.min_plane_spread = " << min_plane_spread << "; violated: in [0, 1]";
+  else if (fit_pixel_stride < 1 || fit_pixel_stride > 8)
+    e << "PhotometricOptions.fit_pixel_stride = " << fit_pixel_stride << "; violated: in [1, 8]";
   else if (superpixel_downsample < 1 || superpixel_downsample > 4)
     e << "PhotometricOptions.superpixel_downsample = " << superpixel_downsample << "; violated: in [1, 4]";
   else if (max_clusters < 1 || max_clusters > 16) e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
@@ -237,29 +240,33 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
 
   PhotometricResult result;
   result.dense_inverse_depth = DensifyInverseDepth(prior, options.densify);
-  result.prior_normals = PriorNormals(result.dense_inverse_depth, rig.camera, options.prior);
+  const bool plane_priors = options.prior_normals == PriorNormalSource::kPlaneFit;
+  // Dense prior normals: the fitting input in kDenseDepth mode; otherwise only an optional output.
+  if (!plane_priors || options.output_prior_normals)
+    result.prior_normals = PriorNormals(result.dense_inverse_depth, rig.camera, options.prior);
   const Eigen::Matrix3d demix = calibrated ? Eigen::Matrix3d(rig.crosstalk.inverse()) : Eigen::Matrix3d::Identity();
   const int w = rgb.cols, h = rgb.rows;
 
   // Support: the local density of real (semi-dense) samples. Far from samples the densified depth
   // is an extrapolation and its normals are not a usable prior.
   cv::Mat support;
-  {
+  if (!plane_priors) {
     cv::Mat samples;
     cv::Mat(prior.inverse_depth > 0).convertTo(samples, CV_32F, 1.0 / 255.0);
     const double sigma = std::max(2.0, 2.0 * options.prior.step_px);
     const int ksize = static_cast<int>(std::ceil(3 * sigma)) * 2 + 1;
     cv::GaussianBlur(samples, support, cv::Size(ksize, ksize), sigma);
   }
-  const bool plane_priors = options.prior_normals == PriorNormalSource::kPlaneFit;
   // Reliable pixels: prior normal present near real samples, neither dark nor saturated, lit by all
   // three lights (a band near zero is an attached or cast shadow).
+  // Candidates are taken on a grid of step fit_pixel_stride: the fit uses a random subset anyway.
   std::vector<FitPixel> fit;
-  for (int y = 0; y < h; ++y) {
+  const int stride = options.fit_pixel_stride;
+  for (int y = 0; y < h; y += stride) {
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
-    const cv::Vec3f* n0 = result.prior_normals.ptr<cv::Vec3f>(y);
+    const cv::Vec3f* n0 = plane_priors ? nullptr : result.prior_normals.ptr<cv::Vec3f>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
-    for (int x = 0; x < w; ++x) {
+    for (int x = 0; x < w; x += stride) {
       if (!plane_priors && n0[x][2] == 0 && n0[x][0] == 0) continue;
       if (!(inv[x] > 0)) continue;
       const int mx = std::max({c[x][0], c[x][1], c[x][2]});
@@ -270,7 +277,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       p.y = y;
       const cv::Vec3f cf = color.at<cv::Vec3f>(y, x);
       p.q = demix * Eigen::Vector3d(cf[0], cf[1], cf[2]);
-      p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
+      if (!plane_priors) p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
       p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
       p.inverse_depth = inv[x];
       if (p.q.minCoeff() < options.min_band_fraction * p.q.maxCoeff()) continue;
@@ -287,30 +294,43 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     // Windows whose samples lie along one curve (semi-dense points follow edges) or whose residual is
     // too large for a plane (a depth edge) are rejected.
     const int r = options.plane_radius_px;
-    constexpr int kMoments = 9;  // 1, x, y, xx, xy, yy, w, xw, yw
-    cv::Mat moments[kMoments];
-    for (cv::Mat& m : moments) m = cv::Mat(h, w, CV_64F, cv::Scalar(0));
-    cv::Mat ww(h, w, CV_64F, cv::Scalar(0));  // w^2, for the residual
-    for (int y = 0; y < h; ++y)
+    constexpr int kMoments = 10;  // 1, x, y, xx, xy, yy, w, xw, yw, ww
+    // Integral images of the moments (one pass; sums over any window in O(1)), row-major with a
+    // zero first row and column: I[(y+1)(w+1)+(x+1)] = sum over [0,x]x[0,y].
+    const int iw = w + 1;
+    std::vector<double> integral(static_cast<size_t>(kMoments) * (h + 1) * iw, 0.0);
+    auto at = [&](int k, int y, int x) -> double& {
+      return integral[(static_cast<size_t>(k) * (h + 1) + y) * iw + x];
+    };
+    std::array<double, kMoments> row;
+    for (int y = 0; y < h; ++y) {
+      row.fill(0.0);
+      const float* id_row = prior.inverse_depth.ptr<float>(y);
+      const double py = (y - rig.camera.cy) / rig.camera.fy;
       for (int x = 0; x < w; ++x) {
-        const float id = prior.inverse_depth.at<float>(y, x);
-        if (!(id > 0)) continue;
-        const double px = (x - rig.camera.cx) / rig.camera.fx, py = (y - rig.camera.cy) / rig.camera.fy;
-        const double v[kMoments] = {1, px, py, px * px, px * py, py * py, id, px * id, py * id};
-        for (int k = 0; k < kMoments; ++k) moments[k].at<double>(y, x) = v[k];
-        ww.at<double>(y, x) = static_cast<double>(id) * id;
+        const float id = id_row[x];
+        if (id > 0) {
+          const double px = (x - rig.camera.cx) / rig.camera.fx;
+          const double v[kMoments] = {1, px, py, px * px, px * py, py * py, id, px * id, py * id,
+                                      static_cast<double>(id) * id};
+          for (int k = 0; k < kMoments; ++k) row[k] += v[k];
+        }
+        for (int k = 0; k < kMoments; ++k) at(k, y + 1, x + 1) = at(k, y, x + 1) + row[k];
       }
+    }
+    auto window_sum = [&](int k, int x, int y) {
+      const int x0 = std::max(0, x - r), y0 = std::max(0, y - r);
+      const int x1 = std::min(w - 1, x + r) + 1, y1 = std::min(h - 1, y + r) + 1;
+      return at(k, y1, x1) - at(k, y0, x1) - at(k, y1, x0) + at(k, y0, x0);
+    };
     // Shuffle first so the per-pixel solves run only on the pixels kept.
     std::shuffle(fit.begin(), fit.end(), rng);
-    const cv::Size box(2 * r + 1, 2 * r + 1);
-    for (cv::Mat& m : moments) cv::boxFilter(m, m, CV_64F, box, cv::Point(-1, -1), false);
-    cv::boxFilter(ww, ww, CV_64F, box, cv::Point(-1, -1), false);
     std::vector<FitPixel> kept;
     for (FitPixel& p : fit) {
-      const double n = moments[0].at<double>(p.y, p.x);
+      const double n = window_sum(0, p.x, p.y);
       if (n < options.min_plane_samples) continue;
       double m[kMoments];
-      for (int k = 0; k < kMoments; ++k) m[k] = moments[k].at<double>(p.y, p.x);
+      for (int k = 0; k < kMoments; ++k) m[k] = window_sum(k, p.x, p.y);
       // Spread of the samples in the image: both principal variances of (x, y) must be sizeable.
       const double mx = m[1] / n, my = m[2] / n;
       Eigen::Matrix2d cxy;
@@ -324,7 +344,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       const Eigen::Vector3d abc = ata.ldlt().solve(atb);
       if (!abc.allFinite()) continue;
       // Residual: sum (w - A x - B y - C)^2 = sum w^2 - 2 abc.atb + abc' ata abc.
-      const double sse = ww.at<double>(p.y, p.x) - 2 * abc.dot(atb) + abc.dot(ata * abc);
+      const double sse = m[9] - 2 * abc.dot(atb) + abc.dot(ata * abc);
       const double mean_w = m[6] / n;
       if (!(mean_w > 0) || std::sqrt(std::max(0.0, sse) / n) > options.max_plane_residual * mean_w) continue;
       // (A, B, C) . (x, y, 1) = 1/z > 0 for visible points: the normal facing the camera is -(A, B, C).
@@ -710,7 +730,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     const int y = static_cast<int>(row);
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
-    const cv::Vec3f* n0 = result.prior_normals.ptr<cv::Vec3f>(y);
+    const cv::Vec3f* n0 = result.prior_normals.empty() ? nullptr : result.prior_normals.ptr<cv::Vec3f>(y);
     int* lab = result.labels.ptr<int>(y);
     cv::Vec3f* out = result.normals.ptr<cv::Vec3f>(y);
     float* conf = result.confidence.ptr<float>(y);
@@ -725,7 +745,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       p.q = demix * Eigen::Vector3d(cf[0], cf[1], cf[2]);
       p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
       p.inverse_depth = inv[x];
-      p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
+      p.n0 = n0 ? Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]) : Eigen::Vector3d::Zero();
       if (label < 0 && p.n0.squaredNorm() > 0 && (!calibrated || p.inverse_depth > 0)) {
         Eigen::Vector2d ch;
         if (chroma_of(p, &ch)) label = Nearest(centres, ch);
