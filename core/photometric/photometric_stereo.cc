@@ -156,6 +156,8 @@ Status PhotometricOptions::Check() const {
     e << "PhotometricOptions.max_plane_residual = " << max_plane_residual << "; violated: in (0, 1]";
   else if (!(min_plane_spread >= 0 && min_plane_spread <= 1))
     e << "PhotometricOptions.min_plane_spread = " << min_plane_spread << "; violated: in [0, 1]";
+  else if (!(max_prior_deviation_deg > 0 && max_prior_deviation_deg <= 180))
+    e << "PhotometricOptions.max_prior_deviation_deg = " << max_prior_deviation_deg << "; violated: in (0, 180]";
   else if (fit_pixel_stride < 1 || fit_pixel_stride > 8)
     e << "PhotometricOptions.fit_pixel_stride = " << fit_pixel_stride << "; violated: in [1, 8]";
   else if (superpixel_downsample < 1 || superpixel_downsample > 4)
@@ -778,6 +780,9 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       if (mx >= options.saturation_level) quality *= 0.2;
       if (label < 0) quality *= 0.5;
       quality *= std::min(1.0, mx / (3.0 * std::max(1.0, options.min_level)));
+      // Far from the (coarse) prior normal: likely a shadow or a mislabelled albedo, not detail.
+      if (p.n0.squaredNorm() > 0 && std::acos(std::clamp(n.dot(p.n0), -1.0, 1.0)) > options.max_prior_deviation_deg * M_PI / 180)
+        quality *= 0.1;
       out[x] = cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
       conf[x] = static_cast<float>(std::clamp(quality, 0.0, 1.0));
     }

@@ -79,6 +79,10 @@ struct PhotometricOptions {
   int superpixel_downsample = 2;
   // Pixels sampled per fit (robust least squares, scale search), in [100, 1e6].
   int max_fit_pixels = 20000;
+  // A normal further than this from the dense prior normal gets a tenth of its confidence
+  // (degrees, in (0, 180]): the prior is coarse (~11 deg) but a shadowed or mislabelled pixel is
+  // usually much further off.
+  double max_prior_deviation_deg = 35.0;
   // Fit candidates are taken every fit_pixel_stride pixels in x and y, in [1, 8]. 2 saves ~7 ms at
   // 512x512 but costs accuracy on multi-coloured surfaces (3.96 -> 4.85 deg pooled in the tests).
   int fit_pixel_stride = 1;
