@@ -40,6 +40,8 @@ options:
   --depth-noise R       relative noise of the simulated inverse depth (default 0.01)
   --scale-keyframes N   keyframes that estimate the depth scale before the session fixes it (default 3)
   --voxel M             map voxel size, metres (default 0.002)
+  --max-edge-step R     leave out of the map pixels whose depth differs from a neighbour's by more
+                        than R (relative; default 0.02; 0 keeps all)
   --no-icp              merge keyframe clouds at their poses without ICP
   --max-icp-correction-m M, --max-icp-correction-deg D
                         largest ICP correction applied (default 0.01 m, 1 deg); larger ones,
@@ -85,6 +87,7 @@ int main(int argc, char** argv) {
   int keyframe_step = 10, max_keyframes = 1 << 30, scale_keyframes = 3, threads = 0;
   double slam_scale = 0.37, depth_noise = 0.01, voxel = 0.002;
   double max_icp_correction_m = 0.01, max_icp_correction_deg = 1.0;
+  double max_edge_step = 0.02;
   bool icp = true;
   uint32_t seed = 1;
   for (int i = 1; i < argc; ++i) {
@@ -109,6 +112,7 @@ int main(int argc, char** argv) {
     else if (a == "--slam-scale" && is_num && num > 0) slam_scale = num;
     else if (a == "--depth-noise" && is_num && num >= 0 && num <= 0.5) depth_noise = num;
     else if (a == "--voxel" && is_num && num > 0) voxel = num;
+    else if (a == "--max-edge-step" && is_num && num >= 0) max_edge_step = num;
     else if (a == "--max-icp-correction-m" && is_num && num >= 0) max_icp_correction_m = num;
     else if (a == "--max-icp-correction-deg" && is_num && num >= 0) max_icp_correction_deg = num;
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
@@ -231,7 +235,10 @@ int main(int argc, char** argv) {
 
     // Keyframe cloud in the world (metres), registered to the map.
     const Sim3d world_from_keyframe(slam_scale, pose->rotation, pose->translation);
-    StatusOr<PointCloud> cloud = DepthToCloud(fused->depth, fused->normals, *rgb, rig.camera, world_from_keyframe);
+    // Pixels along depth discontinuities are left out of the map (flying pixels).
+    const cv::Mat keep = max_edge_step > 0 ? DepthEdgeFreeMask(fused->depth, max_edge_step) : cv::Mat();
+    StatusOr<PointCloud> cloud =
+        DepthToCloud(fused->depth, fused->normals, *rgb, rig.camera, world_from_keyframe, 1, keep, ps->confidence);
     if (!cloud.ok()) return Fail(cloud.status().ToString());
     (void)WritePointCloudPly(out_dir + "/clouds/" + name + ".ply", *cloud);
     t0 = std::chrono::steady_clock::now();

@@ -1055,6 +1055,27 @@ StatusOr<FusionResult> FuseDepthAndNormals(const FusionInput& input, const Fusio
   return fusion.Fuse(input);
 }
 
+cv::Mat DepthEdgeFreeMask(const cv::Mat& depth, double max_relative_step) {
+  PRISM_CHECK(depth.type() == CV_32F) << "DepthEdgeFreeMask needs CV_32F depth";
+  cv::Mat keep(depth.size(), CV_8U, cv::Scalar(0));
+  const float t = static_cast<float>(max_relative_step);
+  for (int y = 0; y < depth.rows; ++y)
+    for (int x = 0; x < depth.cols; ++x) {
+      const float z = depth.at<float>(y, x);
+      if (!(z > 0)) continue;
+      bool ok = true;
+      for (int dy = -1; dy <= 1 && ok; ++dy)
+        for (int dx = -1; dx <= 1 && ok; ++dx) {
+          const int yy = y + dy, xx = x + dx;
+          if (yy < 0 || xx < 0 || yy >= depth.rows || xx >= depth.cols) continue;
+          const float zn = depth.at<float>(yy, xx);
+          if (zn > 0 && std::abs(zn - z) > t * z) ok = false;
+        }
+      if (ok) keep.at<uint8_t>(y, x) = 255;
+    }
+  return keep;
+}
+
 StatusOr<PointCloud> DepthToCloud(const cv::Mat& depth, const cv::Mat& normals, const cv::Mat& rgb,
                                   const PinholeCamera& camera, const Sim3d& world_from_keyframe, int stride,
                                   const cv::Mat& mask, const cv::Mat& confidence) {

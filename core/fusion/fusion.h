@@ -188,6 +188,11 @@ StatusOr<PointCloud> DepthToCloud(const cv::Mat& depth, const cv::Mat& normals, 
                                   const PinholeCamera& camera, const Sim3d& world_from_keyframe, int stride = 1,
                                   const cv::Mat& mask = cv::Mat(), const cv::Mat& confidence = cv::Mat());
 
+// Pixels safe to put in a map: depth > 0 and no 8-neighbour whose depth differs by more than
+// max_relative_step (relative). Pixels along depth discontinuities ("flying pixels", where a
+// surface fit bridges a silhouette) are the least reliable of a dense depth map. CV_8U, 255 = keep.
+cv::Mat DepthEdgeFreeMask(const cv::Mat& depth, double max_relative_step);
+
 // The SLAM's semi-dense cloud (world frame) seen from a keyframe: each point is mapped by
 // keyframe_from_world (Sim3, into the keyframe's camera frame in SLAM units), projected, and the
 // nearest point per pixel kept as inverse depth. Variance = 1 / confidence when the cloud has
