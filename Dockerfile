@@ -17,7 +17,8 @@ FROM debian:bookworm AS runtime
 ENV DEBIAN_FRONTEND=noninteractive
 RUN apt-get update -qq \
  && apt-get install -y -qq --no-install-recommends \
-      libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libprotobuf32 ca-certificates \
+      libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-contrib406 libprotobuf32 \
+      libpcl-common1.13 libpcl-kdtree1.13 libpcl-search1.13 libpcl-octree1.13 ca-certificates \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --system --create-home --home-dir /var/lib/prism --shell /usr/sbin/nologin prism
 COPY --from=build /opt/prism /opt/prism
