@@ -40,8 +40,9 @@ options:
   --depth-noise R       relative noise of the simulated inverse depth (default 0.01)
   --scale-keyframes N   keyframes that estimate the depth scale before the session fixes it (default 3)
   --voxel M             map voxel size, metres (default 0.002)
-  --max-edge-step R     leave out of the map pixels whose depth differs from a neighbour's by more
-                        than R (relative; default 0.02; 0 keeps all)
+  --max-edge-step R     remove from the fused depth (and so from the clouds and the map) pixels whose
+                        depth differs from a neighbour's by more than R (relative; default 0.03;
+                        0 keeps all): flying pixels along silhouettes
   --no-icp              merge keyframe clouds at their poses without ICP
   --max-icp-correction-m M, --max-icp-correction-deg D
                         largest ICP correction applied (default 0.01 m, 1 deg); larger ones,
@@ -87,7 +88,7 @@ int main(int argc, char** argv) {
   int keyframe_step = 10, max_keyframes = 1 << 30, scale_keyframes = 3, threads = 0;
   double slam_scale = 0.37, depth_noise = 0.01, voxel = 0.002;
   double max_icp_correction_m = 0.01, max_icp_correction_deg = 1.0;
-  double max_edge_step = 0.02;
+  double max_edge_step = 0.03;
   bool icp = true;
   uint32_t seed = 1;
   for (int i = 1; i < argc; ++i) {
@@ -142,6 +143,9 @@ int main(int argc, char** argv) {
   SessionDepthScale session_scale;
   NormalErrorAccumulator ps_error, fused_error, prior_error;
   double ps_ms = 0, fusion_ms = 0, icp_ms = 0;
+  // Pooled over keyframes: squared depth errors (metres^2) and pixel counts, and coverage.
+  double fused_sse = 0, semi_sse = 0, min_coverage = 1.0;
+  long long fused_n = 0, semi_n = 0;
   std::ostringstream keyframes_json;
   int keyframes = 0;
   auto ms_since = [](std::chrono::steady_clock::time_point t) {
@@ -210,12 +214,22 @@ int main(int argc, char** argv) {
         const float id = semi_dense.inverse_depth.at<float>(y, x);
         if (id > 0) semi_dense_m.at<float>(y, x) = static_cast<float>(slam_scale / id);
       }
-    const cv::Mat fused_m = fused->depth * slam_scale;
+    // Pixels along depth steps (flying pixels where the surface bridges a silhouette) are removed
+    // from the keyframe's dense depth: its output, its evaluation and its cloud.
+    const cv::Mat keep = max_edge_step > 0 ? DepthEdgeFreeMask(fused->depth, max_edge_step) : cv::Mat();
+    cv::Mat fused_depth = fused->depth.clone();
+    if (!keep.empty()) fused_depth.setTo(0, keep == 0);
+    const cv::Mat fused_m = fused_depth * slam_scale;
     const cv::Mat eval_mask = mask.empty() ? cv::Mat(truth_depth->size(), CV_8U, cv::Scalar(255)) : mask;
     int n_fused = 0, n_semi = 0;
     const double fused_rmse = DepthRmse(fused_m, *truth_depth, eval_mask, &n_fused);
     const double semi_rmse = DepthRmse(semi_dense_m, *truth_depth, eval_mask, &n_semi);
     const int eval_pixels = cv::countNonZero(eval_mask & (*truth_depth > 0));
+    fused_sse += fused_rmse * fused_rmse * n_fused;
+    semi_sse += semi_rmse * semi_rmse * n_semi;
+    fused_n += n_fused;
+    semi_n += n_semi;
+    if (eval_pixels > 0) min_coverage = std::min(min_coverage, static_cast<double>(n_fused) / eval_pixels);
 
     // Outputs of the keyframe.
     (void)WriteNormalPng(out_dir + "/normals/" + name + ".png", fused->normals);
@@ -235,10 +249,8 @@ int main(int argc, char** argv) {
 
     // Keyframe cloud in the world (metres), registered to the map.
     const Sim3d world_from_keyframe(slam_scale, pose->rotation, pose->translation);
-    // Pixels along depth discontinuities are left out of the map (flying pixels).
-    const cv::Mat keep = max_edge_step > 0 ? DepthEdgeFreeMask(fused->depth, max_edge_step) : cv::Mat();
     StatusOr<PointCloud> cloud =
-        DepthToCloud(fused->depth, fused->normals, *rgb, rig.camera, world_from_keyframe, 1, keep, ps->confidence);
+        DepthToCloud(fused_depth, fused->normals, *rgb, rig.camera, world_from_keyframe, 1, cv::Mat(), ps->confidence);
     if (!cloud.ok()) return Fail(cloud.status().ToString());
     (void)WritePointCloudPly(out_dir + "/clouds/" + name + ".ply", *cloud);
     t0 = std::chrono::steady_clock::now();
@@ -295,10 +307,13 @@ int main(int argc, char** argv) {
                 "{\n  \"keyframes\": %d,\n  \"map_points\": %zu,\n  \"session_depth_scale\": %.5f,\n"
                 "  \"slam_scale_true\": %.5f,\n  \"ps_median_deg\": %.4f,\n  \"ps_mean_deg\": %.4f,\n"
                 "  \"fused_normal_median_deg\": %.4f,\n  \"prior_normal_median_deg\": %.4f,\n"
+                "  \"fused_depth_rmse_m\": %.6g,\n  \"semi_dense_depth_rmse_m\": %.6g,\n"
+                "  \"min_fused_coverage\": %.4f,\n"
                 "  \"ps_ms_per_keyframe\": %.1f,\n  \"fusion_ms_per_keyframe\": %.1f,\n  \"icp_merge_ms_per_keyframe\": %.1f,\n"
                 "  \"per_keyframe\": [\n",
                 keyframes, merged.size(), session_scale.has_value() ? session_scale.value() : 0.0, slam_scale,
                 ps_stats.median_deg, ps_stats.mean_deg, fused_stats.median_deg, prior_stats.median_deg,
+                fused_n ? std::sqrt(fused_sse / fused_n) : 0.0, semi_n ? std::sqrt(semi_sse / semi_n) : 0.0, min_coverage,
                 ps_ms / keyframes, fusion_ms / keyframes, icp_ms / keyframes);
   json << head << keyframes_json.str() << "\n  ]\n}\n";
   std::cout << json.str();
