@@ -18,6 +18,8 @@
 namespace prism {
 namespace {
 
+int stride_or_one(int s) { return s > 0 ? s : 1; }
+
 // One pixel used for fitting.
 struct FitPixel {
   int x, y;
@@ -262,30 +264,48 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // Reliable pixels: prior normal present near real samples, neither dark nor saturated, lit by all
   // three lights (a band near zero is an attached or cast shadow).
   // Candidates are taken on a grid of step fit_pixel_stride: the fit uses a random subset anyway.
-  std::vector<FitPixel> fit;
+  // They are kept compact (shuffling ~1e5 full FitPixels cost ~10 ms); FitPixels are made for the
+  // ones used.
+  struct Candidate {
+    int x, y;
+    float q[3];
+  };
+  std::vector<Candidate> candidates;
+  candidates.reserve(static_cast<size_t>(w) * h / (stride_or_one(options.fit_pixel_stride) * stride_or_one(options.fit_pixel_stride)));
   const int stride = options.fit_pixel_stride;
+  const Eigen::Matrix3f demix_f = demix.cast<float>();
   for (int y = 0; y < h; y += stride) {
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
     const cv::Vec3f* n0 = plane_priors ? nullptr : result.prior_normals.ptr<cv::Vec3f>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
+    const cv::Vec3f* col = color.ptr<cv::Vec3f>(y);
     for (int x = 0; x < w; x += stride) {
       if (!plane_priors && n0[x][2] == 0 && n0[x][0] == 0) continue;
       if (!(inv[x] > 0)) continue;
       const int mx = std::max({c[x][0], c[x][1], c[x][2]});
       if (mx < options.min_level || mx >= options.saturation_level) continue;
       if (!plane_priors && support.at<float>(y, x) < options.min_prior_support) continue;
-      FitPixel p;
-      p.x = x;
-      p.y = y;
-      const cv::Vec3f cf = color.at<cv::Vec3f>(y, x);
-      p.q = demix * Eigen::Vector3d(cf[0], cf[1], cf[2]);
-      if (!plane_priors) p.n0 = Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]);
-      p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
-      p.inverse_depth = inv[x];
-      if (p.q.minCoeff() < options.min_band_fraction * p.q.maxCoeff()) continue;
-      fit.push_back(p);
+      const Eigen::Vector3f q = demix_f * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
+      if (q.minCoeff() < options.min_band_fraction * q.maxCoeff()) continue;
+      candidates.push_back({x, y, {q.x(), q.y(), q.z()}});
     }
   }
+  auto make_fit_pixel = [&](const Candidate& cand) {
+    FitPixel p;
+    p.x = cand.x;
+    p.y = cand.y;
+    // Recomputed in double from the image (the float copy only served the candidate test).
+    const cv::Vec3f cf = color.at<cv::Vec3f>(cand.y, cand.x);
+    p.q = demix * Eigen::Vector3d(cf[0], cf[1], cf[2]);
+    if (!plane_priors) {
+      const cv::Vec3f n = result.prior_normals.at<cv::Vec3f>(cand.y, cand.x);
+      p.n0 = Eigen::Vector3d(n[0], n[1], n[2]);
+    }
+    p.ray = Eigen::Vector3d((cand.x - rig.camera.cx) / rig.camera.fx, (cand.y - rig.camera.cy) / rig.camera.fy, 1.0);
+    p.inverse_depth = result.dense_inverse_depth.at<float>(cand.y, cand.x);
+    return p;
+  };
+  std::vector<FitPixel> fit;
   std::mt19937 rng(options.seed);
   if (plane_priors) {
     // Prior normals fitted as planes to the real SLAM samples in a window. A plane's inverse depth is
@@ -326,9 +346,10 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       return at(k, y1, x1) - at(k, y0, x1) - at(k, y1, x0) + at(k, y0, x0);
     };
     // Shuffle first so the per-pixel solves run only on the pixels kept.
-    std::shuffle(fit.begin(), fit.end(), rng);
+    std::shuffle(candidates.begin(), candidates.end(), rng);
     std::vector<FitPixel> kept;
-    for (FitPixel& p : fit) {
+    for (const Candidate& cand : candidates) {
+      FitPixel p = make_fit_pixel(cand);
       const double n = window_sum(0, p.x, p.y);
       if (n < options.min_plane_samples) continue;
       double m[kMoments];
@@ -357,6 +378,12 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       if (static_cast<int>(kept.size()) >= options.max_fit_pixels) break;
     }
     fit.swap(kept);
+  } else {
+    if (static_cast<int>(candidates.size()) > options.max_fit_pixels) {
+      std::shuffle(candidates.begin(), candidates.end(), rng);
+      candidates.resize(options.max_fit_pixels);
+    }
+    for (const Candidate& cand : candidates) fit.push_back(make_fit_pixel(cand));
   }
   if (fit.size() < 50) return FailedPreconditionError("EstimateNormals: fewer than 50 pixels with a reliable prior");
   if (static_cast<int>(fit.size()) > options.max_fit_pixels) {
