@@ -755,6 +755,18 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   result.labels = cv::Mat(h, w, CV_32S, cv::Scalar(-1));
   result.normals = cv::Mat(h, w, CV_32FC3, cv::Scalar(0, 0, 0));
   result.confidence = cv::Mat(h, w, CV_32F, cv::Scalar(0));
+  // Light geometry for the per-pixel solve: point lights use position and intensity (S row =
+  // I v / |v|^3), directional ones direction and intensity (the same as Light::Illuminate).
+  bool point_light[3];
+  Eigen::Vector3d light_position[3], light_direction[3];
+  double light_intensity[3];
+  for (int l = 0; l < 3; ++l) {
+    light_position[l] = rig.lights[l].position_in_camera;
+    light_direction[l] = rig.lights[l].direction_in_camera.normalized();
+    light_intensity[l] = rig.lights[l].intensity;
+    point_light[l] = rig.lights[l].type == LightType::kPoint;
+  }
+  const double cos_max_prior_deviation = std::cos(options.max_prior_deviation_deg * M_PI / 180);
   auto solve_row = [&](std::ptrdiff_t row) {
     const int y = static_cast<int>(row);
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
@@ -785,8 +797,19 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       double quality = 1.0;
       if (calibrated) {
         if (!(p.inverse_depth > 0)) continue;
-        const Eigen::Vector3d point = p.ray * (scale / p.inverse_depth);
-        const Eigen::Matrix3d s = NearLightMatrix(rig, point);
+        // S(p) rows E_l l_l^T for point lights, inlined (this loop runs on every pixel).
+        const double depth = scale / p.inverse_depth;
+        const Eigen::Vector3d point = p.ray * depth;
+        Eigen::Matrix3d s;
+        for (int l = 0; l < 3; ++l) {
+          if (point_light[l]) {
+            const Eigen::Vector3d v = light_position[l] - point;
+            const double d2 = v.squaredNorm();
+            s.row(l) = (light_intensity[l] / (d2 * std::sqrt(d2))) * v.transpose();
+          } else {
+            s.row(l) = light_intensity[l] * light_direction[l].transpose();
+          }
+        }
         const Eigen::Vector3d b = p.q.cwiseProduct(inverse_albedo[model]);
         n = s.inverse() * b;  // closed-form 3x3
         // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light
@@ -808,8 +831,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       if (label < 0) quality *= 0.5;
       quality *= std::min(1.0, mx / (3.0 * std::max(1.0, options.min_level)));
       // Far from the (coarse) prior normal: likely a shadow or a mislabelled albedo, not detail.
-      if (p.n0.squaredNorm() > 0 && std::acos(std::clamp(n.dot(p.n0), -1.0, 1.0)) > options.max_prior_deviation_deg * M_PI / 180)
-        quality *= 0.1;
+      if (p.n0.squaredNorm() > 0 && n.dot(p.n0) < cos_max_prior_deviation) quality *= 0.1;
       out[x] = cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
       conf[x] = static_cast<float>(std::clamp(quality, 0.0, 1.0));
     }
