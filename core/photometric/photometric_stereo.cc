@@ -490,13 +490,15 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // on the angle). This uses the noisy prior normals only through an average over many pixels.
   std::vector<Eigen::Vector3d> inverse_albedo;
   constexpr double kCauchyScale = 0.2;  // sine of the angle at which a prior normal counts half
-  std::vector<Eigen::Matrix3d> a;  // A_i at the scale of the last fit_directions call
+  std::vector<Eigen::Matrix3d> a;    // A_i at the scale of the last fit_directions call
+  std::vector<Eigen::Matrix3d> apa;  // A_i^T (I - n0 n0^T) A_i
   std::vector<bool> usable;
   // Uses the first `num_pixels` fit pixels (they are shuffled) and `iterations` IRLS rounds.
   auto fit_directions = [&](double s, size_t num_pixels, int iterations) {
     const int k = static_cast<int>(centres.size());
     const size_t n_fit = std::min(num_pixels, fit.size());
     a.assign(fit.size(), Eigen::Matrix3d::Zero());
+    apa.assign(fit.size(), Eigen::Matrix3d::Zero());
     usable.assign(fit.size(), false);
     for (size_t i = 0; i < n_fit; ++i) {
       const Eigen::Matrix3d sm = NearLightMatrix(rig, fit[i].ray * (s / fit[i].inverse_depth));
@@ -504,6 +506,9 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       if (!(std::abs(det) > 1e-12)) continue;
       a[i] = sm.inverse() * fit[i].q.asDiagonal();  // closed-form 3x3 inverse
       usable[i] = a[i].allFinite();
+      // A^T (I - n0 n0^T) A is fixed across the IRLS rounds: only the weights change.
+      const Eigen::Vector3d an0 = a[i].transpose() * fit[i].n0;
+      apa[i] = a[i].transpose() * a[i] - an0 * an0.transpose();
     }
     inverse_albedo.assign(k + 1, Eigen::Vector3d::Ones());
     double cost = 0;
@@ -515,15 +520,16 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       weight_sum = 0;
       for (size_t i = 0; i < n_fit; ++i) {
         if (!usable[i]) continue;
-        const Eigen::Matrix3d proj = Eigen::Matrix3d::Identity() - fit[i].n0 * fit[i].n0.transpose();
         for (int m : {fit[i].label, k}) {
           if (m < 0) continue;
           const Eigen::Vector3d n = a[i] * inverse_albedo[m];
-          const double len = n.norm();
-          if (len < 1e-9) continue;
-          const double r = (proj * n).norm() / len;
+          const double len2 = n.squaredNorm();
+          if (len2 < 1e-18) continue;
+          // sin^2 of the angle to n0: |(I - n0 n0^T) n|^2 / |n|^2 = 1 - (n0 . n)^2 / |n|^2.
+          const double c = fit[i].n0.dot(n);
+          const double r = std::sqrt(std::max(0.0, 1.0 - c * c / len2));
           const double w = 1.0 / (1.0 + (r / kCauchyScale) * (r / kCauchyScale));
-          h[m] += (w / (len * len)) * a[i].transpose() * proj * a[i];
+          h[m] += (w / len2) * apa[i];
           counts[m]++;
           if (m == (fit[i].label >= 0 ? fit[i].label : k)) {
             cost += std::log1p((r / kCauchyScale) * (r / kCauchyScale));
