@@ -43,6 +43,8 @@ options:
   --max-edge-step R     remove from the fused depth (and so from the clouds and the map) pixels whose
                         depth differs from a neighbour's by more than R (relative; default 0.03;
                         0 keeps all): flying pixels along silhouettes
+  --position-weight W   fusion: weight of the SLAM positions against the normals (FusionOptions)
+  --fusion-passes N     fusion: solve passes with normal correction in between (default 2)
   --no-icp              merge keyframe clouds at their poses without ICP
   --max-icp-correction-m M, --max-icp-correction-deg D
                         largest ICP correction applied (default 0.01 m, 1 deg); larger ones,
@@ -89,6 +91,7 @@ int main(int argc, char** argv) {
   double slam_scale = 0.37, depth_noise = 0.01, voxel = 0.002;
   double max_icp_correction_m = 0.01, max_icp_correction_deg = 1.0;
   double max_edge_step = 0.03;
+  FusionOptions fusion_options;
   bool icp = true;
   uint32_t seed = 1;
   for (int i = 1; i < argc; ++i) {
@@ -114,6 +117,8 @@ int main(int argc, char** argv) {
     else if (a == "--depth-noise" && is_num && num >= 0 && num <= 0.5) depth_noise = num;
     else if (a == "--voxel" && is_num && num > 0) voxel = num;
     else if (a == "--max-edge-step" && is_num && num >= 0) max_edge_step = num;
+    else if (a == "--position-weight" && is_num && num >= 0) fusion_options.position_weight = num;
+    else if (a == "--fusion-passes" && is_num && num >= 1) fusion_options.passes = static_cast<int>(num);
     else if (a == "--max-icp-correction-m" && is_num && num >= 0) max_icp_correction_m = num;
     else if (a == "--max-icp-correction-deg" && is_num && num >= 0) max_icp_correction_deg = num;
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
@@ -134,7 +139,8 @@ int main(int argc, char** argv) {
 
   const RigCalibration& rig = seq->calibration;
   ThreadPool pool(threads);
-  DepthNormalFusion fusion(FusionOptions(), &pool);
+  if (Status st = fusion_options.Check(); !st.ok()) return Fail(st.ToString());
+  DepthNormalFusion fusion(fusion_options, &pool);
   MapOptions map_options;
   map_options.voxel_m = voxel;
   if (Status s = map_options.Check(); !s.ok()) return Fail(s.ToString());
