@@ -1,10 +1,7 @@
 // The command-line contract of prism-synth and prism-eval, run as real processes: a rendered
 // sequence evaluated against itself gives zeros, against a perturbed copy gives the perturbation.
-#include <sys/wait.h>
-
 #include <cstdio>
 #include <filesystem>
-#include <regex>
 #include <string>
 
 #include <gtest/gtest.h>
@@ -14,37 +11,16 @@
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
+#include "tests/test_process.h"
 
 namespace prism {
 namespace {
 namespace fs = std::filesystem;
 
-struct ProcessResult {
-  int exit_code = -1;
-  std::string out;  // stdout and stderr
-};
-
-ProcessResult Execute(const std::string& command) {
-  ProcessResult r;
-  FILE* p = popen((command + " 2>&1").c_str(), "r");
-  if (!p) return r;
-  char buf[4096];
-  size_t n;
-  while ((n = fread(buf, 1, sizeof(buf), p)) > 0) r.out.append(buf, n);
-  const int status = pclose(p);
-  r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
-}
-
-std::string Bin(const std::string& name) { return std::string(PRISM_BINARY_DIR) + "/bin/" + name; }
-
-// The number after "key": in a JSON text (NaN when absent).
-double JsonNumber(const std::string& json, const std::string& key) {
-  const std::regex re("\"" + key + "\"\\s*:\\s*([-+0-9.eE]+)");
-  std::smatch m;
-  if (!std::regex_search(json, m, re)) return std::nan("");
-  return std::stod(m[1]);
-}
+using test::Bin;
+using test::Execute;
+using test::JsonNumber;
+using test::ProcessResult;
 
 class CliTest : public ::testing::Test {
  protected:

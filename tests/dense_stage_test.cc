@@ -1,45 +1,21 @@
 // The dense stage end to end, as separate processes: prism-synth renders a sequence, prism-fuse
 // runs photometric stereo + fusion + ICP + map merging on simulated semi-dense depth, prism-eval
 // scores the merged map against the ground-truth surface.
-#include <sys/wait.h>
-
-#include <cmath>
-#include <cstdio>
 #include <filesystem>
-#include <regex>
 #include <string>
 
 #include <gtest/gtest.h>
+
+#include "tests/test_process.h"
 
 namespace prism {
 namespace {
 namespace fs = std::filesystem;
 
-struct ProcessResult {
-  int exit_code = -1;
-  std::string out;
-};
-
-ProcessResult Execute(const std::string& command) {
-  ProcessResult r;
-  FILE* p = popen((command + " 2>&1").c_str(), "r");
-  if (!p) return r;
-  char buf[4096];
-  size_t n;
-  while ((n = fread(buf, 1, sizeof(buf), p)) > 0) r.out.append(buf, n);
-  const int status = pclose(p);
-  r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
-}
-
-std::string Bin(const std::string& name) { return std::string(PRISM_BINARY_DIR) + "/bin/" + name; }
-
-double JsonNumber(const std::string& json, const std::string& key) {
-  const std::regex re("\"" + key + "\"\\s*:\\s*([-+0-9.eE]+)");
-  std::smatch m;
-  if (!std::regex_search(json, m, re)) return std::nan("");
-  return std::stod(m[1]);
-}
+using test::Bin;
+using test::Execute;
+using test::JsonNumber;
+using test::ProcessResult;
 
 class DenseStageTest : public ::testing::TestWithParam<std::string> {
  protected:
