@@ -1,0 +1,470 @@
+#include "core/slam/tracker.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include <Eigen/Cholesky>
+#include <opencv2/imgproc.hpp>
+
+#include "core/util/check.h"
+
+namespace prism {
+namespace {
+
+constexpr int kNumParams = 8;  // translation (3), rotation (3), affine a, affine b
+using Matrix8d = Eigen::Matrix<double, kNumParams, kNumParams>;
+using Vector8d = Eigen::Matrix<double, kNumParams, 1>;
+
+// Grey = mean of the three channels, as float.
+void ToGrey(const cv::Mat& rgb, cv::Mat* grey) {
+  grey->create(rgb.rows, rgb.cols, CV_32F);
+  for (int y = 0; y < rgb.rows; ++y) {
+    const uint8_t* in = rgb.ptr<uint8_t>(y);
+    float* out = grey->ptr<float>(y);
+    for (int x = 0; x < rgb.cols; ++x) out[x] = (in[3 * x] + in[3 * x + 1] + in[3 * x + 2]) * (1.0f / 3.0f);
+  }
+}
+
+// 2x2 box average (drops an odd last row / column).
+void Downsample(const cv::Mat& in, cv::Mat* out) {
+  out->create(in.rows / 2, in.cols / 2, CV_32F);
+  for (int y = 0; y < out->rows; ++y) {
+    const float* a = in.ptr<float>(2 * y);
+    const float* b = in.ptr<float>(2 * y + 1);
+    float* o = out->ptr<float>(y);
+    for (int x = 0; x < out->cols; ++x) o[x] = 0.25f * (a[2 * x] + a[2 * x + 1] + b[2 * x] + b[2 * x + 1]);
+  }
+}
+
+// Interleaved (intensity, d/du, d/dv) with central differences (zero gradient on the border).
+void WithGradients(const cv::Mat& grey, cv::Mat* out) {
+  out->create(grey.rows, grey.cols, CV_32FC3);
+  const int w = grey.cols, h = grey.rows;
+  for (int y = 0; y < h; ++y) {
+    const float* row = grey.ptr<float>(y);
+    const float* up = grey.ptr<float>(std::max(y - 1, 0));
+    const float* down = grey.ptr<float>(std::min(y + 1, h - 1));
+    float* o = out->ptr<float>(y);
+    const bool border_row = y == 0 || y == h - 1;
+    for (int x = 0; x < w; ++x) {
+      o[3 * x] = row[x];
+      if (border_row || x == 0 || x == w - 1) {
+        o[3 * x + 1] = 0;
+        o[3 * x + 2] = 0;
+      } else {
+        o[3 * x + 1] = 0.5f * (row[x + 1] - row[x - 1]);
+        o[3 * x + 2] = 0.5f * (down[x] - up[x]);
+      }
+    }
+  }
+}
+
+// J = 128 * I / (box_mean(I) + floor), in place (see TrackerOptions::normalize_shading).
+void NormalizeShading(const TrackerOptions& options, cv::Mat* grey, cv::Mat* scratch) {
+  if (!options.normalize_shading) return;
+  const int k = 2 * options.local_mean_radius_px + 1;
+  cv::blur(*grey, *scratch, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+  const float floor = static_cast<float>(options.local_mean_floor);
+  for (int y = 0; y < grey->rows; ++y) {
+    float* g = grey->ptr<float>(y);
+    const float* m = scratch->ptr<float>(y);
+    for (int x = 0; x < grey->cols; ++x) g[x] = 128.0f * g[x] / (m[x] + floor);
+  }
+}
+
+PinholeCamera LevelCamera(const PinholeCamera& camera, int level) {
+  PinholeCamera c = camera;
+  const double s = 1.0 / (1 << level);
+  c.width = camera.width >> level;
+  c.height = camera.height >> level;
+  c.fx = camera.fx * s;
+  c.fy = camera.fy * s;
+  // 2x2 averaging: pixel centre x at level l+1 covers x' = 2x + 0.5 at level l.
+  c.cx = (camera.cx + 0.5) * s - 0.5;
+  c.cy = (camera.cy + 0.5) * s - 0.5;
+  return c;
+}
+
+// Inverse depth and variance at the next level: the mean of the valid pixels of each 2x2 block;
+// blocks straddling a depth discontinuity (spread > 10%) become invalid.
+void DownsampleInverseDepth(const cv::Mat& idepth, const cv::Mat& var, cv::Mat* idepth_out, cv::Mat* var_out) {
+  idepth_out->create(idepth.rows / 2, idepth.cols / 2, CV_32F);
+  var_out->create(idepth.rows / 2, idepth.cols / 2, CV_32F);
+  for (int y = 0; y < idepth_out->rows; ++y) {
+    for (int x = 0; x < idepth_out->cols; ++x) {
+      float sum = 0, sum_var = 0, lo = 1e30f, hi = 0;
+      int n = 0;
+      for (int dy = 0; dy < 2; ++dy) {
+        for (int dx = 0; dx < 2; ++dx) {
+          const float d = idepth.at<float>(2 * y + dy, 2 * x + dx);
+          if (!(d > 0)) continue;
+          sum += d;
+          sum_var += var.at<float>(2 * y + dy, 2 * x + dx);
+          lo = std::min(lo, d);
+          hi = std::max(hi, d);
+          ++n;
+        }
+      }
+      const bool valid = n > 0 && hi <= 1.1f * lo;
+      idepth_out->at<float>(y, x) = valid ? sum / n : 0.0f;
+      var_out->at<float>(y, x) = valid ? sum_var / (n * n) : 0.0f;
+    }
+  }
+}
+
+struct Bilinear {
+  float i, gu, gv;
+};
+
+// (u, v) must satisfy 0 <= u < w - 1, 0 <= v < h - 1.
+inline Bilinear Sample(const cv::Mat& img, float u, float v) {
+  const int x = static_cast<int>(u), y = static_cast<int>(v);
+  const float fu = u - x, fv = v - y;
+  const float* a = img.ptr<float>(y) + 3 * x;
+  const float* b = img.ptr<float>(y + 1) + 3 * x;
+  const float w00 = (1 - fu) * (1 - fv), w01 = fu * (1 - fv), w10 = (1 - fu) * fv, w11 = fu * fv;
+  return {w00 * a[0] + w01 * a[3] + w10 * b[0] + w11 * b[3], w00 * a[1] + w01 * a[4] + w10 * b[1] + w11 * b[4],
+          w00 * a[2] + w01 * a[5] + w10 * b[2] + w11 * b[5]};
+}
+
+struct Evaluation {
+  Matrix8d hessian = Matrix8d::Zero();
+  Vector8d gradient = Vector8d::Zero();
+  double energy = 0;  // robust cost, out-of-image points at the Huber cost of the inlier threshold
+  int visible = 0;
+  int inliers = 0;
+  double inlier_sq_sum = 0;  // raw residuals, grey levels^2
+};
+
+struct State {
+  Rigid3d frame_from_keyframe;
+  double a = 0, b = 0;
+};
+
+Evaluation Evaluate(const TrackingKeyframe::Level& level, const cv::Mat& frame, const State& state,
+                    const TrackerOptions& options) {
+  Evaluation e;
+  const Eigen::Matrix3f rotation = state.frame_from_keyframe.RotationMatrix().cast<float>();
+  const Eigen::Vector3f translation = state.frame_from_keyframe.translation.cast<float>();
+  const float fx = level.camera.fx, fy = level.camera.fy, cx = level.camera.cx, cy = level.camera.cy;
+  const float max_u = level.camera.width - 1.001f, max_v = level.camera.height - 1.001f;
+  const float scale = std::exp(static_cast<float>(state.a)), offset = static_cast<float>(state.b);
+  const float noise_var = 2.0f * static_cast<float>(options.image_noise_sigma * options.image_noise_sigma);
+  const float huber = options.huber_threshold, inlier = options.inlier_threshold;
+  const double outside_cost = huber * (2 * inlier - huber);
+  // Accumulated in float blocks of points, flushed to double, to keep the inner loop cheap.
+  Eigen::Matrix<float, kNumParams, kNumParams> h_block = Eigen::Matrix<float, kNumParams, kNumParams>::Zero();
+  Eigen::Matrix<float, kNumParams, 1> g_block = Eigen::Matrix<float, kNumParams, 1>::Zero();
+  int in_block = 0;
+  for (const TrackingKeyframe::Point& p : level.points) {
+    // Y' = R ray + rho t is the point in the frame scaled by rho; it projects where Y does.
+    const Eigen::Vector3f ys = rotation * p.ray + p.inverse_depth * translation;
+    if (!(ys.z() > 1e-6f)) {
+      e.energy += outside_cost;
+      continue;
+    }
+    const float inv_zs = 1.0f / ys.z();
+    const float u = fx * ys.x() * inv_zs + cx, v = fy * ys.y() * inv_zs + cy;
+    if (!(u >= 0 && v >= 0 && u < max_u && v < max_v)) {
+      e.energy += outside_cost;
+      continue;
+    }
+    ++e.visible;
+    const Bilinear s = Sample(frame, u, v);
+    const float r = s.i - (scale * p.intensity + offset);
+    // d(u,v)/dY at the true point Y = Y' / rho (z = Y'z / rho).
+    const float inv_z = p.inverse_depth * inv_zs;
+    const float x_n = ys.x() * inv_zs, y_n = ys.y() * inv_zs;
+    const float gu = s.gu * fx, gv = s.gv * fy;
+    // g^T dpi/dY = inv_z * (gu, gv, -(gu x_n + gv y_n)).
+    const float jx = gu * inv_z, jy = gv * inv_z, jz = -(gu * x_n + gv * y_n) * inv_z;
+    // dr/drho = g^T dpi/dY' t, with dpi/dY' = dpi/dY / rho.
+    const float dr_drho = (jx * translation.x() + jy * translation.y() + jz * translation.z()) / p.inverse_depth;
+    const float var = noise_var + dr_drho * dr_drho * p.inverse_depth_var;
+    const float inv_sigma = 1.0f / std::sqrt(var);
+    const float rn = std::abs(r) * inv_sigma;
+    if (rn < inlier) {
+      ++e.inliers;
+      e.inlier_sq_sum += r * r;
+    }
+    const float huber_w = rn <= huber ? 1.0f : huber / rn;
+    e.energy += rn <= huber ? rn * rn : huber * (2 * rn - huber);
+    const float w = huber_w / var;
+    // Y = (Y' / rho); dY/d(v, w) = [I, -[Y]x].
+    const float yx = ys.x() / p.inverse_depth, yy = ys.y() / p.inverse_depth, yz = ys.z() / p.inverse_depth;
+    Eigen::Matrix<float, kNumParams, 1> j;
+    j << jx, jy, jz, jz * yy - jy * yz, jx * yz - jz * yx, jy * yx - jx * yy, -scale * p.intensity, -1.0f;
+    h_block.noalias() += (w * j) * j.transpose();
+    g_block.noalias() += (w * r) * j;
+    if (++in_block == 256) {
+      e.hessian += h_block.cast<double>();
+      e.gradient += g_block.cast<double>();
+      h_block.setZero();
+      g_block.setZero();
+      in_block = 0;
+    }
+  }
+  e.hessian += h_block.cast<double>();
+  e.gradient += g_block.cast<double>();
+  return e;
+}
+
+State Apply(const State& s, const Vector8d& delta) {
+  State out;
+  const Eigen::Vector3d w = delta.segment<3>(3);
+  const double angle = w.norm();
+  const Eigen::Quaterniond dq =
+      angle > 1e-12 ? Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle)) : Eigen::Quaterniond::Identity();
+  out.frame_from_keyframe = Rigid3d(dq, delta.head<3>()) * s.frame_from_keyframe;
+  out.a = s.a + delta(6);
+  out.b = s.b + delta(7);
+  return out;
+}
+
+}  // namespace
+
+Status TrackerOptions::Check() const {
+  std::ostringstream e;
+  if (pyramid_levels < 1 || pyramid_levels > 8)
+    e << "TrackerOptions.pyramid_levels = " << pyramid_levels << "; violated: in [1, 8]";
+  else if (!(min_gradient >= 0 && min_gradient <= 255))
+    e << "TrackerOptions.min_gradient = " << min_gradient << "; violated: in [0, 255]";
+  else if (max_points_per_level < 16)
+    e << "TrackerOptions.max_points_per_level = " << max_points_per_level << "; violated: >= 16";
+  else if (max_iterations < 1 || max_iterations > 100)
+    e << "TrackerOptions.max_iterations = " << max_iterations << "; violated: in [1, 100]";
+  else if (!(convergence_threshold > 0))
+    e << "TrackerOptions.convergence_threshold = " << convergence_threshold << "; violated: > 0";
+  else if (!(image_noise_sigma > 0))
+    e << "TrackerOptions.image_noise_sigma = " << image_noise_sigma << "; violated: > 0";
+  else if (!(huber_threshold > 0))
+    e << "TrackerOptions.huber_threshold = " << huber_threshold << "; violated: > 0";
+  else if (!(inlier_threshold > 0))
+    e << "TrackerOptions.inlier_threshold = " << inlier_threshold << "; violated: > 0";
+  else if (local_mean_radius_px < 1 || local_mean_radius_px > 32)
+    e << "TrackerOptions.local_mean_radius_px = " << local_mean_radius_px << "; violated: in [1, 32]";
+  else if (!(local_mean_floor > 0))
+    e << "TrackerOptions.local_mean_floor = " << local_mean_floor << "; violated: > 0";
+  else if (!(min_local_mean >= 0 && min_local_mean <= 255))
+    e << "TrackerOptions.min_local_mean = " << min_local_mean << "; violated: in [0, 255]";
+  else if (!(affine_prior_a >= 0))
+    e << "TrackerOptions.affine_prior_a = " << affine_prior_a << "; violated: >= 0";
+  else if (!(affine_prior_b >= 0))
+    e << "TrackerOptions.affine_prior_b = " << affine_prior_b << "; violated: >= 0";
+  else if (!(min_visible_fraction >= 0 && min_visible_fraction <= 1))
+    e << "TrackerOptions.min_visible_fraction = " << min_visible_fraction << "; violated: in [0, 1]";
+  else if (!(min_inlier_fraction >= 0 && min_inlier_fraction <= 1))
+    e << "TrackerOptions.min_inlier_fraction = " << min_inlier_fraction << "; violated: in [0, 1]";
+  else if (!(max_affine_gain > 1))
+    e << "TrackerOptions.max_affine_gain = " << max_affine_gain << "; violated: > 1";
+  else if (!(max_residual_rms > 0))
+    e << "TrackerOptions.max_residual_rms = " << max_residual_rms << "; violated: > 0";
+  if (!e.str().empty()) return InvalidArgumentError(e.str());
+  return Status::Ok();
+}
+
+Tracker::Tracker(const PinholeCamera& camera, const TrackerOptions& options) : camera_(camera), options_(options) {}
+
+StatusOr<Tracker> Tracker::Create(const PinholeCamera& camera, const TrackerOptions& options) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  PRISM_RETURN_IF_ERROR(camera.Check());
+  if (camera.HasDistortion()) return InvalidArgumentError("Tracker: the camera has distortion; undistort first");
+  if ((camera.width >> (options.pyramid_levels - 1)) < 8 || (camera.height >> (options.pyramid_levels - 1)) < 8) {
+    std::ostringstream e;
+    e << "Tracker: image " << camera.width << "x" << camera.height << " too small for " << options.pyramid_levels
+      << " pyramid levels";
+    return InvalidArgumentError(e.str());
+  }
+  return Tracker(camera, options);
+}
+
+Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
+  const cv::Size size(camera_.width, camera_.height);
+  if (rgb.type() != CV_8UC3 || rgb.size() != size)
+    return InvalidArgumentError("Tracker::SetKeyframe: the image must be CV_8UC3 of the camera's size");
+  if (depth.inverse_depth.type() != CV_32F || depth.inverse_depth.size() != size)
+    return InvalidArgumentError("Tracker::SetKeyframe: inverse_depth must be CV_32F of the camera's size");
+  cv::Mat idepth = depth.inverse_depth, var;
+  if (depth.variance.empty()) {
+    var = 1e-4f * idepth.mul(idepth);
+  } else {
+    if (depth.variance.type() != CV_32F || depth.variance.size() != size)
+      return InvalidArgumentError("Tracker::SetKeyframe: variance must be empty or CV_32F of the camera's size");
+    var = depth.variance;
+  }
+
+  TrackingKeyframe kf;
+  kf.levels.resize(options_.pyramid_levels);
+  cv::Mat raw, raw_next;
+  ToGrey(rgb, &raw);
+  for (int l = 0; l < options_.pyramid_levels; ++l) {
+    TrackingKeyframe::Level& level = kf.levels[l];
+    level.camera = LevelCamera(camera_, l);
+    if (l > 0) {
+      Downsample(raw, &raw_next);
+      std::swap(raw, raw_next);
+      cv::Mat idepth_next, var_next;
+      DownsampleInverseDepth(idepth, var, &idepth_next, &var_next);
+      idepth = idepth_next;
+      var = var_next;
+    }
+    level.grey = raw.clone();
+    NormalizeShading(options_, &level.grey, &local_mean_);
+    const int k = 2 * options_.local_mean_radius_px + 1;
+    cv::Mat bright;
+    cv::blur(raw, bright, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+    // Grid selection: the strongest gradient per cell, above the threshold, with valid depth.
+    const int w = level.grey.cols, h = level.grey.rows;
+    const int cell = std::max(1, static_cast<int>(std::ceil(std::sqrt(double(w) * h / options_.max_points_per_level))));
+    const float min_g2 = static_cast<float>(options_.min_gradient * options_.min_gradient);
+    const float min_mean = static_cast<float>(options_.min_local_mean);
+    for (int cy0 = 1; cy0 < h - 1; cy0 += cell) {
+      for (int cx0 = 1; cx0 < w - 1; cx0 += cell) {
+        float best = min_g2;
+        int bx = -1, by = -1;
+        for (int y = cy0; y < std::min(cy0 + cell, h - 1); ++y) {
+          const float* row = level.grey.ptr<float>(y);
+          const float* up = level.grey.ptr<float>(y - 1);
+          const float* down = level.grey.ptr<float>(y + 1);
+          const float* d = idepth.ptr<float>(y);
+          for (int x = cx0; x < std::min(cx0 + cell, w - 1); ++x) {
+            if (!(d[x] > 0) || !std::isfinite(d[x]) || bright.at<float>(y, x) < min_mean) continue;
+            const float gx = 0.5f * (row[x + 1] - row[x - 1]), gy = 0.5f * (down[x] - up[x]);
+            const float g2 = gx * gx + gy * gy;
+            if (g2 >= best) {
+              best = g2;
+              bx = x;
+              by = y;
+            }
+          }
+        }
+        if (bx < 0) continue;
+        TrackingKeyframe::Point p;
+        p.u = bx;
+        p.v = by;
+        p.inverse_depth = idepth.at<float>(by, bx);
+        const float v = var.at<float>(by, bx);
+        p.inverse_depth_var = std::isfinite(v) && v > 0 ? v : 1e-4f * p.inverse_depth * p.inverse_depth;
+        p.intensity = level.grey.at<float>(by, bx);
+        p.ray = Eigen::Vector3f((bx - level.camera.cx) / level.camera.fx, (by - level.camera.cy) / level.camera.fy, 1);
+        level.points.push_back(p);
+      }
+    }
+  }
+  constexpr int kMinPoints = 10;
+  for (int l = 0; l < options_.pyramid_levels; ++l) {
+    if (static_cast<int>(kf.levels[l].points.size()) < kMinPoints) {
+      std::ostringstream e;
+      e << "Tracker::SetKeyframe: only " << kf.levels[l].points.size() << " points at pyramid level " << l
+        << " (need " << kMinPoints << "): too little texture or depth";
+      return FailedPreconditionError(e.str());
+    }
+  }
+  keyframe_ = std::move(kf);
+  has_keyframe_ = true;
+  return Status::Ok();
+}
+
+StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame_from_keyframe_guess) {
+  if (!has_keyframe_) return FailedPreconditionError("Tracker::Track: no keyframe set");
+  if (rgb.type() != CV_8UC3 || rgb.cols != camera_.width || rgb.rows != camera_.height) {
+    std::ostringstream e;
+    e << "Tracker::Track: the image must be CV_8UC3 " << camera_.width << "x" << camera_.height << ", got "
+      << rgb.cols << "x" << rgb.rows << " type " << rgb.type();
+    return InvalidArgumentError(e.str());
+  }
+  const int levels = options_.pyramid_levels;
+  grey_pyramid_.resize(levels);
+  frame_pyramid_.resize(levels);
+  ToGrey(rgb, &grey_pyramid_[0]);
+  for (int l = 1; l < levels; ++l) Downsample(grey_pyramid_[l - 1], &grey_pyramid_[l]);
+  for (int l = 0; l < levels; ++l) {
+    // Normalise after the whole raw pyramid is built (each level from the raw level below).
+    NormalizeShading(options_, &grey_pyramid_[l], &local_mean_);
+    WithGradients(grey_pyramid_[l], &frame_pyramid_[l]);
+  }
+
+  TrackingResult result;
+  result.iterations.assign(levels, 0);
+  State state;
+  state.frame_from_keyframe = frame_from_keyframe_guess;
+  Vector8d prior = Vector8d::Zero();
+  if (options_.estimate_affine_brightness) {
+    prior(6) = options_.affine_prior_a;
+    prior(7) = options_.affine_prior_b;
+  }
+  Evaluation current;
+  for (int l = levels - 1; l >= 0; --l) {
+    const TrackingKeyframe::Level& level = keyframe_.levels[l];
+    const cv::Mat& frame = frame_pyramid_[l];
+    current = Evaluate(level, frame, state, options_);
+    double lambda = 1e-3;
+    for (int it = 0; it < options_.max_iterations; ++it) {
+      ++result.iterations[l];
+      Matrix8d h = current.hessian;
+      Vector8d g = current.gradient;
+      // Prior on (a, b) towards 0; without affine estimation, (a, b) stay fixed.
+      for (int k = 6; k < 8; ++k) {
+        if (options_.estimate_affine_brightness) {
+          h(k, k) += prior(k);
+          g(k) += prior(k) * (k == 6 ? state.a : state.b);
+        } else {
+          h.row(k).setZero();
+          h.col(k).setZero();
+          h(k, k) = 1;
+          g(k) = 0;
+        }
+      }
+      for (int k = 0; k < kNumParams; ++k) h(k, k) *= 1 + lambda;
+      const Vector8d delta = h.ldlt().solve(-g);
+      if (!delta.allFinite()) break;
+      const State candidate = Apply(state, delta);
+      Evaluation next = Evaluate(level, frame, candidate, options_);
+      const double prior_energy = [&](const State& s) {
+        return options_.estimate_affine_brightness ? prior(6) * s.a * s.a + prior(7) * s.b * s.b : 0.0;
+      }(candidate);
+      const double current_prior = options_.estimate_affine_brightness
+                                       ? prior(6) * state.a * state.a + prior(7) * state.b * state.b
+                                       : 0.0;
+      if (next.energy + prior_energy < current.energy + current_prior) {
+        state = candidate;
+        current = std::move(next);
+        lambda = std::max(lambda * 0.5, 1e-6);
+      } else {
+        lambda *= 4;
+        if (lambda > 1e6) break;
+        continue;
+      }
+      const double step = delta.head<6>().norm();
+      if (step < options_.convergence_threshold) break;
+    }
+  }
+
+  result.frame_from_keyframe = state.frame_from_keyframe;
+  result.affine_a = state.a;
+  result.affine_b = state.b;
+  const int n = static_cast<int>(keyframe_.levels[0].points.size());
+  result.visible_fraction = n > 0 ? double(current.visible) / n : 0.0;
+  result.inlier_fraction = current.visible > 0 ? double(current.inliers) / current.visible : 0.0;
+  result.residual_rms = current.inliers > 0 ? std::sqrt(current.inlier_sq_sum / current.inliers) : 0.0;
+  std::ostringstream reason;
+  if (!state.frame_from_keyframe.translation.allFinite() || !state.frame_from_keyframe.rotation.coeffs().allFinite())
+    reason << "the pose diverged (not finite)";
+  else if (result.visible_fraction < options_.min_visible_fraction)
+    reason << "only " << result.visible_fraction << " of the keyframe points are visible (min "
+           << options_.min_visible_fraction << ")";
+  else if (result.inlier_fraction < options_.min_inlier_fraction)
+    reason << "only " << result.inlier_fraction << " of the visible points are inliers (min "
+           << options_.min_inlier_fraction << ")";
+  else if (std::abs(state.a) > std::log(options_.max_affine_gain))
+    reason << "contrast gain exp(a) = " << std::exp(state.a) << " outside [1/" << options_.max_affine_gain << ", "
+           << options_.max_affine_gain << "]: the frame does not match the keyframe";
+  else if (result.residual_rms > options_.max_residual_rms)
+    reason << "inlier residual RMS " << result.residual_rms << " grey levels (max " << options_.max_residual_rms << ")";
+  result.lost_reason = reason.str();
+  result.ok = result.lost_reason.empty();
+  return result;
+}
+
+}  // namespace prism

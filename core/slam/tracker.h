@@ -1,0 +1,146 @@
+// Direct SE(3) frame-to-keyframe tracking (after LSD-SLAM, Engel et al. 2014, and DSO, Engel et al.
+// 2018): the keyframe's semi-dense points, with inverse depth and its variance, are warped into the
+// new frame and the photometric error is minimised coarse to fine over an image pyramid by
+// Levenberg-Marquardt with Huber weights. Each residual is normalised by its variance, which grows
+// with the image gradient along the epipolar direction times the inverse-depth variance (LSD-SLAM's
+// variance-normalised residual). The rig's lights move with the camera, so the shading of a surface
+// point changes between views: an affine brightness change I_frame = exp(a) * I_keyframe + b
+// (DSO) is estimated jointly with the pose.
+//
+// Images are 8-bit RGB; tracking works on the grey image (mean of the three channels).
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <opencv2/core.hpp>
+
+#include "core/geometry/camera.h"
+#include "core/geometry/rigid3.h"
+#include "core/io/inverse_depth.h"
+#include "core/util/status.h"
+
+namespace prism {
+
+struct TrackerOptions {
+  // Pyramid levels (level 0 = full resolution, each level halves the size), in [1, 8]. The coarsest
+  // level must keep at least 8 pixels per side.
+  int pyramid_levels = 4;
+  // Minimum grey-level gradient magnitude (central differences, grey levels per pixel at that
+  // level) for a keyframe pixel to become a tracked point, in [0, 255].
+  double min_gradient = 6.0;
+  // Upper bound on the points per level: points are picked on a grid, the strongest gradient per
+  // cell, so they stay spread over the image, >= 16.
+  int max_points_per_level = 3000;
+  // Levenberg-Marquardt iterations per pyramid level, in [1, 100].
+  int max_iterations = 20;
+  // Stop a level when the update's norm (translation in keyframe inverse-depth units plus rotation in
+  // radians) falls below this, > 0.
+  double convergence_threshold = 1e-5;
+  // Standard deviation of the image noise in grey levels, > 0 (each residual has 2 sigma^2 from the
+  // two images, plus the inverse-depth term).
+  double image_noise_sigma = 3.0;
+  // Huber threshold on the variance-normalised residual (units of its standard deviation), > 0.
+  double huber_threshold = 2.0;
+  // A point is an inlier when its normalised residual is below this, > 0.
+  double inlier_threshold = 4.0;
+  // Track a shading-invariant image instead of the raw grey one: J = 128 * I / (box_mean(I) + floor),
+  // with the box mean over (2 * local_mean_radius_px + 1)^2 pixels at each level. The rig's lights
+  // move with the camera, so the shading changes smoothly between views; the ratio cancels it where
+  // the shading is smooth over the window (raw grey biases the pose by ~10% of the baseline).
+  bool normalize_shading = true;
+  // Half size of the box, pixels at each level, in [1, 32].
+  int local_mean_radius_px = 5;
+  // Added to the local mean, grey levels, > 0 (keeps dark regions from amplifying noise).
+  double local_mean_floor = 8.0;
+  // Keyframe pixels whose raw local mean (same box) is darker than this are not tracked, grey levels,
+  // in [0, 255] (in the dark room most of the background is noise).
+  double min_local_mean = 30.0;
+  // Estimate the affine brightness change (a, b) jointly with the pose.
+  bool estimate_affine_brightness = true;
+  // Weak prior keeping (a, b) near (0, 0): added to the normal equations' diagonal (a: per unit of a,
+  // b: per grey level), >= 0.
+  double affine_prior_a = 10.0;
+  double affine_prior_b = 1e-3;
+  // Tracking is reported lost when, at the finest level, fewer than this fraction of the keyframe's
+  // points project into the frame, in [0, 1].
+  double min_visible_fraction = 0.25;
+  // ... or fewer than this fraction of the visible points are inliers, in [0, 1].
+  double min_inlier_fraction = 0.5;
+  // ... or the estimated contrast gain exp(a) leaves [1 / max_affine_gain, max_affine_gain] (a blank or
+  // unrelated frame is otherwise "explained" by a gain near zero), > 1.
+  double max_affine_gain = 2.0;
+  // ... or the RMS of the inlier residuals exceeds this, grey levels, > 0.
+  double max_residual_rms = 25.0;
+
+  Status Check() const;
+};
+
+// The tracker's view of a keyframe: its grey pyramid and, per level, the selected points.
+struct TrackingKeyframe {
+  struct Point {
+    float u = 0, v = 0;           // pixel at this level
+    float inverse_depth = 0;      // 1 / z, 1/metre (or 1/SLAM unit)
+    float inverse_depth_var = 0;  // variance of inverse_depth
+    float intensity = 0;          // keyframe grey level at the pixel
+    Eigen::Vector3f ray;          // ((u - cx) / fx, (v - cy) / fy, 1)
+  };
+  struct Level {
+    PinholeCamera camera;  // intrinsics at this level
+    cv::Mat grey;          // CV_32F
+    std::vector<Point> points;
+  };
+  std::vector<Level> levels;
+};
+
+struct TrackingResult {
+  // The estimated pose of the frame: point_in_frame = frame_from_keyframe * point_in_keyframe.
+  Rigid3d frame_from_keyframe;
+  // Affine brightness: I_frame ~ exp(affine_a) * I_keyframe + affine_b (grey levels).
+  double affine_a = 0;
+  double affine_b = 0;
+  // Iterations run per pyramid level (index = level, 0 = finest).
+  std::vector<int> iterations;
+  // At the finest level: RMS of the inlier residuals (grey levels), fraction of the keyframe's points
+  // projecting into the frame, and fraction of those that are inliers.
+  double residual_rms = 0;
+  double visible_fraction = 0;
+  double inlier_fraction = 0;
+  // False when tracking is lost; `lost_reason` then says why.
+  bool ok = false;
+  std::string lost_reason;
+};
+
+class Tracker {
+ public:
+  // Fails on invalid options or a camera with distortion (undistort the images first).
+  static StatusOr<Tracker> Create(const PinholeCamera& camera, const TrackerOptions& options);
+
+  // rgb: CV_8UC3 of the camera's size; depth.inverse_depth: CV_32F, 0 = none; depth.variance: CV_32F
+  // or empty (then 1% relative standard deviation is assumed). Fails when the sizes or types are wrong
+  // or too few points are found.
+  Status SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth);
+
+  // Tracks a frame against the keyframe, starting from `frame_from_keyframe_guess` (identity, or a
+  // constant-velocity prediction). Fails only on invalid input (no keyframe, wrong image size or
+  // type); losing track is reported in the result.
+  StatusOr<TrackingResult> Track(const cv::Mat& rgb, const Rigid3d& frame_from_keyframe_guess);
+
+  const TrackingKeyframe& keyframe() const { return keyframe_; }
+  const TrackerOptions& options() const { return options_; }
+
+ private:
+  Tracker(const PinholeCamera& camera, const TrackerOptions& options);
+
+  PinholeCamera camera_;
+  TrackerOptions options_;
+  TrackingKeyframe keyframe_;
+  bool has_keyframe_ = false;
+  // The current frame, per level: CV_32FC3 interleaved (intensity, d/du, d/dv). Reused between calls.
+  std::vector<cv::Mat> frame_pyramid_;
+  std::vector<cv::Mat> grey_pyramid_;
+  cv::Mat local_mean_;  // scratch for the shading normalisation
+};
+
+}  // namespace prism

@@ -1,0 +1,56 @@
+// Frame-to-keyframe tracking at 512x512: build/bin/tracker_benchmark
+#include <benchmark/benchmark.h>
+
+#include "core/slam/tracker.h"
+#include "core/synth/presets.h"
+#include "core/synth/renderer.h"
+#include "core/synth/trajectory.h"
+
+namespace prism {
+namespace {
+
+void BM_Track(benchmark::State& state, const std::string& preset, int gap) {
+  synth::PresetOptions o;
+  o.frames = 60;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, o);
+  if (!setup.ok()) {
+    state.SkipWithError(setup.status().ToString().c_str());
+    return;
+  }
+  const Trajectory t = synth::MakeTrajectory(setup->trajectory);
+  const synth::RenderedFrame key = synth::RenderFrame(setup->scene, setup->rig, t[0].world_from_camera, setup->render, 1);
+  const synth::RenderedFrame frame =
+      synth::RenderFrame(setup->scene, setup->rig, t[gap].world_from_camera, setup->render, 2);
+  InverseDepthMap depth;
+  depth.inverse_depth = cv::Mat::zeros(key.depth.size(), CV_32F);
+  for (int y = 0; y < key.depth.rows; ++y)
+    for (int x = 0; x < key.depth.cols; ++x)
+      if (key.depth.at<float>(y, x) > 0) depth.inverse_depth.at<float>(y, x) = 1.0f / key.depth.at<float>(y, x);
+  StatusOr<Tracker> tracker = Tracker::Create(setup->rig.camera, TrackerOptions());
+  if (!tracker.ok() || !tracker->SetKeyframe(key.rgb, depth).ok()) {
+    state.SkipWithError("tracker setup failed");
+    return;
+  }
+  for (auto _ : state) {
+    StatusOr<TrackingResult> r = tracker->Track(frame.rgb, Rigid3d());
+    if (!r.ok() || !r->ok) state.SkipWithError("tracking failed");
+    benchmark::DoNotOptimize(r);
+  }
+}
+BENCHMARK_CAPTURE(BM_Track, multicolor_sphere_gap1, std::string("sphere-multicolor-sideways"), 1)
+    ->Unit(benchmark::kMillisecond)
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_Track, multicolor_sphere_gap5, std::string("sphere-multicolor-sideways"), 5)
+    ->Unit(benchmark::kMillisecond)
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_Track, bunny_gap1, std::string("bunny-multicolor-forward"), 1)
+    ->Unit(benchmark::kMillisecond)
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+
+}  // namespace
+}  // namespace prism
+
+BENCHMARK_MAIN();

@@ -1,0 +1,201 @@
+#include "core/slam/tracker.h"
+
+#include <cmath>
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
+
+#include "core/synth/presets.h"
+#include "core/synth/renderer.h"
+#include "core/synth/trajectory.h"
+
+namespace prism {
+namespace {
+
+constexpr double kRadToDeg = 180.0 / M_PI;
+
+struct SynthSequence {
+  synth::SynthSetup setup;
+  Trajectory trajectory;
+
+  synth::RenderedFrame Render(int index) const {
+    return synth::RenderFrame(setup.scene, setup.rig, trajectory[index].world_from_camera, setup.render,
+                              /*noise_seed=*/1000 + index);
+  }
+  Rigid3d FrameFromKeyframe(int frame, int keyframe) const {
+    return trajectory[frame].world_from_camera.Inverse() * trajectory[keyframe].world_from_camera;
+  }
+};
+
+// Returns false (the caller skips) when the preset's mesh is not installed.
+bool MakeSequence(const std::string& preset, int width, int height, SynthSequence* out, std::string* why) {
+  synth::PresetOptions o;
+  o.width = width;
+  o.height = height;
+  o.frames = 60;
+  o.seed = 1;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, o);
+  if (!setup.ok()) {
+    *why = setup.status().ToString();
+    return false;
+  }
+  out->setup = std::move(setup).value();
+  out->trajectory = synth::MakeTrajectory(out->setup.trajectory);
+  return true;
+}
+
+// Ground-truth inverse depth (1% relative standard deviation); the tracker keeps the high-gradient pixels.
+InverseDepthMap GroundTruthInverseDepth(const cv::Mat& depth) {
+  InverseDepthMap m;
+  m.inverse_depth = cv::Mat::zeros(depth.size(), CV_32F);
+  m.variance = cv::Mat::zeros(depth.size(), CV_32F);
+  for (int y = 0; y < depth.rows; ++y) {
+    for (int x = 0; x < depth.cols; ++x) {
+      const float z = depth.at<float>(y, x);
+      if (!(z > 0)) continue;
+      const float rho = 1.0f / z;
+      m.inverse_depth.at<float>(y, x) = rho;
+      m.variance.at<float>(y, x) = 1e-4f * rho * rho;
+    }
+  }
+  return m;
+}
+
+struct PoseError {
+  double translation_m = 0;
+  double baseline_m = 0;
+  double rotation_deg = 0;
+};
+
+PoseError Compare(const Rigid3d& estimate, const Rigid3d& truth) {
+  PoseError e;
+  e.translation_m = (estimate.translation - truth.translation).norm();
+  e.baseline_m = truth.translation.norm();
+  e.rotation_deg = RotationAngle(estimate.rotation * truth.rotation.inverse()) * kRadToDeg;
+  return e;
+}
+
+struct TrackCase {
+  std::string preset;
+  int width;
+  int height;
+  double max_translation_error_m;
+  double max_rotation_error_deg;
+};
+
+class TrackerPresetTest : public ::testing::TestWithParam<TrackCase> {};
+
+// Keyframe = frame 0 with ground-truth depth; frames 1..10 tracked in sequence with a constant-velocity
+// guess, and frames 1, 3, 5 and 10 also from the identity.
+TEST_P(TrackerPresetTest, TracksFramesAgainstGroundTruth) {
+  const TrackCase& c = GetParam();
+  SynthSequence seq;
+  std::string why;
+  if (!MakeSequence(c.preset, c.width, c.height, &seq, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  const synth::RenderedFrame key = seq.Render(0);
+  StatusOr<Tracker> tracker = Tracker::Create(seq.setup.rig.camera, TrackerOptions());
+  ASSERT_TRUE(tracker.ok()) << tracker.status();
+  ASSERT_TRUE(tracker->SetKeyframe(key.rgb, GroundTruthInverseDepth(key.depth)).ok());
+
+  // Per-preset tolerances, chosen after measuring (the printed values; worst case about 2/3 of these).
+  const double max_translation_error_m = c.max_translation_error_m;
+  const double max_rotation_error_deg = c.max_rotation_error_deg;
+
+  Rigid3d previous, before_previous;
+  for (int frame = 1; frame <= 10; ++frame) {
+    const synth::RenderedFrame f = seq.Render(frame);
+    const Rigid3d truth = seq.FrameFromKeyframe(frame, 0);
+    const Rigid3d velocity_guess = (previous * before_previous.Inverse()) * previous;
+    for (bool from_identity : {false, true}) {
+      if (from_identity && frame != 1 && frame != 3 && frame != 5 && frame != 10) continue;
+      const Rigid3d guess = from_identity ? Rigid3d() : velocity_guess;
+      StatusOr<TrackingResult> r = tracker->Track(f.rgb, guess);
+      ASSERT_TRUE(r.ok()) << r.status();
+      const PoseError e = Compare(r->frame_from_keyframe, truth);
+      std::printf("%s gap %2d %s: t_err %.3f mm (baseline %.1f mm, %.2f%%) r_err %.4f deg | ok %d rms %.2f vis %.2f "
+                  "inl %.2f a %.3f b %.2f it %d/%d/%d/%d %s\n",
+                  c.preset.c_str(), frame, from_identity ? "identity" : "velocity", 1e3 * e.translation_m,
+                  1e3 * e.baseline_m, 100 * e.translation_m / e.baseline_m, e.rotation_deg, r->ok, r->residual_rms,
+                  r->visible_fraction, r->inlier_fraction, r->affine_a, r->affine_b, r->iterations[0],
+                  r->iterations[1], r->iterations[2], r->iterations[3], r->lost_reason.c_str());
+      EXPECT_TRUE(r->ok) << r->lost_reason;
+      EXPECT_LT(e.translation_m, max_translation_error_m)
+          << "frame " << frame << (from_identity ? " from identity" : "");
+      EXPECT_LT(e.rotation_deg, max_rotation_error_deg) << "frame " << frame;
+      if (!from_identity) {
+        before_previous = previous;
+        previous = r->frame_from_keyframe;
+      }
+    }
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(DarkRoomPresets, TrackerPresetTest,
+                         ::testing::Values(TrackCase{"sphere-multicolor-sideways", 320, 240, /*max_translation_error_m=*/0.003,
+                                                     /*max_rotation_error_deg=*/0.3},
+                                           TrackCase{"bunny-multicolor-forward", 320, 240, /*max_translation_error_m=*/0.009,
+                                                     /*max_rotation_error_deg=*/0.8}),
+                         [](const ::testing::TestParamInfo<TrackCase>& info) {
+                           std::string name = info.param.preset;
+                           for (char& ch : name)
+                             if (ch == '-') ch = '_';
+                           return name;
+                         });
+
+TEST(TrackerTest, RejectsInvalidInput) {
+  SynthSequence seq;
+  std::string why;
+  ASSERT_TRUE(MakeSequence("sphere-multicolor-sideways", 320, 240, &seq, &why)) << why;
+  TrackerOptions bad;
+  bad.pyramid_levels = 0;
+  EXPECT_FALSE(Tracker::Create(seq.setup.rig.camera, bad).ok());
+  StatusOr<Tracker> tracker = Tracker::Create(seq.setup.rig.camera, TrackerOptions());
+  ASSERT_TRUE(tracker.ok()) << tracker.status();
+  const synth::RenderedFrame key = seq.Render(0);
+  // No keyframe yet.
+  EXPECT_EQ(tracker->Track(key.rgb, Rigid3d()).status().code(), StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(tracker->SetKeyframe(key.rgb, GroundTruthInverseDepth(key.depth)).ok());
+  cv::Mat wrong_size;
+  cv::resize(key.rgb, wrong_size, cv::Size(160, 120));
+  EXPECT_EQ(tracker->Track(wrong_size, Rigid3d()).status().code(), StatusCode::kInvalidArgument);
+  cv::Mat grey(key.rgb.size(), CV_8U, cv::Scalar(0));
+  EXPECT_EQ(tracker->Track(grey, Rigid3d()).status().code(), StatusCode::kInvalidArgument);
+  EXPECT_FALSE(tracker->SetKeyframe(wrong_size, GroundTruthInverseDepth(key.depth)).ok());
+  // No depth at all: too few points.
+  InverseDepthMap empty;
+  empty.inverse_depth = cv::Mat::zeros(key.depth.size(), CV_32F);
+  EXPECT_EQ(tracker->SetKeyframe(key.rgb, empty).code(), StatusCode::kFailedPrecondition);
+}
+
+// A guess 90 degrees off (or a frame looking elsewhere) leaves the keyframe's points outside the
+// image: reported as lost, not as a pose.
+TEST(TrackerTest, HugeMotionIsReportedLost) {
+  SynthSequence seq;
+  std::string why;
+  ASSERT_TRUE(MakeSequence("sphere-multicolor-sideways", 320, 240, &seq, &why)) << why;
+  const synth::RenderedFrame key = seq.Render(0);
+  StatusOr<Tracker> tracker = Tracker::Create(seq.setup.rig.camera, TrackerOptions());
+  ASSERT_TRUE(tracker.ok()) << tracker.status();
+  ASSERT_TRUE(tracker->SetKeyframe(key.rgb, GroundTruthInverseDepth(key.depth)).ok());
+  const Rigid3d turned(Eigen::Quaterniond(Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitY())), Eigen::Vector3d::Zero());
+  StatusOr<TrackingResult> r = tracker->Track(seq.Render(1).rgb, turned);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_FALSE(r->ok);
+  EXPECT_FALSE(r->lost_reason.empty());
+  // The camera turned away from the object: the frame sees none of the keyframe's points.
+  const Rigid3d world_from_away =
+      LookAt(seq.trajectory[0].world_from_camera.translation,
+             seq.trajectory[0].world_from_camera * Eigen::Vector3d(-1, 0, 0.2), Eigen::Vector3d::UnitZ());
+  const synth::RenderedFrame away =
+      synth::RenderFrame(seq.setup.scene, seq.setup.rig, world_from_away, seq.setup.render, /*noise_seed=*/5);
+  r = tracker->Track(away.rgb, Rigid3d());
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_FALSE(r->ok) << "residual RMS " << r->residual_rms << ", inliers " << r->inlier_fraction << ", a " << r->affine_a;
+  std::printf("turned away: %s\n", r->lost_reason.c_str());
+}
+
+}  // namespace
+}  // namespace prism
