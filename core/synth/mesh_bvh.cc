@@ -59,6 +59,12 @@ MeshBvh::MeshBvh(TriangleMesh mesh) : mesh_(std::move(mesh)) {
   }
   nodes_.reserve(2 * n / kLeafSize + 2);
   if (n > 0) Build(0, n, centroids);
+  packed_.resize(n);
+  for (int i = 0; i < n; ++i) {
+    const Eigen::Vector3i& f = mesh_.faces[order_[i]];
+    const Eigen::Vector3d& v0 = mesh_.vertices[f[0]];
+    packed_[i] = {v0, mesh_.vertices[f[1]] - v0, mesh_.vertices[f[2]] - v0};
+  }
 }
 
 int MeshBvh::Build(int first, int count, std::vector<Eigen::Vector3d>& centroids) {
@@ -153,11 +159,10 @@ bool MeshBvh::Traverse(const Eigen::Vector3d& origin, const Eigen::Vector3d& dir
       continue;
     if (node.count > 0) {
       for (int i = node.left_or_first; i < node.left_or_first + node.count; ++i) {
-        const int tri = order_[i];
-        const Eigen::Vector3i& f = mesh_.faces[tri];
-        const Eigen::Vector3d& v0 = mesh_.vertices[f[0]];
-        const Eigen::Vector3d e1 = mesh_.vertices[f[1]] - v0;
-        const Eigen::Vector3d e2 = mesh_.vertices[f[2]] - v0;
+        const PackedTriangle& pt = packed_[i];
+        const Eigen::Vector3d& v0 = pt.v0;
+        const Eigen::Vector3d& e1 = pt.e1;
+        const Eigen::Vector3d& e2 = pt.e2;
         const Eigen::Vector3d p = dir.cross(e2);
         const double det = e1.dot(p);
         if (std::abs(det) < 1e-14) continue;
@@ -172,7 +177,7 @@ bool MeshBvh::Traverse(const Eigen::Vector3d& origin, const Eigen::Vector3d& dir
         if (t <= t_min || t >= closest) continue;
         if (kAnyHit) return true;
         closest = t;
-        best_tri = tri;
+        best_tri = order_[i];
         best_u = u;
         best_v = v;
         found = true;

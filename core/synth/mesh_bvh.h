@@ -44,6 +44,11 @@ class MeshBvh {
   bool Traverse(const Eigen::Vector3d& origin, const Eigen::Vector3d& dir, double t_min, double t_max,
                 RayHit* hit) const;
 
+  // Triangles in leaf order with precomputed edges (v0, v1 - v0, v2 - v0): contiguous for traversal.
+  struct PackedTriangle {
+    Eigen::Vector3d v0, e1, e2;
+  };
+  std::vector<PackedTriangle> packed_;
   TriangleMesh mesh_;
   std::vector<int> order_;  // triangle indices in leaf order
   std::vector<Node> nodes_;
