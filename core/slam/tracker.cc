@@ -2,9 +2,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <sstream>
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+#include <Eigen/LU>
 #include <opencv2/imgproc.hpp>
 
 #include "core/util/check.h"
@@ -62,7 +65,7 @@ void WithGradients(const cv::Mat& grey, cv::Mat* out) {
 
 // J = 128 * I / (box_mean(I) + floor), in place (see TrackerOptions::normalize_shading).
 void NormalizeShading(const TrackerOptions& options, cv::Mat* grey, cv::Mat* scratch) {
-  if (!options.normalize_shading) return;
+  if (options.shading_model == ShadingModel::kNone) return;
   const int k = 2 * options.local_mean_radius_px + 1;
   cv::blur(*grey, *scratch, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
   const float floor = static_cast<float>(options.local_mean_floor);
@@ -113,6 +116,90 @@ void DownsampleInverseDepth(const cv::Mat& idepth, const cv::Mat& var, cv::Mat* 
   }
 }
 
+// The rig's lights in float, for ShadingModel::kPredictedShading.
+struct RigLights {
+  bool point[3] = {true, true, true};
+  Eigen::Vector3f position[3];   // point lights, camera frame
+  Eigen::Vector3f direction[3];  // directional lights, unit, towards the light
+  float intensity[3] = {0, 0, 0};
+  float max_ratio = 4;
+  float floor = 8;  // TrackerOptions::local_mean_floor
+
+  explicit RigLights(const RigCalibration& rig, float max_shading_ratio) : max_ratio(max_shading_ratio) {
+    for (int l = 0; l < 3; ++l) {
+      point[l] = rig.lights[l].type == LightType::kPoint;
+      position[l] = rig.lights[l].position_in_camera.cast<float>();
+      direction[l] = rig.lights[l].direction_in_camera.normalized().cast<float>();
+      intensity[l] = static_cast<float>(rig.lights[l].intensity);
+    }
+  }
+
+  // Per-light Lambertian shading E_l max(0, n.L_l) of a point and unit normal in the camera frame.
+  Eigen::Vector3f Shading(const Eigen::Vector3f& point, const Eigen::Vector3f& normal) const {
+    Eigen::Vector3f s;
+    for (int l = 0; l < 3; ++l) {
+      if (point[l]) {
+        const Eigen::Vector3f d = position[l] - point;
+        const float d2 = d.squaredNorm();
+        s[l] = intensity[l] / d2 * std::max(0.0f, normal.dot(d) / std::sqrt(d2));
+      } else {
+        s[l] = intensity[l] * std::max(0.0f, normal.dot(direction[l]));
+      }
+    }
+    return s;
+  }
+};
+
+// 2x2 box average of an RGB image (CV_32FC3; drops an odd last row / column).
+void DownsampleRgb(const cv::Mat& in, cv::Mat* out) {
+  out->create(in.rows / 2, in.cols / 2, CV_32FC3);
+  for (int y = 0; y < out->rows; ++y) {
+    const float* a = in.ptr<float>(2 * y);
+    const float* b = in.ptr<float>(2 * y + 1);
+    float* o = out->ptr<float>(y);
+    for (int x = 0; x < out->cols; ++x)
+      for (int c = 0; c < 3; ++c)
+        o[3 * x + c] = 0.25f * (a[6 * x + c] + a[6 * x + 3 + c] + b[6 * x + c] + b[6 * x + 3 + c]);
+  }
+}
+
+// Unit normal (towards the camera) of the plane fitted to the back-projected depth map in a
+// (2 radius + 1)^2 window around (x, y); false at depth edges (a valid depth more than `max_jump`
+// relative from the centre's, or a missing one), with too few samples, or at grazing view.
+bool FitNormal(const cv::Mat& idepth, const PinholeCamera& camera, int x, int y, const TrackerOptions& options,
+               Eigen::Vector3f* normal) {
+  const int r = options.normal_window_radius_px;
+  if (x - r < 0 || y - r < 0 || x + r >= idepth.cols || y + r >= idepth.rows) return false;
+  const float z0 = 1.0f / idepth.at<float>(y, x);
+  const float max_jump = static_cast<float>(options.normal_max_depth_jump);
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  Eigen::Matrix3d sum_sq = Eigen::Matrix3d::Zero();
+  int n = 0;
+  for (int v = y - r; v <= y + r; ++v) {
+    for (int u = x - r; u <= x + r; ++u) {
+      const float d = idepth.at<float>(v, u);
+      if (!(d > 0) || !std::isfinite(d)) return false;
+      const float z = 1.0f / d;
+      if (std::abs(z - z0) > max_jump * z0) return false;
+      const Eigen::Vector3d p((u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z);
+      sum += p;
+      sum_sq += p * p.transpose();
+      ++n;
+    }
+  }
+  if (n < 6) return false;
+  const Eigen::Vector3d mean = sum / n;
+  const Eigen::Matrix3d cov = sum_sq / n - mean * mean.transpose();
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig;
+  eig.computeDirect(cov);
+  Eigen::Vector3d nrm = eig.eigenvectors().col(0);
+  const Eigen::Vector3d ray((x - camera.cx) / camera.fx, (y - camera.cy) / camera.fy, 1.0);
+  if (nrm.dot(ray) > 0) nrm = -nrm;
+  if (-nrm.dot(ray.normalized()) < options.normal_min_view_cosine) return false;
+  *normal = nrm.cast<float>();
+  return true;
+}
+
 struct Bilinear {
   float i, gu, gv;
 };
@@ -142,8 +229,9 @@ struct State {
   double a = 0, b = 0;
 };
 
+// `lights`: non-null for ShadingModel::kPredictedShading.
 Evaluation Evaluate(const TrackingKeyframe::Level& level, const cv::Mat& frame, const State& state,
-                    const TrackerOptions& options) {
+                    const TrackerOptions& options, const RigLights* lights) {
   Evaluation e;
   const Eigen::Matrix3f rotation = state.frame_from_keyframe.RotationMatrix().cast<float>();
   const Eigen::Vector3f translation = state.frame_from_keyframe.translation.cast<float>();
@@ -172,7 +260,21 @@ Evaluation Evaluate(const TrackingKeyframe::Level& level, const cv::Mat& frame, 
     }
     ++e.visible;
     const Bilinear s = Sample(frame, u, v);
-    const float r = s.i - (scale * p.intensity + offset);
+    float intensity = p.intensity;
+    if (lights != nullptr && p.has_shading) {
+      // Predicted grey level at this pose: each light's share scaled by its shading ratio.
+      const Eigen::Vector3f shading = lights->Shading(ys / p.inverse_depth, rotation * p.normal);
+      float grey = 0, mean = lights->floor;
+      for (int l = 0; l < 3; ++l) {
+        const float k = p.keyframe_shading[l];
+        const float ratio = k > 0 ? std::min(shading[l] / k, lights->max_ratio) : 1.0f;
+        grey += p.light_share[l] * ratio;
+        mean += p.light_share_mean[l] * ratio;
+      }
+      // The frame's normalised grey level, with its local mean predicted from the same ratios.
+      intensity = 128.0f * grey / mean;
+    }
+    const float r = s.i - (scale * intensity + offset);
     // d(u,v)/dY at the true point Y = Y' / rho (z = Y'z / rho).
     const float inv_z = p.inverse_depth * inv_zs;
     const float x_n = ys.x() * inv_zs, y_n = ys.y() * inv_zs;
@@ -194,7 +296,7 @@ Evaluation Evaluate(const TrackingKeyframe::Level& level, const cv::Mat& frame, 
     // Y = (Y' / rho); dY/d(v, w) = [I, -[Y]x].
     const float yx = ys.x() / p.inverse_depth, yy = ys.y() / p.inverse_depth, yz = ys.z() / p.inverse_depth;
     Eigen::Matrix<float, kNumParams, 1> j;
-    j << jx, jy, jz, jz * yy - jy * yz, jx * yz - jz * yx, jy * yx - jx * yy, -scale * p.intensity, -1.0f;
+    j << jx, jy, jz, jz * yy - jy * yz, jx * yz - jz * yx, jy * yx - jx * yy, -scale * intensity, -1.0f;
     h_block.noalias() += (w * j) * j.transpose();
     g_block.noalias() += (w * r) * j;
     if (++in_block == 256) {
@@ -242,6 +344,14 @@ Status TrackerOptions::Check() const {
     e << "TrackerOptions.huber_threshold = " << huber_threshold << "; violated: > 0";
   else if (!(inlier_threshold > 0))
     e << "TrackerOptions.inlier_threshold = " << inlier_threshold << "; violated: > 0";
+  else if (normal_window_radius_px < 1 || normal_window_radius_px > 8)
+    e << "TrackerOptions.normal_window_radius_px = " << normal_window_radius_px << "; violated: in [1, 8]";
+  else if (!(normal_max_depth_jump > 0 && normal_max_depth_jump <= 1))
+    e << "TrackerOptions.normal_max_depth_jump = " << normal_max_depth_jump << "; violated: in (0, 1]";
+  else if (!(normal_min_view_cosine >= 0 && normal_min_view_cosine < 1))
+    e << "TrackerOptions.normal_min_view_cosine = " << normal_min_view_cosine << "; violated: in [0, 1)";
+  else if (!(max_shading_ratio > 1))
+    e << "TrackerOptions.max_shading_ratio = " << max_shading_ratio << "; violated: > 1";
   else if (local_mean_radius_px < 1 || local_mean_radius_px > 32)
     e << "TrackerOptions.local_mean_radius_px = " << local_mean_radius_px << "; violated: in [1, 32]";
   else if (!(local_mean_floor > 0))
@@ -266,8 +376,22 @@ Status TrackerOptions::Check() const {
 
 Tracker::Tracker(const PinholeCamera& camera, const TrackerOptions& options) : camera_(camera), options_(options) {}
 
+StatusOr<Tracker> Tracker::Create(const RigCalibration& rig, const TrackerOptions& options) {
+  PRISM_RETURN_IF_ERROR(rig.Check());
+  TrackerOptions without_rig = options;
+  without_rig.shading_model = ShadingModel::kNone;  // checked below, with the rig
+  StatusOr<Tracker> tracker = Create(rig.camera, without_rig);
+  if (!tracker.ok()) return tracker.status();
+  tracker->options_ = options;
+  tracker->has_rig_ = true;
+  tracker->rig_ = rig;
+  return tracker;
+}
+
 StatusOr<Tracker> Tracker::Create(const PinholeCamera& camera, const TrackerOptions& options) {
   PRISM_RETURN_IF_ERROR(options.Check());
+  if (options.shading_model == ShadingModel::kPredictedShading)
+    return InvalidArgumentError("Tracker: ShadingModel::kPredictedShading needs the rig (Create(RigCalibration, ...))");
   PRISM_RETURN_IF_ERROR(camera.Check());
   if (camera.HasDistortion()) return InvalidArgumentError("Tracker: the camera has distortion; undistort first");
   if ((camera.width >> (options.pyramid_levels - 1)) < 8 || (camera.height >> (options.pyramid_levels - 1)) < 8) {
@@ -298,6 +422,19 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
   kf.levels.resize(options_.pyramid_levels);
   cv::Mat raw, raw_next;
   ToGrey(rgb, &raw);
+  const bool predict = options_.shading_model == ShadingModel::kPredictedShading;
+  cv::Mat colour, colour_next;
+  // Grey share per light of a colour: (1/3) 1^T X diag(X^-1 c).
+  Eigen::Matrix3f demix = Eigen::Matrix3f::Identity();
+  Eigen::RowVector3f grey_of_light = Eigen::RowVector3f::Constant(1.0f / 3);
+  std::unique_ptr<RigLights> lights;
+  if (predict) {
+    rgb.convertTo(colour, CV_32FC3);
+    demix = rig_.crosstalk.inverse().cast<float>();
+    grey_of_light = rig_.crosstalk.colwise().sum().cast<float>() / 3.0f;
+    lights = std::make_unique<RigLights>(rig_, static_cast<float>(options_.max_shading_ratio));
+    lights->floor = static_cast<float>(options_.local_mean_floor);
+  }
   for (int l = 0; l < options_.pyramid_levels; ++l) {
     TrackingKeyframe::Level& level = kf.levels[l];
     level.camera = LevelCamera(camera_, l);
@@ -308,10 +445,30 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
       DownsampleInverseDepth(idepth, var, &idepth_next, &var_next);
       idepth = idepth_next;
       var = var_next;
+      if (predict) {
+        DownsampleRgb(colour, &colour_next);
+        std::swap(colour, colour_next);
+      }
     }
+    const int k = 2 * options_.local_mean_radius_px + 1;
     level.grey = raw.clone();
     NormalizeShading(options_, &level.grey, &local_mean_);
-    const int k = 2 * options_.local_mean_radius_px + 1;
+    // kPredictedShading: per pixel, each light's share of the raw grey level, box-averaged as the
+    // local mean (the frame's local mean is predicted from these).
+    cv::Mat share_mean[3];
+    if (predict) {
+      cv::Mat share[3];
+      for (int l = 0; l < 3; ++l) share[l].create(raw.size(), CV_32F);
+      for (int y = 0; y < raw.rows; ++y) {
+        const cv::Vec3f* c = colour.ptr<cv::Vec3f>(y);
+        for (int x = 0; x < raw.cols; ++x) {
+          const Eigen::Vector3f band = demix * Eigen::Vector3f(c[x][0], c[x][1], c[x][2]);
+          for (int l = 0; l < 3; ++l) share[l].at<float>(y, x) = grey_of_light[l] * band[l];
+        }
+      }
+      for (int l = 0; l < 3; ++l)
+        cv::blur(share[l], share_mean[l], cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+    }
     cv::Mat bright;
     cv::blur(raw, bright, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
     // Grid selection: the strongest gradient per cell, above the threshold, with valid depth.
@@ -348,6 +505,22 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
         p.inverse_depth_var = std::isfinite(v) && v > 0 ? v : 1e-4f * p.inverse_depth * p.inverse_depth;
         p.intensity = level.grey.at<float>(by, bx);
         p.ray = Eigen::Vector3f((bx - level.camera.cx) / level.camera.fx, (by - level.camera.cy) / level.camera.fy, 1);
+        if (predict && FitNormal(idepth, level.camera, bx, by, options_, &p.normal)) {
+          p.keyframe_shading = lights->Shading(p.ray / p.inverse_depth, p.normal);
+          const float strongest = p.keyframe_shading.maxCoeff();
+          if (strongest > 0) {
+            // Lights giving (almost) nothing in the keyframe keep ratio 1 (marked by shading 0).
+            for (int l = 0; l < 3; ++l)
+              if (p.keyframe_shading[l] < 0.05f * strongest) p.keyframe_shading[l] = 0;
+            const cv::Vec3f c = colour.at<cv::Vec3f>(by, bx);
+            // Channels R, G, B, as the crosstalk's rows.
+            const Eigen::Vector3f band = demix * Eigen::Vector3f(c[0], c[1], c[2]);
+            p.light_share = grey_of_light.transpose().cwiseProduct(band);
+            for (int l = 0; l < 3; ++l) p.light_share_mean[l] = share_mean[l].at<float>(by, bx);
+            // The shares must add up to the raw grey level (not so where the camera saturated).
+            p.has_shading = std::abs(p.light_share.sum() - raw.at<float>(by, bx)) < 1.0f;
+          }
+        }
         level.points.push_back(p);
       }
     }
@@ -394,11 +567,16 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
     prior(6) = options_.affine_prior_a;
     prior(7) = options_.affine_prior_b;
   }
+  std::unique_ptr<RigLights> lights;
+  if (options_.shading_model == ShadingModel::kPredictedShading) {
+    lights = std::make_unique<RigLights>(rig_, static_cast<float>(options_.max_shading_ratio));
+    lights->floor = static_cast<float>(options_.local_mean_floor);
+  }
   Evaluation current;
   for (int l = levels - 1; l >= 0; --l) {
     const TrackingKeyframe::Level& level = keyframe_.levels[l];
     const cv::Mat& frame = frame_pyramid_[l];
-    current = Evaluate(level, frame, state, options_);
+    current = Evaluate(level, frame, state, options_, lights.get());
     double lambda = 1e-3;
     for (int it = 0; it < options_.max_iterations; ++it) {
       ++result.iterations[l];
@@ -420,7 +598,7 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
       const Vector8d delta = h.ldlt().solve(-g);
       if (!delta.allFinite()) break;
       const State candidate = Apply(state, delta);
-      Evaluation next = Evaluate(level, frame, candidate, options_);
+      Evaluation next = Evaluate(level, frame, candidate, options_, lights.get());
       const double prior_energy = [&](const State& s) {
         return options_.estimate_affine_brightness ? prior(6) * s.a * s.a + prior(7) * s.b * s.b : 0.0;
       }(candidate);

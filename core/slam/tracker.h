@@ -18,10 +18,29 @@
 
 #include "core/geometry/camera.h"
 #include "core/geometry/rigid3.h"
+#include "core/io/calibration_io.h"
 #include "core/io/inverse_depth.h"
 #include "core/util/status.h"
 
 namespace prism {
+
+// How the tracker copes with the shading change caused by the lights moving with the camera.
+enum class ShadingModel {
+  // Track the raw grey image; only the affine brightness absorbs the shading change.
+  kNone,
+  // Track J = 128 * I / (box_mean(I) + floor), a local-mean ratio that cancels shading which is
+  // smooth over the box (see local_mean_radius_px).
+  kLocalMeanNormalisation,
+  // kLocalMeanNormalisation plus a per-point prediction from the rig: the keyframe colour is demixed
+  // into per-light bands (crosstalk^-1), each band is scaled by the ratio of its Lambertian shading
+  // E_l max(0, n.L_l) at the current pose to that at the keyframe (point and normal from the keyframe's
+  // depth map, normal by a plane fit), and remixed; the frame's local mean is predicted from the
+  // box-averaged bands with the same ratios. Needs the RigCalibration (Tracker::Create) and metric
+  // depth. The ratios are evaluated at each pose tried but not differentiated. Points near depth edges
+  // or with grazing normals keep their keyframe value. About as accurate as kLocalMeanNormalisation on
+  // the dark-room presets (better on the torus, slightly worse on sphere and bunny; see the tests).
+  kPredictedShading,
+};
 
 struct TrackerOptions {
   // Pyramid levels (level 0 = full resolution, each level halves the size), in [1, 8]. The coarsest
@@ -45,12 +64,24 @@ struct TrackerOptions {
   double huber_threshold = 2.0;
   // A point is an inlier when its normalised residual is below this, > 0.
   double inlier_threshold = 4.0;
-  // Track a shading-invariant image instead of the raw grey one: J = 128 * I / (box_mean(I) + floor),
-  // with the box mean over (2 * local_mean_radius_px + 1)^2 pixels at each level. The rig's lights
-  // move with the camera, so the shading changes smoothly between views; the ratio cancels it where
-  // the shading is smooth over the window (raw grey biases the pose by ~10% of the baseline).
-  bool normalize_shading = true;
-  // Half size of the box, pixels at each level, in [1, 32].
+  // The rig's lights move with the camera, so the shading changes between views (raw grey biases the
+  // pose by ~10% of the baseline). kLocalMeanNormalisation tracks a shading-invariant image
+  // J = 128 * I / (box_mean(I) + floor), with the box mean over (2 * local_mean_radius_px + 1)^2
+  // pixels at each level; kPredictedShading predicts the change from the rig (see ShadingModel).
+  ShadingModel shading_model = ShadingModel::kLocalMeanNormalisation;
+  // kPredictedShading: half size of the window of the keyframe's depth map the normals are fitted in,
+  // pixels at each level, in [1, 8].
+  int normal_window_radius_px = 2;
+  // kPredictedShading: a point keeps its keyframe grey level (no prediction) when a depth in its normal
+  // window differs from its own by more than this fraction (a depth edge), in (0, 1].
+  double normal_max_depth_jump = 0.05;
+  // kPredictedShading: ... or when |cos| between its normal and the viewing ray is below this
+  // (grazing), in [0, 1).
+  double normal_min_view_cosine = 0.25;
+  // kPredictedShading: per-light shading ratios (frame / keyframe) are clamped to [0, this]; a light
+  // giving less than 5% of the point's strongest shading in the keyframe keeps ratio 1, > 1.
+  double max_shading_ratio = 4.0;
+  // kLocalMeanNormalisation: half size of the box, pixels at each level, in [1, 32].
   int local_mean_radius_px = 5;
   // Added to the local mean, grey levels, > 0 (keeps dark regions from amplifying noise).
   double local_mean_floor = 8.0;
@@ -85,6 +116,14 @@ struct TrackingKeyframe {
     float inverse_depth_var = 0;  // variance of inverse_depth
     float intensity = 0;          // keyframe grey level at the pixel
     Eigen::Vector3f ray;          // ((u - cx) / fx, (v - cy) / fy, 1)
+    // kPredictedShading only (has_shading false: no prediction for this point). The grey level's share
+    // per light (sums to `intensity`), the keyframe normal (unit, towards the camera) and the per-light
+    // keyframe shading E_l max(0, n.L_l).
+    bool has_shading = false;
+    Eigen::Vector3f light_share = Eigen::Vector3f::Zero();
+    Eigen::Vector3f light_share_mean = Eigen::Vector3f::Zero();  // box mean of the shares
+    Eigen::Vector3f normal = Eigen::Vector3f::Zero();
+    Eigen::Vector3f keyframe_shading = Eigen::Vector3f::Zero();
   };
   struct Level {
     PinholeCamera camera;  // intrinsics at this level
@@ -114,8 +153,12 @@ struct TrackingResult {
 
 class Tracker {
  public:
-  // Fails on invalid options or a camera with distortion (undistort the images first).
+  // Fails on invalid options or a camera with distortion (undistort the images first), and for
+  // ShadingModel::kPredictedShading, which needs the rig (use the overload below).
   static StatusOr<Tracker> Create(const PinholeCamera& camera, const TrackerOptions& options);
+  // With the rig's lights and crosstalk (needed by ShadingModel::kPredictedShading; the camera is
+  // rig.camera). Fails as above or on an invalid rig.
+  static StatusOr<Tracker> Create(const RigCalibration& rig, const TrackerOptions& options);
 
   // rgb: CV_8UC3 of the camera's size; depth.inverse_depth: CV_32F, 0 = none; depth.variance: CV_32F
   // or empty (then 1% relative standard deviation is assumed). Fails when the sizes or types are wrong
@@ -135,6 +178,8 @@ class Tracker {
 
   PinholeCamera camera_;
   TrackerOptions options_;
+  bool has_rig_ = false;
+  RigCalibration rig_;
   TrackingKeyframe keyframe_;
   bool has_keyframe_ = false;
   // The current frame, per level: CV_32FC3 interleaved (intensity, d/du, d/dv). Reused between calls.

@@ -9,7 +9,8 @@
 namespace prism {
 namespace {
 
-void BM_Track(benchmark::State& state, const std::string& preset, int gap) {
+void BM_Track(benchmark::State& state, const std::string& preset, int gap,
+              ShadingModel shading_model = ShadingModel::kLocalMeanNormalisation) {
   synth::PresetOptions o;
   o.frames = 60;
   StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, o);
@@ -26,7 +27,9 @@ void BM_Track(benchmark::State& state, const std::string& preset, int gap) {
   for (int y = 0; y < key.depth.rows; ++y)
     for (int x = 0; x < key.depth.cols; ++x)
       if (key.depth.at<float>(y, x) > 0) depth.inverse_depth.at<float>(y, x) = 1.0f / key.depth.at<float>(y, x);
-  StatusOr<Tracker> tracker = Tracker::Create(setup->rig.camera, TrackerOptions());
+  TrackerOptions options;
+  options.shading_model = shading_model;
+  StatusOr<Tracker> tracker = Tracker::Create(setup->rig, options);
   if (!tracker.ok() || !tracker->SetKeyframe(key.rgb, depth).ok()) {
     state.SkipWithError("tracker setup failed");
     return;
@@ -46,6 +49,16 @@ BENCHMARK_CAPTURE(BM_Track, multicolor_sphere_gap5, std::string("sphere-multicol
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 BENCHMARK_CAPTURE(BM_Track, bunny_gap1, std::string("bunny-multicolor-forward"), 1)
+    ->Unit(benchmark::kMillisecond)
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_Track, multicolor_sphere_gap5_predicted_shading, std::string("sphere-multicolor-sideways"), 5,
+                  ShadingModel::kPredictedShading)
+    ->Unit(benchmark::kMillisecond)
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_Track, bunny_gap1_predicted_shading, std::string("bunny-multicolor-forward"), 1,
+                  ShadingModel::kPredictedShading)
     ->Unit(benchmark::kMillisecond)
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
