@@ -17,9 +17,7 @@
 #include "core/io/image_io.h"
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
-#include "core/mapping/global_map.h"
-#include "core/mapping/icp.h"
-#include "core/photometric/photometric_stereo.h"
+#include "core/pipeline/dense_stage.h"
 #include "core/synth/semidense.h"
 #include "core/util/thread_pool.h"
 
@@ -139,14 +137,17 @@ int main(int argc, char** argv) {
 
   const RigCalibration& rig = seq->calibration;
   ThreadPool pool(threads);
-  if (Status st = fusion_options.Check(); !st.ok()) return Fail(st.ToString());
-  DepthNormalFusion fusion(fusion_options, &pool);
-  MapOptions map_options;
-  map_options.voxel_m = voxel;
-  if (Status s = map_options.Check(); !s.ok()) return Fail(s.ToString());
-  GlobalMap map(map_options);
-  IcpOptions icp_options;
-  SessionDepthScale session_scale;
+  DenseStageOptions dense_options;
+  dense_options.fusion = fusion_options;
+  dense_options.map.voxel_m = voxel;
+  dense_options.icp_enabled = icp;
+  dense_options.scale_keyframes = scale_keyframes;
+  dense_options.max_edge_step = max_edge_step;
+  dense_options.max_icp_correction_m = max_icp_correction_m;
+  dense_options.max_icp_correction_deg = max_icp_correction_deg;
+  dense_options.world_in_slam_units = false;  // ground-truth poses with the simulated scale: metric
+  StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(rig, dense_options, &pool);
+  if (!stage.ok()) return Fail(stage.status().ToString());
   NormalErrorAccumulator ps_error, fused_error, prior_error;
   double ps_ms = 0, fusion_ms = 0, icp_ms = 0;
   // Pooled over keyframes: squared depth errors (metres^2) and pixel counts, and coverage.
@@ -154,9 +155,6 @@ int main(int argc, char** argv) {
   long long fused_n = 0, semi_n = 0;
   std::ostringstream keyframes_json;
   int keyframes = 0;
-  auto ms_since = [](std::chrono::steady_clock::time_point t) {
-    return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t).count();
-  };
 
   for (size_t i = 0; i < seq->frames.size() && keyframes < max_keyframes; i += keyframe_step) {
     StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
@@ -171,36 +169,24 @@ int main(int argc, char** argv) {
     sd.scale = slam_scale;
     sd.relative_noise = depth_noise;
     sd.seed = seed * 1000003u + static_cast<uint32_t>(i);
-    const InverseDepthMap semi_dense = synth::SimulateSemiDenseDepth(*truth_depth, *rgb, sd);
+    DenseKeyframe keyframe;
+    keyframe.id = static_cast<uint64_t>(i);
+    keyframe.rgb = *rgb;
+    keyframe.world_from_keyframe = Sim3d(slam_scale, pose->rotation, pose->translation);
+    keyframe.depth = synth::SimulateSemiDenseDepth(*truth_depth, *rgb, sd);
+    const InverseDepthMap& semi_dense = keyframe.depth;
 
-    // Photometric stereo: the first keyframes estimate the depth scale, then the session fixes it.
-    auto t0 = std::chrono::steady_clock::now();
-    PhotometricOptions ps_options;
-    const bool estimate = session_scale.count() < scale_keyframes;
-    ps_options.estimate_depth_scale = estimate;
-    if (!estimate) ps_options.depth_scale = session_scale.value();
-    StatusOr<PhotometricResult> ps = EstimateNormals(*rgb, semi_dense, rig, ps_options, &pool);
-    ps_ms += ms_since(t0);
-    if (!ps.ok()) {
-      std::cerr << "prism-fuse: keyframe " << name << " skipped: " << ps.status() << "\n";
+    // Photometric stereo, fusion, depth-edge filter, cloud, ICP and map merge.
+    StatusOr<DenseKeyframeResult> dense = (*stage)->Process(keyframe);
+    if (!dense.ok()) {
+      std::cerr << "prism-fuse: keyframe " << name << " skipped: " << dense.status() << "\n";
       continue;
     }
-    if (estimate) session_scale.Add(ps->depth_scale);
-
-    // Fusion of SLAM positions and PS normals.
-    t0 = std::chrono::steady_clock::now();
-    FusionInput input;
-    input.camera = rig.camera;
-    input.normals = ps->normals;
-    input.confidence = ps->confidence;
-    input.semi_dense = semi_dense;
-    input.prior_inverse_depth = ps->dense_inverse_depth;
-    StatusOr<FusionResult> fused = fusion.Fuse(input);
-    fusion_ms += ms_since(t0);
-    if (!fused.ok()) {
-      std::cerr << "prism-fuse: keyframe " << name << " skipped: " << fused.status() << "\n";
-      continue;
-    }
+    ps_ms += dense->photometric_ms;
+    fusion_ms += dense->fusion_ms;
+    icp_ms += dense->map_ms;
+    const PhotometricResult* ps = &dense->photometric;
+    const FusionResult* fused = &dense->fusion;
 
     // Ground-truth comparisons (object pixels when the sequence has masks).
     cv::Mat mask;
@@ -220,11 +206,7 @@ int main(int argc, char** argv) {
         const float id = semi_dense.inverse_depth.at<float>(y, x);
         if (id > 0) semi_dense_m.at<float>(y, x) = static_cast<float>(slam_scale / id);
       }
-    // Pixels along depth steps (flying pixels where the surface bridges a silhouette) are removed
-    // from the keyframe's dense depth: its output, its evaluation and its cloud.
-    const cv::Mat keep = max_edge_step > 0 ? DepthEdgeFreeMask(fused->depth, max_edge_step) : cv::Mat();
-    cv::Mat fused_depth = fused->depth.clone();
-    if (!keep.empty()) fused_depth.setTo(0, keep == 0);
+    const cv::Mat& fused_depth = dense->depth;
     const cv::Mat fused_m = fused_depth * slam_scale;
     const cv::Mat eval_mask = mask.empty() ? cv::Mat(truth_depth->size(), CV_8U, cv::Scalar(255)) : mask;
     int n_fused = 0, n_semi = 0;
@@ -253,38 +235,18 @@ int main(int argc, char** argv) {
     cv::imwrite(out_dir + "/normals_vis/" + name + ".png", vis);
     (void)WriteDepthPng(out_dir + "/depth/" + name + ".png", fused_m);
 
-    // Keyframe cloud in the world (metres), registered to the map.
-    const Sim3d world_from_keyframe(slam_scale, pose->rotation, pose->translation);
-    StatusOr<PointCloud> cloud =
-        DepthToCloud(fused_depth, fused->normals, *rgb, rig.camera, world_from_keyframe, 1, cv::Mat(), ps->confidence);
-    if (!cloud.ok()) return Fail(cloud.status().ToString());
+    const PointCloud* cloud = &dense->cloud;
     (void)WritePointCloudPly(out_dir + "/clouds/" + name + ".ply", *cloud);
-    t0 = std::chrono::steady_clock::now();
-    Rigid3d correction;  // map_from_cloud, identity when ICP is off or the map is empty
     std::string icp_json = "null";
-    if (icp && !map.empty()) {
-      StatusOr<IcpTarget> target = IcpTarget::Create(map.ToPointCloud(), icp_options);
-      if (target.ok()) {
-        StatusOr<IcpSummary> s = AlignIcp(*cloud, *target, Rigid3d(), icp_options, &correction);
-        if (s.ok()) {
-          char buf[256];
-          std::snprintf(buf, sizeof(buf),
-                        "{\"converged\": %s, \"inlier_rmse_m\": %.6g, \"inlier_fraction\": %.4f, "
-                        "\"correction_m\": %.6g, \"correction_deg\": %.6g}",
-                        s->converged ? "true" : "false", s->inlier_rmse_m, s->inlier_fraction,
-                        correction.translation.norm(), RotationAngle(correction.rotation) * 180 / M_PI);
-          icp_json = buf;
-          // Trusted only when converged with most points paired and a plausible size: geometry with
-          // symmetries (a sphere on a plane turns freely about the vertical) lets ICP slide.
-          const bool plausible = correction.translation.norm() <= max_icp_correction_m &&
-                                 RotationAngle(correction.rotation) * 180 / M_PI <= max_icp_correction_deg;
-          if (!s->converged || s->inlier_fraction < 0.3 || !plausible) correction = Rigid3d();
-        }
-      }
+    if (dense->icp_attempted) {
+      char buf[256];
+      std::snprintf(buf, sizeof(buf),
+                    "{\"converged\": %s, \"inlier_rmse_m\": %.6g, \"inlier_fraction\": %.4f, "
+                    "\"correction_m\": %.6g, \"correction_deg\": %.6g}",
+                    dense->icp.converged ? "true" : "false", dense->icp.inlier_rmse_m, dense->icp.inlier_fraction,
+                    dense->icp_estimate.translation.norm(), RotationAngle(dense->icp_estimate.rotation) * 180 / M_PI);
+      icp_json = buf;
     }
-    if (StatusOr<MapInsertStats> st = map.Insert(*cloud, correction, static_cast<uint64_t>(i)); !st.ok())
-      return Fail(st.status().ToString());
-    icp_ms += ms_since(t0);
 
     char buf[1024];
     std::snprintf(buf, sizeof(buf),
@@ -303,7 +265,7 @@ int main(int argc, char** argv) {
   }
   if (keyframes == 0) return Fail("no keyframe could be processed");
 
-  const PointCloud merged = map.ToPointCloud();
+  const PointCloud merged = (*stage)->map().ToPointCloud();
   if (Status s = WritePointCloudPly(out_dir + "/map.ply", merged); !s.ok()) return Fail(s.ToString());
   const AngularErrorStats ps_stats = ps_error.Summarize(), fused_stats = fused_error.Summarize(),
                           prior_stats = prior_error.Summarize();
@@ -317,7 +279,7 @@ int main(int argc, char** argv) {
                 "  \"min_fused_coverage\": %.4f,\n"
                 "  \"ps_ms_per_keyframe\": %.1f,\n  \"fusion_ms_per_keyframe\": %.1f,\n  \"icp_merge_ms_per_keyframe\": %.1f,\n"
                 "  \"per_keyframe\": [\n",
-                keyframes, merged.size(), session_scale.has_value() ? session_scale.value() : 0.0, slam_scale,
+                keyframes, merged.size(), (*stage)->depth_scale().has_value() ? (*stage)->depth_scale().value() : 0.0, slam_scale,
                 ps_stats.median_deg, ps_stats.mean_deg, fused_stats.median_deg, prior_stats.median_deg,
                 fused_n ? std::sqrt(fused_sse / fused_n) : 0.0, semi_n ? std::sqrt(semi_sse / semi_n) : 0.0, min_coverage,
                 ps_ms / keyframes, fusion_ms / keyframes, icp_ms / keyframes);

@@ -1,0 +1,121 @@
+#include "core/pipeline/dense_stage.h"
+
+#include <chrono>
+#include <cmath>
+#include <string>
+
+namespace prism {
+namespace {
+
+double MsSince(std::chrono::steady_clock::time_point t) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t).count();
+}
+
+Status Violated(const std::string& field, double value, const std::string& rule) {
+  return InvalidArgumentError("DenseStageOptions." + field + " = " + std::to_string(value) + "; violated: " + rule);
+}
+
+}  // namespace
+
+Status DenseStageOptions::Check() const {
+  PRISM_RETURN_IF_ERROR(photometric.Check());
+  PRISM_RETURN_IF_ERROR(fusion.Check());
+  PRISM_RETURN_IF_ERROR(map.Check());
+  PRISM_RETURN_IF_ERROR(icp.Check());
+  if (scale_keyframes < 1) return Violated("scale_keyframes", scale_keyframes, ">= 1");
+  if (!(max_edge_step >= 0)) return Violated("max_edge_step", max_edge_step, ">= 0");
+  if (!(max_icp_correction_m >= 0)) return Violated("max_icp_correction_m", max_icp_correction_m, ">= 0");
+  if (!(max_icp_correction_deg >= 0)) return Violated("max_icp_correction_deg", max_icp_correction_deg, ">= 0");
+  if (!(min_icp_inlier_fraction >= 0 && min_icp_inlier_fraction <= 1))
+    return Violated("min_icp_inlier_fraction", min_icp_inlier_fraction, "in [0, 1]");
+  return Status::Ok();
+}
+
+StatusOr<std::unique_ptr<DenseStage>> DenseStage::Create(const RigCalibration& rig, const DenseStageOptions& options,
+                                                         ThreadPool* pool) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  PRISM_RETURN_IF_ERROR(rig.Check());
+  return std::unique_ptr<DenseStage>(new DenseStage(rig, options, pool));
+}
+
+DenseStage::DenseStage(const RigCalibration& rig, const DenseStageOptions& options, ThreadPool* pool)
+    : rig_(rig), options_(options), pool_(pool), fusion_(options.fusion, pool), map_(options.map) {}
+
+DenseStage::~DenseStage() = default;
+
+StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe) {
+  const PinholeCamera& camera = rig_.camera;
+  const cv::Size size(camera.width, camera.height);
+  if (keyframe.rgb.type() != CV_8UC3 || keyframe.rgb.size() != size)
+    return InvalidArgumentError("keyframe " + std::to_string(keyframe.id) + ": rgb must be CV_8UC3 of " +
+                                std::to_string(size.width) + "x" + std::to_string(size.height));
+  if (keyframe.depth.inverse_depth.type() != CV_32F || keyframe.depth.inverse_depth.size() != size)
+    return InvalidArgumentError("keyframe " + std::to_string(keyframe.id) +
+                                ": inverse depth must be CV_32F of the camera's size");
+  if (!(keyframe.world_from_keyframe.scale > 0) || !std::isfinite(keyframe.world_from_keyframe.scale))
+    return InvalidArgumentError("keyframe " + std::to_string(keyframe.id) + ": world_from_keyframe scale must be > 0");
+
+  DenseKeyframeResult result;
+  result.keyframe_id = keyframe.id;
+
+  // Photometric stereo: the first keyframes estimate the depth scale, then the session fixes it.
+  auto t0 = std::chrono::steady_clock::now();
+  PhotometricOptions ps_options = options_.photometric;
+  result.estimated_depth_scale = depth_scale_.count() < options_.scale_keyframes;
+  ps_options.estimate_depth_scale = result.estimated_depth_scale;
+  if (!result.estimated_depth_scale) ps_options.depth_scale = depth_scale_.value();
+  PRISM_ASSIGN_OR_RETURN(result.photometric, EstimateNormals(keyframe.rgb, keyframe.depth, rig_, ps_options, pool_));
+  result.photometric_ms = MsSince(t0);
+  if (result.estimated_depth_scale) depth_scale_.Add(result.photometric.depth_scale);
+  result.metres_per_unit = depth_scale_.has_value() ? depth_scale_.value() : result.photometric.depth_scale;
+
+  // Fusion of the SLAM positions and the PS normals.
+  t0 = std::chrono::steady_clock::now();
+  FusionInput input;
+  input.camera = camera;
+  input.normals = result.photometric.normals;
+  input.confidence = result.photometric.confidence;
+  input.semi_dense = keyframe.depth;
+  input.prior_inverse_depth = result.photometric.dense_inverse_depth;
+  PRISM_ASSIGN_OR_RETURN(result.fusion, fusion_.Fuse(input));
+  result.fusion_ms = MsSince(t0);
+
+  // Pixels along depth steps (flying pixels where the surface bridges a silhouette) leave the
+  // keyframe's dense depth and so its cloud.
+  result.depth = result.fusion.depth.clone();
+  if (options_.max_edge_step > 0) {
+    const cv::Mat keep = DepthEdgeFreeMask(result.fusion.depth, options_.max_edge_step);
+    result.depth.setTo(0, keep == 0);
+  }
+
+  // The keyframe cloud in the metric world, registered to the map.
+  t0 = std::chrono::steady_clock::now();
+  Sim3d world_from_keyframe = keyframe.world_from_keyframe;
+  if (options_.world_in_slam_units)
+    world_from_keyframe = Sim3d(result.metres_per_unit, Eigen::Quaterniond::Identity(), Eigen::Vector3d::Zero()) *
+                          world_from_keyframe;
+  PRISM_ASSIGN_OR_RETURN(result.cloud, DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera,
+                                                    world_from_keyframe, 1, cv::Mat(), result.photometric.confidence));
+  Rigid3d correction;  // map_from_cloud; identity unless ICP passes the guard
+  if (options_.icp_enabled && !map_.empty()) {
+    StatusOr<IcpTarget> target = IcpTarget::Create(map_.ToPointCloud(), options_.icp);
+    if (target.ok()) {
+      StatusOr<IcpSummary> s = AlignIcp(result.cloud, *target, Rigid3d(), options_.icp, &result.icp_estimate);
+      if (s.ok()) {
+        result.icp_attempted = true;
+        result.icp = *s;
+        const bool plausible = result.icp_estimate.translation.norm() <= options_.max_icp_correction_m &&
+                               RotationAngle(result.icp_estimate.rotation) * 180 / M_PI <=
+                                   options_.max_icp_correction_deg;
+        result.icp_applied = s->converged && s->inlier_fraction >= options_.min_icp_inlier_fraction && plausible;
+        if (result.icp_applied) correction = result.icp_estimate;
+      }
+    }
+  }
+  PRISM_ASSIGN_OR_RETURN(result.insert, map_.Insert(result.cloud, correction, keyframe.id));
+  result.changes = map_.TakeChanges();
+  result.map_ms = MsSince(t0);
+  return result;
+}
+
+}  // namespace prism

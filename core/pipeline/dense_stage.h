@@ -1,0 +1,113 @@
+// The dense stage of one session (paper §3.3-3.4): per finished SLAM keyframe, multispectral
+// photometric stereo with the session depth scale, positions+normals fusion, removal of depth-edge
+// (flying) pixels, the dense keyframe cloud, ICP against the map with a plausibility guard, and the
+// merge into the GlobalMap; it hands back the map voxels that changed (an incremental chunk).
+//
+// Thread safety: not internally synchronised; one thread at a time calls Process (the keyframes of
+// a session are processed in order). The heavy loops run on the ThreadPool given at construction,
+// which may be shared by many DenseStages; call Process from a thread that is not one of its workers.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+
+#include <opencv2/core.hpp>
+
+#include "core/fusion/fusion.h"
+#include "core/geometry/point_cloud.h"
+#include "core/geometry/rigid3.h"
+#include "core/io/calibration_io.h"
+#include "core/io/inverse_depth.h"
+#include "core/mapping/global_map.h"
+#include "core/mapping/icp.h"
+#include "core/photometric/photometric_stereo.h"
+#include "core/util/status.h"
+#include "core/util/thread_pool.h"
+
+namespace prism {
+
+struct DenseStageOptions {
+  // Photometric stereo; estimate_depth_scale and depth_scale are set per keyframe by the stage.
+  PhotometricOptions photometric;
+  FusionOptions fusion;
+  MapOptions map;
+  IcpOptions icp;
+  // Register each keyframe cloud to the map with ICP before merging it.
+  bool icp_enabled = true;
+  // Keyframes that estimate the depth scale (metres per SLAM unit) from the shading before the session
+  // fixes it at the median of their estimates, >= 1.
+  int scale_keyframes = 3;
+  // Pixels whose fused depth differs from a neighbour's by more than this (relative) are removed from
+  // the keyframe's depth and cloud (flying pixels along silhouettes), >= 0; 0 keeps every pixel.
+  double max_edge_step = 0.03;
+  // Largest ICP correction applied, metres and degrees, >= 0. Larger ones, unconverged ones and ones
+  // pairing fewer than min_icp_inlier_fraction of the points are reported but not applied (symmetric
+  // geometry, such as a sphere on a plane, lets ICP slide).
+  double max_icp_correction_m = 0.01;
+  double max_icp_correction_deg = 1.0;
+  // In [0, 1].
+  double min_icp_inlier_fraction = 0.3;
+  // true: DenseKeyframe::world_from_keyframe maps into the SLAM world (SLAM units) and the stage maps
+  // it to metres with the session depth scale (the live pipeline). false: it already maps into a
+  // metric world (prism-fuse with ground-truth poses).
+  bool world_in_slam_units = true;
+
+  Status Check() const;
+};
+
+// A finished SLAM keyframe.
+struct DenseKeyframe {
+  uint64_t id = 0;
+  cv::Mat rgb;  // CV_8UC3, RGB, the rig camera's size
+  // Keyframe camera (SLAM depth units) -> world (see DenseStageOptions::world_in_slam_units).
+  Sim3d world_from_keyframe;
+  InverseDepthMap depth;  // semi-dense inverse depth, 1/SLAM unit
+};
+
+struct DenseKeyframeResult {
+  uint64_t keyframe_id = 0;
+  PhotometricResult photometric;  // PS normals, confidence, prior normals, depth_scale used
+  bool estimated_depth_scale = false;  // this keyframe estimated the scale (photometric.depth_scale)
+  FusionResult fusion;            // fusion.depth is before the depth-edge filter
+  cv::Mat depth;                  // CV_32F fused depth, SLAM units, depth-edge pixels set to 0
+  double metres_per_unit = 1.0;   // session depth scale after this keyframe
+  // The keyframe cloud in the (metric) world frame before the ICP correction; confidences from PS.
+  PointCloud cloud;
+  bool icp_attempted = false;
+  IcpSummary icp;
+  Rigid3d icp_estimate;      // map_from_cloud found by ICP (identity when not attempted)
+  bool icp_applied = false;  // icp_estimate passed the guard and was applied
+  MapInsertStats insert;
+  MapChunk changes;  // voxels created or changed by this keyframe (GlobalMap::TakeChanges)
+  double photometric_ms = 0, fusion_ms = 0, map_ms = 0;
+};
+
+class DenseStage {
+ public:
+  // INVALID_ARGUMENT on bad options or rig. pool may be null (everything inline).
+  static StatusOr<std::unique_ptr<DenseStage>> Create(const RigCalibration& rig, const DenseStageOptions& options,
+                                                      ThreadPool* pool);
+  ~DenseStage();
+
+  // A keyframe whose photometric stereo fails returns that error and changes nothing; one whose fusion
+  // fails returns that error after its depth-scale estimate was counted. INVALID_ARGUMENT on images of
+  // the wrong type or size.
+  StatusOr<DenseKeyframeResult> Process(const DenseKeyframe& keyframe);
+
+  const GlobalMap& map() const { return map_; }
+  const SessionDepthScale& depth_scale() const { return depth_scale_; }
+  const RigCalibration& rig() const { return rig_; }
+  const DenseStageOptions& options() const { return options_; }
+
+ private:
+  DenseStage(const RigCalibration& rig, const DenseStageOptions& options, ThreadPool* pool);
+
+  RigCalibration rig_;
+  DenseStageOptions options_;
+  ThreadPool* pool_;
+  DepthNormalFusion fusion_;
+  GlobalMap map_;
+  SessionDepthScale depth_scale_;
+};
+
+}  // namespace prism
