@@ -11,6 +11,7 @@ PACKAGES=(
   libzmq3-dev cppzmq-dev
   libprotobuf-dev protobuf-compiler
   libdraco-dev draco
+  libjpeg-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libcgal-demo
   python3 python3-numpy
