@@ -1,0 +1,289 @@
+#include "core/pipeline/session_pipeline.h"
+
+#include <chrono>
+#include <condition_variable>
+#include <exception>
+#include <string>
+#include <utility>
+
+#include "core/util/logging.h"
+
+namespace prism {
+namespace {
+
+double MsSince(std::chrono::steady_clock::time_point t) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t).count();
+}
+
+}  // namespace
+
+Status SessionPipelineOptions::Check() const {
+  PRISM_RETURN_IF_ERROR(slam.Check());
+  PRISM_RETURN_IF_ERROR(dense.Check());
+  MapChunkCodecOptions c = chunk;
+  c.voxel_m = dense.map.voxel_m;
+  PRISM_RETURN_IF_ERROR(c.Check());
+  if (frame_queue_capacity < 1 || frame_queue_capacity > 1024)
+    return InvalidArgumentError("SessionPipelineOptions.frame_queue_capacity = " + std::to_string(frame_queue_capacity) +
+                                "; violated: in [1, 1024]");
+  if (keyframe_queue_capacity < 1 || keyframe_queue_capacity > 256)
+    return InvalidArgumentError("SessionPipelineOptions.keyframe_queue_capacity = " +
+                                std::to_string(keyframe_queue_capacity) + "; violated: in [1, 256]");
+  return Status::Ok();
+}
+
+StatusOr<std::unique_ptr<SessionPipeline>> SessionPipeline::Create(const RigCalibration& rig,
+                                                                   const SessionPipelineOptions& options,
+                                                                   DenseWorkers* workers, PipelineEventSink sink) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  PRISM_RETURN_IF_ERROR(rig.Check());
+  if (workers == nullptr || !sink) return InvalidArgumentError("SessionPipeline needs dense workers and an event sink");
+  std::unique_ptr<SessionPipeline> p(new SessionPipeline(rig, options, workers, std::move(sink)));
+  PRISM_ASSIGN_OR_RETURN(p->slam_, SlamSystem::Create(rig, options.slam));
+  PRISM_ASSIGN_OR_RETURN(p->dense_, DenseStage::Create(rig, options.dense, workers->pool()));
+  p->slam_thread_ = std::thread([raw = p.get()] { raw->SlamLoop(); });
+  return p;
+}
+
+SessionPipeline::SessionPipeline(const RigCalibration& rig, const SessionPipelineOptions& options,
+                                 DenseWorkers* workers, PipelineEventSink sink)
+    : rig_(rig),
+      options_(options),
+      workers_(workers),
+      strand_(workers->NewStrand()),
+      sink_(std::move(sink)),
+      frames_(static_cast<size_t>(options.frame_queue_capacity), options.input_policy) {}
+
+SessionPipeline::~SessionPipeline() {
+  Abort();
+  if (slam_thread_.joinable()) slam_thread_.join();
+  // The SLAM thread posted the final job last: once the strand is idle nothing refers to this.
+  while (strand_->pending() > 0) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+}
+
+Status SessionPipeline::Push(EncodedFrame frame, bool* dropped_oldest) {
+  if (dropped_oldest) *dropped_oldest = false;
+  if (!accepting_) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++stats_.frames_rejected;
+    return FailedPreconditionError(failed_ ? "the session has failed" : "the session is closing");
+  }
+  switch (frames_.Push(std::move(frame))) {
+    case PushResult::kPushed: {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.frames_received;
+      return Status::Ok();
+    }
+    case PushResult::kDroppedOldest: {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.frames_received;
+      ++stats_.frames_dropped;
+      if (dropped_oldest) *dropped_oldest = true;
+      return Status::Ok();
+    }
+    case PushResult::kRejected: {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.frames_rejected;
+      return ResourceExhaustedError("frame queue full (" + std::to_string(frames_.capacity()) +
+                                    " frames); wait for frame credits and retry");
+    }
+    case PushResult::kClosed: break;
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  ++stats_.frames_rejected;
+  return FailedPreconditionError("the session is closing");
+}
+
+void SessionPipeline::Finish() {
+  accepting_ = false;
+  frames_.Close();
+}
+
+void SessionPipeline::Abort() {
+  accepting_ = false;
+  aborted_ = true;
+  const size_t dropped = frames_.Clear();
+  frames_.Close();
+  std::lock_guard<std::mutex> lock(mutex_);
+  stats_.frames_dropped += dropped;
+  stats_.keyframes_dropped += keyframes_.size();
+  keyframes_.clear();
+}
+
+PipelineStats SessionPipeline::stats() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  PipelineStats s = stats_;
+  s.metres_per_unit = metres_per_unit_;
+  return s;
+}
+
+PointCloud SessionPipeline::MapSnapshot() const {
+  std::lock_guard<std::mutex> lock(map_mutex_);
+  return dense_->map().ToPointCloud();
+}
+
+void SessionPipeline::Fail(const Status& status) {
+  if (failed_.exchange(true)) return;
+  accepting_ = false;
+  PRISM_LOG(ERROR) << "session pipeline failed: " << status;
+  PipelineEvent e;
+  e.kind = PipelineEvent::Kind::kError;
+  e.status = status;
+  e.fatal = true;
+  sink_(std::move(e));
+  const size_t dropped = frames_.Clear();
+  frames_.Close();
+  std::lock_guard<std::mutex> lock(mutex_);
+  stats_.frames_dropped += dropped;
+}
+
+void SessionPipeline::SlamLoop() {
+  cv::Mat rgb;
+  while (std::optional<EncodedFrame> frame = frames_.Pop()) {
+    if (aborted_ || failed_) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.frames_dropped;
+      continue;
+    }
+    const auto t0 = std::chrono::steady_clock::now();
+    const Status decoded = DecodeFrame(frame->bytes.data(), frame->bytes.size(), frame->codec, rig_.camera.width,
+                                       rig_.camera.height, &rgb);
+    if (!decoded.ok()) {
+      {
+        std::lock_guard<std::mutex> lock(mutex_);
+        ++stats_.frames_bad;
+      }
+      PipelineEvent e;
+      e.kind = PipelineEvent::Kind::kError;
+      e.status = Status(decoded.code(), "frame " + std::to_string(frame->sequence_number) + ": " + decoded.message());
+      e.has_frame = true;
+      e.frame_sequence_number = frame->sequence_number;
+      sink_(std::move(e));
+      continue;
+    }
+    try {
+      StatusOr<SlamFrameResult> r = slam_->ProcessFrame(static_cast<double>(frame->timestamp_ns) * 1e-9, rgb);
+      if (!r.ok()) {
+        PipelineEvent e;
+        e.kind = PipelineEvent::Kind::kError;
+        e.status = Status(r.status().code(), "frame " + std::to_string(frame->sequence_number) + ": " +
+                                                 r.status().message());
+        e.has_frame = true;
+        e.frame_sequence_number = frame->sequence_number;
+        sink_(std::move(e));
+        continue;
+      }
+      {
+        std::lock_guard<std::mutex> lock(mutex_);
+        ++stats_.frames_processed;
+        stats_.slam_ms_total += MsSince(t0);
+      }
+      PipelineEvent e;
+      e.kind = PipelineEvent::Kind::kPose;
+      e.frame_sequence_number = frame->sequence_number;
+      e.timestamp_ns = frame->timestamp_ns;
+      e.slam = *r;
+      e.metres_per_unit = metres_per_unit_;
+      sink_(std::move(e));
+      for (SlamKeyframe& kf : slam_->TakeFinishedKeyframes()) QueueKeyframe(std::move(kf));
+    } catch (const std::exception& ex) {
+      Fail(InternalError(std::string("SLAM failed: ") + ex.what()));
+    }
+  }
+  if (!aborted_ && !failed_) {
+    try {
+      for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
+    } catch (const std::exception& ex) {
+      Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));
+    }
+  }
+  // Last job of the strand: after every keyframe queued above.
+  strand_->Post([this] {
+    PipelineEvent e;
+    e.kind = PipelineEvent::Kind::kFinished;
+    e.stats = stats();
+    sink_(std::move(e));
+  });
+}
+
+void SessionPipeline::QueueKeyframe(SlamKeyframe keyframe) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++stats_.keyframes;
+    if (keyframes_.size() >= static_cast<size_t>(options_.keyframe_queue_capacity)) {
+      keyframes_.pop_front();
+      ++stats_.keyframes_dropped;
+    }
+    keyframes_.push_back(std::move(keyframe));
+  }
+  strand_->Post([this] { DenseJob(); });
+}
+
+void SessionPipeline::DenseJob() {
+  SlamKeyframe kf;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (keyframes_.empty()) return;  // dropped by the overflow policy or Abort
+    kf = std::move(keyframes_.front());
+    keyframes_.pop_front();
+    if (aborted_ || failed_) {
+      ++stats_.keyframes_dropped;
+      return;
+    }
+  }
+  try {
+    const auto t0 = std::chrono::steady_clock::now();
+    DenseKeyframe dk;
+    dk.id = static_cast<uint64_t>(kf.id);
+    dk.rgb = kf.rgb;
+    dk.world_from_keyframe = kf.world_from_keyframe;
+    dk.depth = kf.depth;
+    StatusOr<DenseKeyframeResult> r = InternalError("not run");
+    size_t map_points = 0;
+    {
+      std::lock_guard<std::mutex> lock(map_mutex_);
+      r = dense_->Process(dk);
+      map_points = dense_->map().size();
+    }
+    if (!r.ok()) {
+      {
+        std::lock_guard<std::mutex> lock(mutex_);
+        ++stats_.keyframes_failed;
+      }
+      PipelineEvent e;
+      e.kind = PipelineEvent::Kind::kError;
+      e.status = Status(r.status().code(), "keyframe " + std::to_string(kf.id) + " skipped by the dense stage: " +
+                                               r.status().message());
+      sink_(std::move(e));
+      return;
+    }
+    metres_per_unit_ = r->metres_per_unit;
+    if (r->changes.empty()) return;
+    MapChunkCodecOptions chunk_options = options_.chunk;
+    chunk_options.voxel_m = options_.dense.map.voxel_m;
+    StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(r->changes.cloud, chunk_options);
+    if (!encoded.ok()) return;  // nothing encodable (every point off the grid)
+    PipelineEvent e;
+    e.kind = PipelineEvent::Kind::kChunk;
+    e.keyframe_id = dk.id;
+    e.chunk_sequence = r->changes.sequence;
+    e.num_points = encoded->num_points;
+    e.draco = std::move(encoded->bytes);
+    const double s = r->metres_per_unit;
+    e.world_from_keyframe = Rigid3d(kf.world_from_keyframe.rotation, s * kf.world_from_keyframe.translation);
+    e.map_points = map_points;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.chunks;
+      stats_.chunk_bytes += e.draco.size();
+      stats_.chunk_points += e.num_points;
+      stats_.map_points = map_points;
+      stats_.dense_ms_total += MsSince(t0);
+    }
+    sink_(std::move(e));
+  } catch (const std::exception& ex) {
+    Fail(InternalError(std::string("dense stage failed: ") + ex.what()));
+  }
+}
+
+}  // namespace prism

@@ -1,0 +1,154 @@
+// One session = one pipeline (paper Fig. 1, STYLE.md §5):
+//
+//   network thread --Push--> [frame queue, bounded] --> SLAM thread: decode -> SlamSystem::ProcessFrame
+//       -> pose event per frame; finished keyframes -> [keyframe queue, bounded, drop-oldest]
+//       -> the session's strand on the process-wide DenseWorkers: DenseStage::Process (photometric
+//          stereo, fusion, ICP, map) -> Draco chunk of the changed voxels -> chunk event.
+//
+// The SLAM and the dense stage run in parallel (the paper's two systems). Events reach the owner
+// through a callback called on the SLAM thread (poses, frame errors) or a dense worker (chunks,
+// keyframe errors, the final kFinished); it must be cheap and thread-safe (the server queues them for
+// its transport thread). A failure inside the pipeline (a broken invariant, PRISM_CHECK) ends this
+// session with a fatal error event; other sessions never notice.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/codec/frame_codec.h"
+#include "core/codec/map_chunk_codec.h"
+#include "core/geometry/rigid3.h"
+#include "core/io/calibration_io.h"
+#include "core/pipeline/bounded_queue.h"
+#include "core/pipeline/dense_stage.h"
+#include "core/pipeline/dense_workers.h"
+#include "core/slam/slam_system.h"
+#include "core/util/status.h"
+
+namespace prism {
+
+struct SessionPipelineOptions {
+  SlamOptions slam;
+  DenseStageOptions dense;
+  // Map chunk coding; voxel_m is taken from dense.map.voxel_m.
+  MapChunkCodecOptions chunk;
+  // Encoded frames waiting for the SLAM thread, in [1, 1024].
+  int frame_queue_capacity = 8;
+  // A full frame queue drops its oldest frame (live camera) or rejects the new one (upload).
+  OverflowPolicy input_policy = OverflowPolicy::kDropOldest;
+  // Finished keyframes waiting for the dense stage, in [1, 256]; a full queue drops its oldest
+  // keyframe (counted): SLAM never waits for the dense stage.
+  int keyframe_queue_capacity = 4;
+
+  Status Check() const;
+};
+
+struct EncodedFrame {
+  uint64_t sequence_number = 0;
+  int64_t timestamp_ns = 0;
+  FrameCodec codec = FrameCodec::kPng;
+  std::vector<uint8_t> bytes;
+};
+
+struct PipelineStats {
+  uint64_t frames_received = 0;   // accepted by Push
+  uint64_t frames_dropped = 0;    // dropped from a full queue (drop-oldest) or at Abort
+  uint64_t frames_rejected = 0;   // refused by Push (full queue with kReject, or closed)
+  uint64_t frames_bad = 0;        // failed to decode (corrupt, wrong size)
+  uint64_t frames_processed = 0;  // tracked by SLAM
+  uint64_t keyframes = 0;         // finished keyframes from SLAM
+  uint64_t keyframes_dropped = 0;
+  uint64_t keyframes_failed = 0;  // dense stage errors
+  uint64_t chunks = 0;
+  uint64_t chunk_bytes = 0;
+  uint64_t chunk_points = 0;
+  uint64_t map_points = 0;
+  double metres_per_unit = 0;     // 0 until estimated
+  double slam_ms_total = 0, dense_ms_total = 0;
+};
+
+struct PipelineEvent {
+  enum class Kind { kPose, kChunk, kError, kFinished };
+  Kind kind = Kind::kPose;
+  // kPose.
+  uint64_t frame_sequence_number = 0;
+  int64_t timestamp_ns = 0;
+  SlamFrameResult slam;
+  double metres_per_unit = 0;  // 0 until the dense stage estimated it
+  // kChunk.
+  uint64_t keyframe_id = 0;
+  uint64_t chunk_sequence = 0;
+  std::vector<uint8_t> draco;
+  size_t num_points = 0;
+  Rigid3d world_from_keyframe;  // metres
+  size_t map_points = 0;
+  // kError: a frame or keyframe failed (has_frame), or the session failed (fatal).
+  Status status;
+  bool has_frame = false;
+  bool fatal = false;
+  // kFinished: the last event of a pipeline.
+  PipelineStats stats;
+};
+
+using PipelineEventSink = std::function<void(PipelineEvent&&)>;
+
+class SessionPipeline {
+ public:
+  // INVALID_ARGUMENT on bad options or rig. The SLAM thread starts here; workers must outlive the
+  // pipeline.
+  static StatusOr<std::unique_ptr<SessionPipeline>> Create(const RigCalibration& rig,
+                                                           const SessionPipelineOptions& options,
+                                                           DenseWorkers* workers, PipelineEventSink sink);
+  // Aborts and waits for the SLAM thread and this session's dense jobs.
+  ~SessionPipeline();
+  SessionPipeline(const SessionPipeline&) = delete;
+  SessionPipeline& operator=(const SessionPipeline&) = delete;
+
+  // Never blocks (network thread). OK (possibly after dropping the oldest queued frame, counted);
+  // RESOURCE_EXHAUSTED when the queue is full under kReject; FAILED_PRECONDITION after Finish, Abort
+  // or a fatal error. *dropped_oldest (optional) tells whether the oldest queued frame was dropped.
+  Status Push(EncodedFrame frame, bool* dropped_oldest = nullptr);
+  // End of stream: the queued frames are tracked, SLAM's last keyframe is finished, every keyframe goes
+  // through the dense stage, then kFinished. Returns at once.
+  void Finish();
+  // Stop soon: queued frames and keyframes are dropped, running work completes, then kFinished.
+  void Abort();
+
+  PipelineStats stats() const;
+  // The merged map so far (call after kFinished, or accept a snapshot taken between keyframes).
+  PointCloud MapSnapshot() const;
+
+ private:
+  SessionPipeline(const RigCalibration& rig, const SessionPipelineOptions& options, DenseWorkers* workers,
+                  PipelineEventSink sink);
+  void SlamLoop();
+  void QueueKeyframe(SlamKeyframe keyframe);
+  void DenseJob();
+  void Fail(const Status& status);
+
+  const RigCalibration rig_;
+  const SessionPipelineOptions options_;
+  DenseWorkers* workers_;
+  std::shared_ptr<DenseWorkers::Strand> strand_;
+  PipelineEventSink sink_;
+  std::unique_ptr<SlamSystem> slam_;   // SLAM thread only
+  std::unique_ptr<DenseStage> dense_;  // strand jobs only (one at a time)
+  BoundedQueue<EncodedFrame> frames_;
+  std::atomic<bool> accepting_{true};
+  std::atomic<bool> aborted_{false};
+  std::atomic<bool> failed_{false};
+  std::atomic<double> metres_per_unit_{0.0};
+  mutable std::mutex mutex_;
+  std::deque<SlamKeyframe> keyframes_;  // Guarded by mutex_.
+  PipelineStats stats_;                 // Guarded by mutex_.
+  mutable std::mutex map_mutex_;        // held by dense jobs while they write the map
+  std::thread slam_thread_;
+};
+
+}  // namespace prism
