@@ -1,0 +1,170 @@
+// libprism_client: stream frames to prism-server, get poses and the dense map back.
+//
+//   prism::client::Rig rig = ...;                       // camera + the three lights
+//   std::unique_ptr<prism::client::Session> session;
+//   prism::client::Status s = prism::client::Session::Open("tcp://127.0.0.1:5555", rig, {}, &session);
+//   s = session->PushFrame(timestamp_ns, rgb, width, height, width * 3);   // encoded inside (PNG default)
+//   prism::client::Event event;
+//   while (session->Poll(&event, 0)) { ... event.pose / event.chunk ... }
+//   prism::client::Summary summary;
+//   s = session->Close(60000, &summary);
+//   std::vector<prism::client::Point> map = session->Map();  // the running map, one point per voxel
+//
+// No exceptions cross this API, and no ZeroMQ or protobuf type appears in it. A Session is not
+// thread-safe: one thread calls it. Callbacks (SetEventCallback) run on that thread, inside PushFrame,
+// Poll and Close.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace prism::client {
+
+enum class Code {
+  kOk = 0,
+  kInvalidArgument,
+  kNotFound,
+  kResourceExhausted,
+  kFailedPrecondition,
+  kUnauthenticated,
+  kDataLoss,
+  kUnavailable,
+  kInternal,
+  kVersionMismatch,
+  kTimeout,  // no answer from the server in time
+};
+const char* CodeName(Code code);
+
+struct Status {
+  Code code = Code::kOk;
+  std::string message;
+  bool retryable = false;
+  bool ok() const { return code == Code::kOk; }
+  std::string ToString() const;  // "RESOURCE_EXHAUSTED: message"
+};
+
+struct Camera {
+  int width = 0, height = 0;
+  double fx = 0, fy = 0, cx = 0, cy = 0;
+  std::array<double, 5> distortion{0, 0, 0, 0, 0};  // k1 k2 p1 p2 k3
+};
+
+struct Light {
+  std::string name;
+  bool directional = false;
+  std::array<double, 3> position_in_camera{0, 0, 0};   // metres, point lights
+  std::array<double, 3> direction_in_camera{0, 0, -1};  // towards the light, directional lights
+  std::array<double, 3> color{1, 1, 1};
+  double intensity = 0.25;
+};
+
+struct Rig {
+  Camera camera;
+  std::array<Light, 3> lights;                      // red, green, blue
+  std::array<double, 9> crosstalk{1, 0, 0, 0, 1, 0, 0, 0, 1};  // row-major (camera channel, light)
+};
+
+enum class Codec { kPng, kJpeg, kRaw };
+
+struct SessionOptions {
+  Codec codec = Codec::kPng;
+  int jpeg_quality = 95;  // [1, 100]; JPEG is always 4:4:4
+  // true: the server drops the oldest queued frame when full (live camera); false: it refuses new
+  // frames (upload) and PushFrame waits for credit.
+  bool live = false;
+  // Map chunks the server may send ahead; the SDK grants one more per chunk it receives.
+  int chunk_credits = 8;
+  std::string client_name = "libprism_client";
+  // How long Open waits for SessionOpened, and PushFrame for a frame credit, ms.
+  int timeout_ms = 10000;
+};
+
+enum class TrackingState { kUnknown, kInitialising, kTracking, kLost };
+
+struct Pose {
+  uint64_t frame_sequence_number = 0;
+  int64_t timestamp_ns = 0;
+  std::array<double, 4> rotation_xyzw{0, 0, 0, 1};  // world_from_camera, SLAM units
+  std::array<double, 3> translation{0, 0, 0};
+  TrackingState state = TrackingState::kUnknown;
+  bool is_keyframe = false;
+  double metres_per_unit = 0;  // 0 until the server has estimated the scale
+};
+
+struct Point {
+  std::array<float, 3> position{0, 0, 0};  // metres
+  std::array<float, 3> normal{0, 0, 0};
+  std::array<uint8_t, 3> color{0, 0, 0};
+};
+
+struct MapChunk {
+  uint64_t keyframe_id = 0;
+  uint64_t sequence_number = 0;
+  std::vector<uint8_t> draco;  // the chunk as sent (a .drc file)
+  std::vector<Point> points;   // decoded
+};
+
+struct Summary {
+  uint64_t frames_received = 0, frames_dropped = 0, frames_rejected = 0;
+  uint64_t keyframes = 0, keyframes_dropped = 0, keyframes_failed = 0;
+  uint64_t chunks_sent = 0, map_points = 0;
+  double metres_per_unit = 0;
+  std::string reason;
+};
+
+struct Event {
+  enum class Kind { kPose, kChunk, kError, kSummary };
+  Kind kind = Kind::kPose;
+  Pose pose;
+  MapChunk chunk;
+  Status error;  // kError: a frame or the session failed (error.message says which)
+  Summary summary;
+};
+
+class Session {
+ public:
+  // Connects a DEALER socket to `endpoint`, opens a session and waits for SessionOpened.
+  static Status Open(const std::string& endpoint, const Rig& rig, const SessionOptions& options,
+                     std::unique_ptr<Session>* session);
+  ~Session();
+  Session(const Session&) = delete;
+  Session& operator=(const Session&) = delete;
+
+  // Encodes and sends one RGB frame (8-bit, R first; rows `stride_bytes` apart). Waits up to
+  // timeout_ms for a frame credit, handling incoming messages meanwhile. kResourceExhausted (retryable)
+  // when no credit came in time.
+  Status PushFrame(int64_t timestamp_ns, const uint8_t* rgb, int width, int height, int stride_bytes);
+  // Sends already encoded bytes (testing, or a camera that encodes itself).
+  Status PushEncoded(int64_t timestamp_ns, Codec codec, const std::vector<uint8_t>& bytes, int width, int height);
+  // Frames sendable now.
+  int frame_credits() const;
+
+  // Next event, waiting up to timeout_ms (0 = do not wait). false when none. With a callback set, events
+  // go to the callback instead and Poll returns false.
+  bool Poll(Event* event, int timeout_ms);
+  void SetEventCallback(std::function<void(const Event&)> callback);
+
+  // Ends the stream, waits until the server has finished the keyframes in flight and sent their chunks
+  // and the summary (at most timeout_ms). Events received meanwhile stay pollable.
+  Status Close(int timeout_ms, Summary* summary);
+
+  // The running map: every chunk received so far, merged by voxel (a later chunk replaces a voxel).
+  std::vector<Point> Map() const;
+  const std::string& session_id() const;
+  // Bytes of frame payloads sent so far.
+  uint64_t bytes_sent() const;
+
+ private:
+  struct Impl;
+  explicit Session(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// Reads a Draco map chunk (a .drc from the server) into points.
+Status DecodeChunk(const uint8_t* data, size_t size, std::vector<Point>* points);
+
+}  // namespace prism::client

@@ -1,0 +1,398 @@
+#include <chrono>
+#include <deque>
+#include <exception>
+#include <unordered_map>
+
+#include <opencv2/core.hpp>
+#include <zmq.hpp>
+
+#include "core/codec/frame_codec.h"
+#include "core/codec/map_chunk_codec.h"
+#include "prism/client/client.h"
+#include "prism/v1/session.pb.h"
+
+namespace prism::client {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+Code FromWire(v1::ErrorCode c) {
+  switch (c) {
+    case v1::ERROR_CODE_INVALID_ARGUMENT: return Code::kInvalidArgument;
+    case v1::ERROR_CODE_NOT_FOUND: return Code::kNotFound;
+    case v1::ERROR_CODE_RESOURCE_EXHAUSTED: return Code::kResourceExhausted;
+    case v1::ERROR_CODE_FAILED_PRECONDITION: return Code::kFailedPrecondition;
+    case v1::ERROR_CODE_UNAUTHENTICATED: return Code::kUnauthenticated;
+    case v1::ERROR_CODE_DATA_LOSS: return Code::kDataLoss;
+    case v1::ERROR_CODE_UNAVAILABLE: return Code::kUnavailable;
+    case v1::ERROR_CODE_VERSION_MISMATCH: return Code::kVersionMismatch;
+    default: return Code::kInternal;
+  }
+}
+
+Status Make(Code code, std::string message, bool retryable = false) { return Status{code, std::move(message), retryable}; }
+
+v1::FrameCodec ToWire(Codec c) {
+  switch (c) {
+    case Codec::kPng: return v1::FRAME_CODEC_PNG;
+    case Codec::kJpeg: return v1::FRAME_CODEC_JPEG;
+    case Codec::kRaw: return v1::FRAME_CODEC_RAW;
+  }
+  return v1::FRAME_CODEC_UNSPECIFIED;
+}
+
+FrameCodec ToCore(Codec c) {
+  return c == Codec::kJpeg ? FrameCodec::kJpeg : c == Codec::kRaw ? FrameCodec::kRaw : FrameCodec::kPng;
+}
+
+void SetVector(const std::array<double, 3>& a, v1::Vector3* v) {
+  v->set_x(a[0]);
+  v->set_y(a[1]);
+  v->set_z(a[2]);
+}
+
+std::vector<Point> ToPoints(const PointCloud& cloud) {
+  std::vector<Point> points(cloud.size());
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    for (int a = 0; a < 3; ++a) points[i].position[a] = cloud.positions[i][a];
+    if (cloud.HasNormals())
+      for (int a = 0; a < 3; ++a) points[i].normal[a] = cloud.normals[i][a];
+    if (cloud.HasColors())
+      for (int a = 0; a < 3; ++a) points[i].color[a] = cloud.colors[i][a];
+  }
+  return points;
+}
+
+}  // namespace
+
+const char* CodeName(Code code) {
+  switch (code) {
+    case Code::kOk: return "OK";
+    case Code::kInvalidArgument: return "INVALID_ARGUMENT";
+    case Code::kNotFound: return "NOT_FOUND";
+    case Code::kResourceExhausted: return "RESOURCE_EXHAUSTED";
+    case Code::kFailedPrecondition: return "FAILED_PRECONDITION";
+    case Code::kUnauthenticated: return "UNAUTHENTICATED";
+    case Code::kDataLoss: return "DATA_LOSS";
+    case Code::kUnavailable: return "UNAVAILABLE";
+    case Code::kInternal: return "INTERNAL";
+    case Code::kVersionMismatch: return "VERSION_MISMATCH";
+    case Code::kTimeout: return "TIMEOUT";
+  }
+  return "?";
+}
+
+std::string Status::ToString() const { return ok() ? "OK" : std::string(CodeName(code)) + ": " + message; }
+
+Status DecodeChunk(const uint8_t* data, size_t size, std::vector<Point>* points) {
+  StatusOr<PointCloud> cloud = DecodeMapChunk(data, size);
+  if (!cloud.ok()) return Make(Code::kDataLoss, cloud.status().message());
+  *points = ToPoints(*cloud);
+  return Status();
+}
+
+struct Session::Impl {
+  zmq::context_t context{1};
+  zmq::socket_t socket{context, zmq::socket_type::dealer};
+  SessionOptions options;
+  Rig rig;
+  std::string session_id;
+  int64_t frame_credits = 0;
+  double voxel_m = 0.002;
+  uint64_t next_sequence = 0;
+  uint64_t bytes_sent = 0;
+  bool opened = false, closed = false, summary_received = false;
+  Status open_error;
+  Summary summary;
+  std::deque<Event> events;
+  std::function<void(const Event&)> callback;
+  std::unordered_map<uint64_t, Point> map;  // by voxel
+  std::vector<uint8_t> encode_buffer;
+
+  static uint64_t VoxelKey(const Point& p, double voxel_m) {
+    const Eigen::Vector3i v =
+        VoxelOfDecodedPoint(Eigen::Vector3f(p.position[0], p.position[1], p.position[2]), voxel_m);
+    auto u = [](int c) { return static_cast<uint64_t>(static_cast<uint32_t>(c) & 0x1FFFFFu); };
+    return u(v.x()) | (u(v.y()) << 21) | (u(v.z()) << 42);
+  }
+
+  void Emit(Event&& e) {
+    if (callback) callback(e);
+    else events.push_back(std::move(e));
+  }
+
+  bool SendEnvelope(const v1::Envelope& env, const std::vector<uint8_t>* payload = nullptr) {
+    const std::string header = env.SerializeAsString();
+    try {
+      if (payload) {
+        if (!socket.send(zmq::buffer(header), zmq::send_flags::sndmore)) return false;
+        return socket.send(zmq::buffer(*payload), zmq::send_flags::none).has_value();
+      }
+      return socket.send(zmq::buffer(header), zmq::send_flags::none).has_value();
+    } catch (const zmq::error_t&) {
+      return false;
+    }
+  }
+
+  v1::Envelope NewEnvelope() {
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    return env;
+  }
+
+  void Handle(std::vector<zmq::message_t>& parts) {
+    v1::Envelope env;
+    if (parts.empty() || !env.ParseFromArray(parts[0].data(), static_cast<int>(parts[0].size()))) return;
+    switch (env.body_case()) {
+      case v1::Envelope::kSessionOpened: {
+        const v1::SessionOpened& o = env.session_opened();
+        session_id = o.session_id();
+        frame_credits = o.initial_frame_credits();
+        if (o.map_voxel_m() > 0) voxel_m = o.map_voxel_m();
+        opened = true;
+        return;
+      }
+      case v1::Envelope::kFrameCredits:
+        frame_credits += env.frame_credits().frames();
+        return;
+      case v1::Envelope::kPoseUpdate: {
+        const v1::PoseUpdate& p = env.pose_update();
+        Event e;
+        e.kind = Event::Kind::kPose;
+        e.pose.frame_sequence_number = p.frame_sequence_number();
+        e.pose.timestamp_ns = p.timestamp_ns();
+        const v1::Pose& w = p.world_from_camera();
+        e.pose.rotation_xyzw = {w.rotation().x(), w.rotation().y(), w.rotation().z(), w.rotation().w()};
+        e.pose.translation = {w.translation().x(), w.translation().y(), w.translation().z()};
+        e.pose.state = p.state() == v1::PoseUpdate::TRACKING_STATE_TRACKING       ? TrackingState::kTracking
+                       : p.state() == v1::PoseUpdate::TRACKING_STATE_INITIALISING ? TrackingState::kInitialising
+                       : p.state() == v1::PoseUpdate::TRACKING_STATE_LOST         ? TrackingState::kLost
+                                                                                  : TrackingState::kUnknown;
+        e.pose.is_keyframe = p.is_keyframe();
+        e.pose.metres_per_unit = p.metres_per_unit();
+        Emit(std::move(e));
+        return;
+      }
+      case v1::Envelope::kMapChunk: {
+        Event e;
+        e.kind = Event::Kind::kChunk;
+        e.chunk.keyframe_id = env.map_chunk().keyframe_id();
+        e.chunk.sequence_number = env.map_chunk().chunk_sequence_number();
+        if (parts.size() >= 2) {
+          const auto* d = static_cast<const uint8_t*>(parts[1].data());
+          e.chunk.draco.assign(d, d + parts[1].size());
+        }
+        // Grant the credit back: this chunk is consumed.
+        v1::Envelope credit = NewEnvelope();
+        credit.mutable_chunk_credits()->set_session_id(session_id);
+        credit.mutable_chunk_credits()->set_chunks(1);
+        SendEnvelope(credit);
+        const Status s = DecodeChunk(e.chunk.draco.data(), e.chunk.draco.size(), &e.chunk.points);
+        if (!s.ok()) {
+          Event err;
+          err.kind = Event::Kind::kError;
+          err.error = Make(Code::kDataLoss, "map chunk " + std::to_string(e.chunk.sequence_number) + ": " + s.message);
+          Emit(std::move(err));
+          return;
+        }
+        for (const Point& p : e.chunk.points) map[VoxelKey(p, voxel_m)] = p;
+        Emit(std::move(e));
+        return;
+      }
+      case v1::Envelope::kSessionSummary: {
+        const v1::SessionSummary& s = env.session_summary();
+        summary.frames_received = s.frames_received();
+        summary.frames_dropped = s.frames_dropped();
+        summary.frames_rejected = s.frames_rejected();
+        summary.keyframes = s.keyframes();
+        summary.keyframes_dropped = s.keyframes_dropped();
+        summary.keyframes_failed = s.keyframes_failed();
+        summary.chunks_sent = s.chunks_sent();
+        summary.map_points = s.map_points();
+        summary.metres_per_unit = s.metres_per_unit();
+        summary.reason = s.reason();
+        summary_received = true;
+        closed = true;
+        Event e;
+        e.kind = Event::Kind::kSummary;
+        e.summary = summary;
+        Emit(std::move(e));
+        return;
+      }
+      case v1::Envelope::kError: {
+        const v1::Error& w = env.error();
+        Status s = Make(FromWire(w.code()), w.message(), w.retryable());
+        if (!opened) {
+          open_error = s;
+          return;
+        }
+        if (w.session_closed()) closed = true;
+        Event e;
+        e.kind = Event::Kind::kError;
+        e.error = s;
+        Emit(std::move(e));
+        return;
+      }
+      default: return;
+    }
+  }
+
+  // Handles incoming messages, waiting up to timeout_ms for the first.
+  void Pump(int timeout_ms) {
+    zmq::pollitem_t item{socket.handle(), 0, ZMQ_POLLIN, 0};
+    try {
+      zmq::poll(&item, 1, std::chrono::milliseconds(timeout_ms));
+      for (;;) {
+        std::vector<zmq::message_t> parts;
+        zmq::message_t part;
+        if (!socket.recv(part, zmq::recv_flags::dontwait)) break;
+        parts.push_back(std::move(part));
+        while (parts.back().more()) {
+          zmq::message_t next;
+          (void)socket.recv(next, zmq::recv_flags::none);
+          parts.push_back(std::move(next));
+        }
+        Handle(parts);
+      }
+    } catch (const zmq::error_t&) {
+    }
+  }
+};
+
+Session::Session(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Session::~Session() = default;
+
+Status Session::Open(const std::string& endpoint, const Rig& rig, const SessionOptions& options,
+                     std::unique_ptr<Session>* session) {
+  if (options.jpeg_quality < 1 || options.jpeg_quality > 100)
+    return Make(Code::kInvalidArgument, "SessionOptions.jpeg_quality must be in [1, 100]");
+  if (options.chunk_credits < 1) return Make(Code::kInvalidArgument, "SessionOptions.chunk_credits must be >= 1");
+  auto impl = std::make_unique<Impl>();
+  impl->options = options;
+  impl->rig = rig;
+  try {
+    impl->socket.set(zmq::sockopt::linger, 1000);
+    impl->socket.set(zmq::sockopt::heartbeat_ivl, 1000);
+    impl->socket.set(zmq::sockopt::heartbeat_timeout, 5000);
+    impl->socket.set(zmq::sockopt::heartbeat_ttl, 5000);
+    impl->socket.connect(endpoint);
+  } catch (const zmq::error_t& e) {
+    return Make(Code::kInvalidArgument, "cannot connect to '" + endpoint + "': " + e.what());
+  }
+  v1::Envelope env = impl->NewEnvelope();
+  v1::OpenSession* o = env.mutable_open_session();
+  o->set_protocol_version(v1::PROTOCOL_VERSION_1);
+  o->set_codec(ToWire(options.codec));
+  o->set_client_name(options.client_name);
+  o->set_input_policy(options.live ? v1::INPUT_POLICY_LIVE : v1::INPUT_POLICY_UPLOAD);
+  o->set_initial_chunk_credits(static_cast<uint32_t>(options.chunk_credits));
+  v1::RigCalibration* r = o->mutable_calibration();
+  v1::CameraIntrinsics* c = r->mutable_camera();
+  c->set_width(static_cast<uint32_t>(rig.camera.width));
+  c->set_height(static_cast<uint32_t>(rig.camera.height));
+  c->set_fx(rig.camera.fx);
+  c->set_fy(rig.camera.fy);
+  c->set_cx(rig.camera.cx);
+  c->set_cy(rig.camera.cy);
+  for (double d : rig.camera.distortion) c->add_distortion(d);
+  for (const Light& l : rig.lights) {
+    v1::LightCalibration* w = r->add_lights();
+    w->set_name(l.name);
+    w->set_type(l.directional ? v1::LightCalibration::TYPE_DIRECTIONAL : v1::LightCalibration::TYPE_POINT);
+    SetVector(l.position_in_camera, w->mutable_position_in_camera());
+    SetVector(l.direction_in_camera, w->mutable_direction_in_camera());
+    SetVector(l.color, w->mutable_color());
+    w->set_intensity(l.intensity);
+  }
+  for (double x : rig.crosstalk) r->add_crosstalk(x);
+  if (!impl->SendEnvelope(env)) return Make(Code::kUnavailable, "cannot send OpenSession to '" + endpoint + "'");
+  const auto deadline = Clock::now() + std::chrono::milliseconds(options.timeout_ms);
+  while (!impl->opened && impl->open_error.ok() && Clock::now() < deadline)
+    impl->Pump(static_cast<int>(
+        std::max<int64_t>(1, std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count())));
+  if (!impl->open_error.ok()) return impl->open_error;
+  if (!impl->opened)
+    return Make(Code::kTimeout, "no answer from '" + endpoint + "' within " + std::to_string(options.timeout_ms) +
+                                    " ms (is prism-server running there?)",
+                true);
+  session->reset(new Session(std::move(impl)));
+  return Status();
+}
+
+Status Session::PushFrame(int64_t timestamp_ns, const uint8_t* rgb, int width, int height, int stride_bytes) {
+  if (rgb == nullptr || width <= 0 || height <= 0 || stride_bytes < width * 3)
+    return Make(Code::kInvalidArgument, "PushFrame: bad image buffer or size");
+  FrameEncodeOptions eo;
+  eo.codec = ToCore(impl_->options.codec);
+  eo.jpeg_quality = impl_->options.jpeg_quality;
+  const cv::Mat image(height, width, CV_8UC3, const_cast<uint8_t*>(rgb), static_cast<size_t>(stride_bytes));
+  const prism::Status s = EncodeFrame(image, eo, &impl_->encode_buffer);
+  if (!s.ok()) return Make(Code::kInvalidArgument, s.message());
+  return PushEncoded(timestamp_ns, impl_->options.codec, impl_->encode_buffer, width, height);
+}
+
+Status Session::PushEncoded(int64_t timestamp_ns, Codec codec, const std::vector<uint8_t>& bytes, int width,
+                            int height) {
+  Impl& m = *impl_;
+  m.Pump(0);
+  if (m.closed) return Make(Code::kFailedPrecondition, "the session is closed");
+  const auto deadline = Clock::now() + std::chrono::milliseconds(m.options.timeout_ms);
+  while (m.frame_credits <= 0 && !m.closed && Clock::now() < deadline) m.Pump(5);
+  if (m.closed) return Make(Code::kFailedPrecondition, "the session is closed");
+  if (m.frame_credits <= 0)
+    return Make(Code::kResourceExhausted,
+                "no frame credit from the server within " + std::to_string(m.options.timeout_ms) + " ms", true);
+  v1::Envelope env = m.NewEnvelope();
+  v1::Frame* f = env.mutable_frame();
+  f->set_session_id(m.session_id);
+  f->set_sequence_number(m.next_sequence++);
+  f->set_timestamp_ns(timestamp_ns);
+  f->set_codec(ToWire(codec));
+  f->set_width(static_cast<uint32_t>(width));
+  f->set_height(static_cast<uint32_t>(height));
+  if (!m.SendEnvelope(env, &bytes)) return Make(Code::kUnavailable, "cannot send the frame", true);
+  --m.frame_credits;
+  m.bytes_sent += bytes.size();
+  return Status();
+}
+
+int Session::frame_credits() const { return static_cast<int>(impl_->frame_credits); }
+
+bool Session::Poll(Event* event, int timeout_ms) {
+  Impl& m = *impl_;
+  if (m.events.empty()) m.Pump(timeout_ms);
+  else m.Pump(0);
+  if (m.events.empty()) return false;
+  *event = std::move(m.events.front());
+  m.events.pop_front();
+  return true;
+}
+
+void Session::SetEventCallback(std::function<void(const Event&)> callback) { impl_->callback = std::move(callback); }
+
+Status Session::Close(int timeout_ms, Summary* summary) {
+  Impl& m = *impl_;
+  if (!m.summary_received) {
+    v1::Envelope env = m.NewEnvelope();
+    env.mutable_close()->set_session_id(m.session_id);
+    if (!m.SendEnvelope(env)) return Make(Code::kUnavailable, "cannot send Close");
+    const auto deadline = Clock::now() + std::chrono::milliseconds(timeout_ms);
+    while (!m.summary_received && Clock::now() < deadline) m.Pump(20);
+  }
+  if (!m.summary_received)
+    return Make(Code::kTimeout, "no session summary within " + std::to_string(timeout_ms) + " ms", true);
+  if (summary) *summary = m.summary;
+  return Status();
+}
+
+std::vector<Point> Session::Map() const {
+  std::vector<Point> points;
+  points.reserve(impl_->map.size());
+  for (const auto& [key, p] : impl_->map) points.push_back(p);
+  return points;
+}
+
+const std::string& Session::session_id() const { return impl_->session_id; }
+uint64_t Session::bytes_sent() const { return impl_->bytes_sent; }
+
+}  // namespace prism::client

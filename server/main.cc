@@ -1,0 +1,76 @@
+// prism-server --bind tcp://127.0.0.1:5555 --data-dir DIR [--config FILE] [--key value ...]
+// Prints one JSON line on stdout once listening: {"endpoint": "...", "metrics": "..."}.
+#include <csignal>
+#include <cstdio>
+#include <iostream>
+#include <string>
+
+#include "core/util/logging.h"
+#include "server/server.h"
+#include "server/server_options.h"
+
+namespace {
+
+prism::server::Server* g_server = nullptr;
+
+void OnSignal(int) {
+  if (g_server) g_server->RequestStop();
+}
+
+int Fail(const std::string& m) {
+  std::cerr << "prism-server: " << m << "\n";
+  return 2;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  using namespace prism::server;
+  ServerOptions options;
+  // The config file first, then flags over it.
+  for (int i = 1; i + 1 < argc; ++i)
+    if (std::string(argv[i]) == "--config") {
+      if (prism::Status s = LoadServerConfig(argv[i + 1], &options); !s.ok()) return Fail(s.ToString());
+    }
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--help" || a == "-h") {
+      std::cout << "usage: prism-server --bind ENDPOINT --data-dir DIR [--config FILE] [--KEY VALUE ...]\n\n"
+                   "Serves reconstruction sessions over ZeroMQ (proto/prism/v1/session.proto). Options (flags\n"
+                   "or 'key = value' lines in the config file):\n"
+                << ServerOptionsHelp()
+                << "  log-level debug|info|warning|error\n\nSIGTERM/SIGINT: stop accepting sessions, finish queued "
+                   "work (shutdown-deadline-ms), persist maps, exit 0.\n";
+      return 0;
+    }
+    if (a.rfind("--", 0) != 0 || i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
+    const std::string key = a.substr(2), value = argv[++i];
+    if (key == "config") continue;
+    if (key == "log-level") {
+      if (value == "debug") prism::SetMinLogLevel(prism::LogLevel::kDebug);
+      else if (value == "info") prism::SetMinLogLevel(prism::LogLevel::kInfo);
+      else if (value == "warning") prism::SetMinLogLevel(prism::LogLevel::kWarning);
+      else if (value == "error") prism::SetMinLogLevel(prism::LogLevel::kError);
+      else return Fail("bad --log-level '" + value + "'");
+      continue;
+    }
+    if (prism::Status s = ApplyServerOption(key, value, &options); !s.ok()) return Fail(s.message() + " (see --help)");
+  }
+  if (options.data_dir.empty()) return Fail("--data-dir is required (see --help)");
+  prism::StatusOr<std::unique_ptr<Server>> server = Server::Create(options);
+  if (!server.ok()) return Fail(server.status().ToString());
+  g_server = server->get();
+  struct sigaction sa {};
+  sa.sa_handler = OnSignal;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGTERM, &sa, nullptr);
+  sigaction(SIGINT, &sa, nullptr);
+  std::signal(SIGPIPE, SIG_IGN);
+  std::printf("{\"endpoint\": \"%s\", \"metrics\": \"%s\"}\n", (*server)->endpoint().c_str(),
+              (*server)->metrics_endpoint().c_str());
+  std::fflush(stdout);
+  const prism::Status st = (*server)->Run();
+  g_server = nullptr;
+  if (!st.ok()) return Fail(st.ToString());
+  return 0;
+}

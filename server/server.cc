@@ -1,0 +1,749 @@
+#include "server/server.h"
+
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <sys/eventfd.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstring>
+#include <deque>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <mutex>
+#include <random>
+#include <sstream>
+#include <unordered_map>
+#include <vector>
+
+#include <zmq.hpp>
+
+#include "core/io/ply_io.h"
+#include "core/pipeline/dense_workers.h"
+#include "core/pipeline/session_pipeline.h"
+#include "core/util/logging.h"
+#include "core/util/thread_pool.h"
+#include "prism/v1/session.pb.h"
+
+namespace prism::server {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+v1::ErrorCode ToWireCode(StatusCode code) {
+  switch (code) {
+    case StatusCode::kInvalidArgument:
+    case StatusCode::kOutOfRange: return v1::ERROR_CODE_INVALID_ARGUMENT;
+    case StatusCode::kNotFound: return v1::ERROR_CODE_NOT_FOUND;
+    case StatusCode::kResourceExhausted: return v1::ERROR_CODE_RESOURCE_EXHAUSTED;
+    case StatusCode::kFailedPrecondition: return v1::ERROR_CODE_FAILED_PRECONDITION;
+    case StatusCode::kUnauthenticated: return v1::ERROR_CODE_UNAUTHENTICATED;
+    case StatusCode::kDataLoss: return v1::ERROR_CODE_DATA_LOSS;
+    case StatusCode::kUnavailable: return v1::ERROR_CODE_UNAVAILABLE;
+    default: return v1::ERROR_CODE_INTERNAL;
+  }
+}
+
+StatusOr<FrameCodec> FromWireCodec(v1::FrameCodec c) {
+  switch (c) {
+    case v1::FRAME_CODEC_PNG: return FrameCodec::kPng;
+    case v1::FRAME_CODEC_JPEG: return FrameCodec::kJpeg;
+    case v1::FRAME_CODEC_RAW: return FrameCodec::kRaw;
+    default: return InvalidArgumentError("frame codec " + std::to_string(static_cast<int>(c)) + " is not png, jpeg or raw");
+  }
+}
+
+Eigen::Vector3d FromWire(const v1::Vector3& v) { return Eigen::Vector3d(v.x(), v.y(), v.z()); }
+
+StatusOr<RigCalibration> RigFromWire(const v1::RigCalibration& w) {
+  RigCalibration rig;
+  const v1::CameraIntrinsics& c = w.camera();
+  if (c.width() == 0 || c.height() == 0 || c.width() > 16384 || c.height() > 16384)
+    return InvalidArgumentError("calibration.camera: width and height must be in [1, 16384], got " +
+                                std::to_string(c.width()) + "x" + std::to_string(c.height()));
+  rig.camera.width = static_cast<int>(c.width());
+  rig.camera.height = static_cast<int>(c.height());
+  rig.camera.fx = c.fx();
+  rig.camera.fy = c.fy();
+  rig.camera.cx = c.cx();
+  rig.camera.cy = c.cy();
+  if (c.distortion_size() != 0 && c.distortion_size() != 5)
+    return InvalidArgumentError("calibration.camera.distortion needs 0 or 5 values, got " +
+                                std::to_string(c.distortion_size()));
+  for (int i = 0; i < c.distortion_size(); ++i) rig.camera.distortion[static_cast<size_t>(i)] = c.distortion(i);
+  if (w.lights_size() != 3) return InvalidArgumentError("calibration needs exactly 3 lights, got " + std::to_string(w.lights_size()));
+  for (int i = 0; i < 3; ++i) {
+    const v1::LightCalibration& l = w.lights(i);
+    Light& light = rig.lights[static_cast<size_t>(i)];
+    light.name = l.name();
+    light.type = l.type() == v1::LightCalibration::TYPE_DIRECTIONAL ? LightType::kDirectional : LightType::kPoint;
+    light.position_in_camera = FromWire(l.position_in_camera());
+    light.direction_in_camera = FromWire(l.direction_in_camera());
+    light.color = FromWire(l.color());
+    light.intensity = l.intensity();
+  }
+  if (w.crosstalk_size() != 9) return InvalidArgumentError("calibration.crosstalk needs 9 values, got " + std::to_string(w.crosstalk_size()));
+  for (int i = 0; i < 9; ++i) rig.crosstalk(i / 3, i % 3) = w.crosstalk(i);
+  if (Status s = rig.Check(); !s.ok()) return InvalidArgumentError("calibration: " + s.message());
+  return rig;
+}
+
+void ToWire(const Rigid3d& pose, v1::Pose* out) {
+  out->mutable_rotation()->set_x(pose.rotation.x());
+  out->mutable_rotation()->set_y(pose.rotation.y());
+  out->mutable_rotation()->set_z(pose.rotation.z());
+  out->mutable_rotation()->set_w(pose.rotation.w());
+  out->mutable_translation()->set_x(pose.translation.x());
+  out->mutable_translation()->set_y(pose.translation.y());
+  out->mutable_translation()->set_z(pose.translation.z());
+}
+
+// Prometheus text: counters and gauges with optional labels, transport thread only.
+class Metrics {
+ public:
+  void Add(const std::string& name, double v = 1.0) { values_[name] += v; }
+  void Set(const std::string& name, double v) { values_[name] = v; }
+  std::string Render() const {
+    std::ostringstream out;
+    std::string last_family;
+    for (const auto& [name, value] : values_) {
+      const std::string family = name.substr(0, name.find('{'));
+      if (family != last_family) {
+        const bool counter = family.size() > 6 && family.compare(family.size() - 6, 6, "_total") == 0;
+        out << "# TYPE " << family << (counter ? " counter\n" : " gauge\n");
+        last_family = family;
+      }
+      out << name << " " << value << "\n";
+    }
+    return out.str();
+  }
+
+ private:
+  std::map<std::string, double> values_;
+};
+
+std::string RandomHex(int bytes) {
+  static thread_local std::mt19937_64 rng{std::random_device{}()};
+  static const char* kHex = "0123456789abcdef";
+  std::string s;
+  for (int i = 0; i < bytes; ++i) {
+    const auto b = static_cast<unsigned>(rng() & 0xFF);
+    s += kHex[b >> 4];
+    s += kHex[b & 15];
+  }
+  return s;
+}
+
+}  // namespace
+
+struct Server::Impl {
+  // Per session, transport thread only (except pipeline, which is thread-safe).
+  struct Session {
+    std::string id;
+    std::string peer;  // ZeroMQ routing id of the client's DEALER
+    std::string client_name;
+    std::unique_ptr<SessionPipeline> pipeline;
+    int64_t chunk_credits = 0;
+    std::deque<std::pair<v1::Envelope, std::vector<uint8_t>>> pending_chunks;  // waiting for credits
+    uint32_t frame_credits_to_grant = 0;
+    Clock::time_point last_activity;
+    bool closing = false;    // Close received, idle timeout or shutdown: no more frames
+    bool finished = false;   // the pipeline's kFinished arrived
+    std::string reason;      // why it ends
+    PipelineStats stats;     // at kFinished
+    uint64_t poses_sent = 0, chunks_sent = 0, frames_refused = 0;
+  };
+  struct Outgoing {
+    std::string session_id;
+    PipelineEvent event;
+  };
+
+  ServerOptions options;
+  zmq::context_t context{1};
+  zmq::socket_t router{context, zmq::socket_type::router};
+  std::string endpoint, metrics_endpoint;
+  int metrics_fd = -1;
+  int wake_fd = -1;  // eventfd: pipeline events and stop requests
+  std::atomic<bool> stop_requested{false};
+  std::unique_ptr<ThreadPool> pool;
+  std::unique_ptr<DenseWorkers> workers;
+  std::unordered_map<std::string, std::unique_ptr<Session>> sessions;  // transport thread only
+  std::mutex outbox_mutex;
+  std::deque<Outgoing> outbox;  // Guarded by outbox_mutex.
+  Metrics metrics;
+  bool draining = false;
+  Clock::time_point drain_deadline;
+  uint64_t session_counter = 0;
+
+  ~Impl() {
+    sessions.clear();  // pipelines stop before the workers and pool go
+    workers.reset();
+    if (metrics_fd >= 0) ::close(metrics_fd);
+    if (wake_fd >= 0) ::close(wake_fd);
+  }
+
+  void Wake() {
+    const uint64_t one = 1;
+    (void)!::write(wake_fd, &one, sizeof(one));
+  }
+
+  Status BindMetrics() {
+    if (options.metrics_bind == "off") return Status::Ok();
+    const size_t colon = options.metrics_bind.rfind(':');
+    if (colon == std::string::npos) return InvalidArgumentError("metrics must be HOST:PORT or off, got '" + options.metrics_bind + "'");
+    const std::string host = options.metrics_bind.substr(0, colon);
+    const int port = std::atoi(options.metrics_bind.c_str() + colon + 1);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(static_cast<uint16_t>(port));
+    if (inet_pton(AF_INET, host.c_str(), &addr.sin_addr) != 1)
+      return InvalidArgumentError("metrics host must be an IPv4 address, got '" + host + "'");
+    metrics_fd = ::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+    const int yes = 1;
+    ::setsockopt(metrics_fd, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
+    if (::bind(metrics_fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0 || ::listen(metrics_fd, 16) != 0)
+      return UnavailableError("cannot bind metrics listener " + options.metrics_bind + ": " + std::strerror(errno));
+    socklen_t len = sizeof(addr);
+    ::getsockname(metrics_fd, reinterpret_cast<sockaddr*>(&addr), &len);
+    metrics_endpoint = "http://" + host + ":" + std::to_string(ntohs(addr.sin_port));
+    return Status::Ok();
+  }
+
+  // One HTTP/1.0 request per connection: GET /metrics or GET /healthz. The read waits at most 200 ms
+  // (scrapes are rare and local).
+  void ServeHttp() {
+    for (;;) {
+      const int fd = ::accept4(metrics_fd, nullptr, nullptr, SOCK_CLOEXEC);
+      if (fd < 0) return;
+      timeval tv{0, 200000};
+      ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof(tv));
+      ::setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof(tv));
+      std::string request;
+      char buf[1024];
+      while (request.find("\r\n\r\n") == std::string::npos && request.size() < 8192) {
+        const ssize_t n = ::recv(fd, buf, sizeof(buf), 0);
+        if (n <= 0) break;
+        request.append(buf, static_cast<size_t>(n));
+      }
+      std::string status = "200 OK", body, type = "text/plain; version=0.0.4";
+      if (request.rfind("GET /metrics", 0) == 0) {
+        UpdateGauges();
+        body = metrics.Render();
+      } else if (request.rfind("GET /healthz", 0) == 0) {
+        body = draining ? "draining\n" : "ok\n";
+        if (draining) status = "503 Service Unavailable";
+      } else {
+        status = "404 Not Found";
+        body = "GET /metrics or /healthz\n";
+      }
+      const std::string response = "HTTP/1.0 " + status + "\r\nContent-Type: " + type +
+                                   "\r\nContent-Length: " + std::to_string(body.size()) +
+                                   "\r\nConnection: close\r\n\r\n" + body;
+      (void)!::send(fd, response.data(), response.size(), MSG_NOSIGNAL);
+      ::close(fd);
+      metrics.Add("prism_http_requests_total");
+    }
+  }
+
+  void UpdateGauges() {
+    metrics.Set("prism_sessions_active", static_cast<double>(sessions.size()));
+    metrics.Set("prism_sessions_capacity", options.max_sessions);
+    metrics.Set("prism_dense_jobs_pending", static_cast<double>(workers->pending_jobs()));
+    size_t pending_chunks = 0;
+    for (const auto& [id, s] : sessions) pending_chunks += s->pending_chunks.size();
+    metrics.Set("prism_chunks_waiting_for_credit", static_cast<double>(pending_chunks));
+  }
+
+  // Sends [peer][envelope][payload?] without blocking. false when the peer is gone (ROUTER_MANDATORY:
+  // EHOSTUNREACH) or its queue is full (EAGAIN); counted either way.
+  bool Send(const std::string& peer, const v1::Envelope& env, const std::vector<uint8_t>* payload = nullptr) {
+    const std::string header = env.SerializeAsString();
+    try {
+      if (!router.send(zmq::buffer(peer), zmq::send_flags::dontwait | zmq::send_flags::sndmore)) {
+        metrics.Add("prism_send_failures_total{reason=\"hwm\"}");
+        return false;
+      }
+      if (payload) {
+        router.send(zmq::buffer(header), zmq::send_flags::dontwait | zmq::send_flags::sndmore);
+        router.send(zmq::buffer(*payload), zmq::send_flags::dontwait);
+      } else {
+        router.send(zmq::buffer(header), zmq::send_flags::dontwait);
+      }
+      return true;
+    } catch (const zmq::error_t& e) {
+      metrics.Add(std::string("prism_send_failures_total{reason=\"") +
+                  (e.num() == EHOSTUNREACH ? "unreachable" : "other") + "\"}");
+      return false;
+    }
+  }
+
+  void SendError(const std::string& peer, const Status& status, const std::string& session_id, bool retryable,
+                 bool session_closed, const uint64_t* frame = nullptr) {
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::Error* e = env.mutable_error();
+    e->set_code(ToWireCode(status.code()));
+    e->set_message(status.message());
+    e->set_retryable(retryable);
+    e->set_session_id(session_id);
+    e->set_session_closed(session_closed);
+    if (frame) {
+      e->set_has_frame(true);
+      e->set_frame_sequence_number(*frame);
+    }
+    metrics.Add(std::string("prism_errors_sent_total{code=\"") + v1::ErrorCode_Name(e->code()) + "\"}");
+    PRISM_LOG(INFO) << "event=error_sent session=" << (session_id.empty() ? "-" : session_id)
+                    << " code=" << v1::ErrorCode_Name(e->code()) << " message=\"" << status.message() << "\"";
+    Send(peer, env);
+  }
+
+  void SendVersionMismatch(const std::string& peer, int version) {
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::Error* e = env.mutable_error();
+    e->set_code(v1::ERROR_CODE_VERSION_MISMATCH);
+    e->set_message("protocol version " + std::to_string(version) + " is not supported; this server speaks version 1");
+    metrics.Add("prism_errors_sent_total{code=\"ERROR_CODE_VERSION_MISMATCH\"}");
+    Send(peer, env);
+  }
+
+  void HandleMessage(std::vector<zmq::message_t>& parts) {
+    metrics.Add("prism_messages_received_total");
+    const std::string peer = parts[0].to_string();
+    if (parts.size() < 2 || parts.size() > 3) {
+      metrics.Add("prism_malformed_messages_total");
+      SendError(peer, InvalidArgumentError("malformed message: expected [Envelope] or [Envelope][payload], got " +
+                                           std::to_string(parts.size() - 1) + " parts"),
+                "", false, false);
+      return;
+    }
+    v1::Envelope env;
+    if (!env.ParseFromArray(parts[1].data(), static_cast<int>(parts[1].size()))) {
+      metrics.Add("prism_malformed_messages_total");
+      SendError(peer, InvalidArgumentError("malformed envelope: " + std::to_string(parts[1].size()) +
+                                           " bytes that do not parse as a prism.v1.Envelope"),
+                "", false, false);
+      return;
+    }
+    if (env.protocol_version() != v1::PROTOCOL_VERSION_1) {
+      metrics.Add("prism_malformed_messages_total");
+      SendVersionMismatch(peer, env.protocol_version());
+      return;
+    }
+    const zmq::message_t* payload = parts.size() == 3 ? &parts[2] : nullptr;
+    const bool wants_payload = env.body_case() == v1::Envelope::kFrame;
+    if (payload && !wants_payload) {
+      metrics.Add("prism_malformed_messages_total");
+      SendError(peer, InvalidArgumentError("this message type carries no payload part"), "", false, false);
+      return;
+    }
+    switch (env.body_case()) {
+      case v1::Envelope::kOpenSession: return OpenSession(peer, env.open_session());
+      case v1::Envelope::kFrame: return HandleFrame(peer, env.frame(), payload);
+      case v1::Envelope::kChunkCredits: {
+        Session* s = FindSession(peer, env.chunk_credits().session_id());
+        if (!s) return;
+        s->last_activity = Clock::now();
+        s->chunk_credits = std::min<int64_t>(s->chunk_credits + env.chunk_credits().chunks(), 1 << 20);
+        FlushChunks(s);
+        return;
+      }
+      case v1::Envelope::kClose: {
+        Session* s = FindSession(peer, env.close().session_id());
+        if (!s) return;
+        s->last_activity = Clock::now();
+        if (!s->closing) {
+          s->closing = true;
+          s->reason = env.close().abort() ? "aborted by client" : "closed by client";
+          if (env.close().abort()) s->pipeline->Abort();
+          else s->pipeline->Finish();
+          PRISM_LOG(INFO) << "event=session_closing session=" << s->id << " reason=\"" << s->reason << "\"";
+        }
+        return;
+      }
+      case v1::Envelope::BODY_NOT_SET:
+        metrics.Add("prism_malformed_messages_total");
+        SendError(peer, InvalidArgumentError("envelope has no body"), "", false, false);
+        return;
+      default:
+        metrics.Add("prism_malformed_messages_total");
+        SendError(peer, InvalidArgumentError("a client may not send this message type (body " +
+                                             std::to_string(static_cast<int>(env.body_case())) + ")"),
+                  "", false, false);
+        return;
+    }
+  }
+
+  Session* FindSession(const std::string& peer, const std::string& id) {
+    auto it = sessions.find(id);
+    if (it == sessions.end() || it->second->peer != peer) {
+      metrics.Add("prism_unknown_session_total");
+      SendError(peer, NotFoundError("unknown session '" + id + "'"), id, false, true);
+      return nullptr;
+    }
+    return it->second.get();
+  }
+
+  void OpenSession(const std::string& peer, const v1::OpenSession& open) {
+    if (open.protocol_version() != v1::PROTOCOL_VERSION_1) return SendVersionMismatch(peer, open.protocol_version());
+    if (draining) {
+      return SendError(peer, UnavailableError("server is shutting down"), "", true, false);
+    }
+    if (static_cast<int>(sessions.size()) >= options.max_sessions) {
+      metrics.Add("prism_sessions_rejected_total{reason=\"capacity\"}");
+      return SendError(peer,
+                       ResourceExhaustedError("server at capacity: " + std::to_string(sessions.size()) + " of " +
+                                              std::to_string(options.max_sessions) +
+                                              " sessions open; retry later or raise --max-sessions"),
+                       "", true, false);
+    }
+    StatusOr<RigCalibration> rig = RigFromWire(open.calibration());
+    if (!rig.ok()) {
+      metrics.Add("prism_sessions_rejected_total{reason=\"invalid\"}");
+      return SendError(peer, rig.status(), "", false, false);
+    }
+    SessionPipelineOptions po = options.pipeline;
+    if (open.input_policy() == v1::INPUT_POLICY_LIVE) po.input_policy = OverflowPolicy::kDropOldest;
+    if (open.input_policy() == v1::INPUT_POLICY_UPLOAD) po.input_policy = OverflowPolicy::kReject;
+    auto session = std::make_unique<Session>();
+    session->id = "s" + std::to_string(++session_counter) + "-" + RandomHex(6);
+    session->peer = peer;
+    session->client_name = open.client_name();
+    session->chunk_credits = open.initial_chunk_credits() > 0 ? open.initial_chunk_credits() : options.default_chunk_credits;
+    session->last_activity = Clock::now();
+    const std::string id = session->id;
+    StatusOr<std::unique_ptr<SessionPipeline>> pipeline =
+        SessionPipeline::Create(*rig, po, workers.get(), [this, id](PipelineEvent&& e) {
+          {
+            std::lock_guard<std::mutex> lock(outbox_mutex);
+            outbox.push_back({id, std::move(e)});
+          }
+          Wake();
+        });
+    if (!pipeline.ok()) {
+      metrics.Add("prism_sessions_rejected_total{reason=\"invalid\"}");
+      return SendError(peer, pipeline.status(), "", false, false);
+    }
+    session->pipeline = std::move(*pipeline);
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::SessionOpened* o = env.mutable_session_opened();
+    o->set_session_id(id);
+    o->set_initial_frame_credits(static_cast<uint32_t>(po.frame_queue_capacity));
+    o->set_max_frame_bytes(options.max_frame_bytes);
+    o->set_map_voxel_m(po.dense.map.voxel_m);
+    o->set_map_grid_subdivisions(static_cast<uint32_t>(po.chunk.subdivisions));
+    o->set_map_quantisation_m(po.dense.map.voxel_m / po.chunk.subdivisions);
+    o->set_idle_timeout_ms(static_cast<uint32_t>(options.idle_timeout_ms));
+    o->set_input_policy(po.input_policy == OverflowPolicy::kReject ? v1::INPUT_POLICY_UPLOAD : v1::INPUT_POLICY_LIVE);
+    o->set_max_message_bytes(static_cast<uint64_t>(options.max_message_bytes));
+    sessions[id] = std::move(session);
+    metrics.Add("prism_sessions_opened_total");
+    PRISM_LOG(INFO) << "event=session_opened session=" << id << " client=\"" << open.client_name() << "\" size="
+                    << rig->camera.width << "x" << rig->camera.height << " sessions=" << sessions.size();
+    Send(peer, env);
+  }
+
+  void HandleFrame(const std::string& peer, const v1::Frame& frame, const zmq::message_t* payload) {
+    Session* s = FindSession(peer, frame.session_id());
+    if (!s) return;
+    s->last_activity = Clock::now();
+    const uint64_t seq = frame.sequence_number();
+    auto refuse = [&](const Status& st, bool retryable) {
+      ++s->frames_refused;
+      ++s->frame_credits_to_grant;  // the frame never entered the queue: its credit comes back
+      metrics.Add("prism_frames_refused_total");
+      SendError(peer, Status(st.code(), "frame " + std::to_string(seq) + ": " + st.message()), s->id, retryable,
+                false, &seq);
+    };
+    if (s->closing) return refuse(FailedPreconditionError("the session is closing; no frames after Close"), false);
+    if (!payload || payload->size() == 0) return refuse(InvalidArgumentError("frame without image payload part"), false);
+    if (payload->size() > options.max_frame_bytes)
+      return refuse(InvalidArgumentError("frame payload of " + std::to_string(payload->size()) + " bytes exceeds " +
+                                         std::to_string(options.max_frame_bytes)),
+                    false);
+    StatusOr<FrameCodec> codec = FromWireCodec(frame.codec());
+    if (!codec.ok()) return refuse(codec.status(), false);
+    EncodedFrame ef;
+    ef.sequence_number = seq;
+    ef.timestamp_ns = frame.timestamp_ns();
+    ef.codec = *codec;
+    const auto* bytes = static_cast<const uint8_t*>(payload->data());
+    ef.bytes.assign(bytes, bytes + payload->size());
+    bool dropped = false;
+    const Status pushed = s->pipeline->Push(std::move(ef), &dropped);
+    if (!pushed.ok()) return refuse(pushed, pushed.code() == StatusCode::kResourceExhausted);
+    metrics.Add("prism_frames_received_total");
+    metrics.Add("prism_frame_bytes_total", static_cast<double>(payload->size()));
+    if (dropped) {
+      ++s->frame_credits_to_grant;
+      metrics.Add("prism_frames_dropped_total{reason=\"queue_full\"}");
+    }
+  }
+
+  void FlushChunks(Session* s) {
+    while (s->chunk_credits > 0 && !s->pending_chunks.empty()) {
+      auto& [env, bytes] = s->pending_chunks.front();
+      if (!Send(s->peer, env, &bytes)) break;  // retried on the next loop
+      --s->chunk_credits;
+      ++s->chunks_sent;
+      metrics.Add("prism_chunks_sent_total");
+      metrics.Add("prism_chunk_bytes_total", static_cast<double>(bytes.size()));
+      s->pending_chunks.pop_front();
+    }
+  }
+
+  void HandleEvent(Outgoing& out) {
+    auto it = sessions.find(out.session_id);
+    if (it == sessions.end()) return;
+    Session* s = it->second.get();
+    PipelineEvent& e = out.event;
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    switch (e.kind) {
+      case PipelineEvent::Kind::kPose: {
+        ++s->frame_credits_to_grant;
+        v1::PoseUpdate* p = env.mutable_pose_update();
+        p->set_session_id(s->id);
+        p->set_frame_sequence_number(e.frame_sequence_number);
+        p->set_timestamp_ns(e.timestamp_ns);
+        ToWire(e.slam.world_from_camera, p->mutable_world_from_camera());
+        p->set_state(e.slam.state == SlamState::kTracking       ? v1::PoseUpdate::TRACKING_STATE_TRACKING
+                     : e.slam.state == SlamState::kInitializing ? v1::PoseUpdate::TRACKING_STATE_INITIALISING
+                                                                : v1::PoseUpdate::TRACKING_STATE_LOST);
+        p->set_is_keyframe(e.slam.new_keyframe);
+        p->set_keyframe_id(e.slam.keyframe_id);
+        p->set_metres_per_unit(e.metres_per_unit);
+        if (Send(s->peer, env)) {
+          ++s->poses_sent;
+          metrics.Add("prism_poses_sent_total");
+        }
+        return;
+      }
+      case PipelineEvent::Kind::kChunk: {
+        v1::MapChunk* c = env.mutable_map_chunk();
+        c->set_session_id(s->id);
+        c->set_keyframe_id(e.keyframe_id);
+        c->set_chunk_sequence_number(e.chunk_sequence);
+        c->set_num_points(static_cast<uint32_t>(e.num_points));
+        ToWire(e.world_from_keyframe, c->mutable_world_from_keyframe());
+        c->set_payload_bytes(e.draco.size());
+        c->set_map_points(e.map_points);
+        metrics.Add("prism_keyframes_merged_total");
+        s->pending_chunks.emplace_back(std::move(env), std::move(e.draco));
+        FlushChunks(s);
+        return;
+      }
+      case PipelineEvent::Kind::kError: {
+        if (e.has_frame) ++s->frame_credits_to_grant;
+        if (e.has_frame) metrics.Add("prism_frames_bad_total");
+        SendError(s->peer, e.status, s->id, false, e.fatal, e.has_frame ? &e.frame_sequence_number : nullptr);
+        if (e.fatal) {
+          s->closing = true;
+          s->reason = "failed: " + e.status.message();
+          metrics.Add("prism_sessions_failed_total");
+        }
+        return;
+      }
+      case PipelineEvent::Kind::kFinished:
+        s->finished = true;
+        s->stats = e.stats;
+        if (s->reason.empty()) s->reason = "finished";
+        return;
+    }
+  }
+
+  void PersistAndSummarise(Session* s) {
+    const PipelineStats& st = s->stats;
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::SessionSummary* sum = env.mutable_session_summary();
+    sum->set_session_id(s->id);
+    sum->set_frames_received(st.frames_received);
+    sum->set_frames_dropped(st.frames_dropped);
+    sum->set_frames_rejected(st.frames_rejected + st.frames_bad + s->frames_refused);
+    sum->set_keyframes(st.keyframes);
+    sum->set_keyframes_dropped(st.keyframes_dropped);
+    sum->set_keyframes_failed(st.keyframes_failed);
+    sum->set_chunks_sent(s->chunks_sent);
+    sum->set_map_points(st.map_points);
+    sum->set_metres_per_unit(st.metres_per_unit);
+    sum->set_reason(s->reason);
+    // Persist: the merged map and the summary.
+    const std::string dir = options.data_dir + "/sessions/" + s->id;
+    std::error_code ec;
+    std::filesystem::create_directories(dir, ec);
+    if (st.map_points > 0) {
+      const Status w = WritePointCloudPly(dir + "/map.ply", s->pipeline->MapSnapshot());
+      if (!w.ok()) {
+        PRISM_LOG(WARNING) << "event=persist_failed session=" << s->id << " error=\"" << w << "\"";
+      }
+    }
+    std::ofstream(dir + "/summary.txt") << sum->DebugString();
+    Send(s->peer, env);
+    metrics.Add("prism_sessions_closed_total");
+    metrics.Add("prism_keyframes_dropped_total", static_cast<double>(st.keyframes_dropped));
+    PRISM_LOG(INFO) << "event=session_closed session=" << s->id << " reason=\"" << s->reason
+                    << "\" frames=" << st.frames_processed << " keyframes=" << st.keyframes
+                    << " chunks=" << s->chunks_sent << " map_points=" << st.map_points;
+  }
+
+  // Credits, idle timeouts, finished sessions. Transport thread.
+  void Housekeeping() {
+    const auto now = Clock::now();
+    for (auto it = sessions.begin(); it != sessions.end();) {
+      Session* s = it->second.get();
+      if (s->frame_credits_to_grant > 0 && !s->closing) {
+        v1::Envelope env;
+        env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+        env.mutable_frame_credits()->set_session_id(s->id);
+        env.mutable_frame_credits()->set_frames(s->frame_credits_to_grant);
+        if (Send(s->peer, env)) s->frame_credits_to_grant = 0;
+      }
+      FlushChunks(s);
+      if (!s->closing && now - s->last_activity > std::chrono::milliseconds(options.idle_timeout_ms)) {
+        s->closing = true;
+        s->reason = "idle timeout";
+        s->pipeline->Abort();
+        metrics.Add("prism_sessions_reaped_total");
+        SendError(s->peer, UnavailableError("session closed after " + std::to_string(options.idle_timeout_ms) +
+                                            " ms without a message"),
+                  s->id, false, true);
+      }
+      if (draining && now > drain_deadline && !s->finished) s->pipeline->Abort();
+      // Done: the pipeline finished and every chunk went out (or the client is not reading: give up at
+      // the drain deadline or after the idle timeout).
+      const bool stalled = now - s->last_activity > std::chrono::milliseconds(options.idle_timeout_ms) ||
+                           (draining && now > drain_deadline);
+      if (s->finished && (s->pending_chunks.empty() || stalled)) {
+        PersistAndSummarise(s);
+        it = sessions.erase(it);
+      } else {
+        ++it;
+      }
+    }
+  }
+
+  Status Run() {
+    PRISM_LOG(INFO) << "event=server_started endpoint=" << endpoint << " metrics=" << metrics_endpoint
+                    << " max_sessions=" << options.max_sessions << " dense_workers=" << options.dense_workers
+                    << " pool_threads=" << pool->num_threads();
+    std::vector<zmq::pollitem_t> items;
+    for (;;) {
+      if (stop_requested && !draining) {
+        draining = true;
+        drain_deadline = Clock::now() + std::chrono::milliseconds(options.shutdown_deadline_ms);
+        PRISM_LOG(INFO) << "event=draining sessions=" << sessions.size();
+        for (auto& [id, s] : sessions)
+          if (!s->closing) {
+            s->closing = true;
+            s->reason = "server shutdown";
+            s->pipeline->Finish();
+          }
+      }
+      if (draining && sessions.empty()) break;
+      items.clear();
+      items.push_back({router.handle(), 0, ZMQ_POLLIN, 0});
+      items.push_back({nullptr, wake_fd, ZMQ_POLLIN, 0});
+      if (metrics_fd >= 0) items.push_back({nullptr, metrics_fd, ZMQ_POLLIN, 0});
+      try {
+        zmq::poll(items.data(), items.size(), std::chrono::milliseconds(50));
+      } catch (const zmq::error_t& e) {
+        if (e.num() != EINTR) return InternalError(std::string("zmq::poll failed: ") + e.what());
+        continue;  // a signal (SIGTERM sets stop_requested)
+      }
+      if (items[1].revents & ZMQ_POLLIN) {
+        uint64_t v;
+        (void)!::read(wake_fd, &v, sizeof(v));
+      }
+      // Incoming: at most a batch per loop so events and housekeeping keep flowing.
+      for (int n = 0; n < 256; ++n) {
+        std::vector<zmq::message_t> parts;
+        zmq::message_t part;
+        try {
+          if (!router.recv(part, zmq::recv_flags::dontwait)) break;
+          parts.push_back(std::move(part));
+          while (parts.back().more() && parts.size() < 8) {
+            zmq::message_t next;
+            (void)router.recv(next, zmq::recv_flags::none);
+            parts.push_back(std::move(next));
+          }
+          while (parts.back().more()) {  // more than 8 parts: drain the rest
+            zmq::message_t rest;
+            (void)router.recv(rest, zmq::recv_flags::none);
+            parts.push_back(zmq::message_t());
+            parts.back().swap(rest);
+            if (parts.size() > 64) parts.erase(parts.begin() + 8, parts.end() - 1);
+          }
+        } catch (const zmq::error_t& e) {
+          PRISM_LOG(WARNING) << "event=recv_failed error=\"" << e.what() << "\"";
+          break;
+        }
+        try {
+          HandleMessage(parts);
+        } catch (const std::exception& e) {  // a bug in handling one message never takes the server down
+          PRISM_LOG(ERROR) << "event=handler_failed error=\"" << e.what() << "\"";
+          metrics.Add("prism_handler_failures_total");
+        }
+      }
+      std::deque<Outgoing> events;
+      {
+        std::lock_guard<std::mutex> lock(outbox_mutex);
+        events.swap(outbox);
+      }
+      for (Outgoing& o : events) HandleEvent(o);
+      if (metrics_fd >= 0 && (items[2].revents & ZMQ_POLLIN)) ServeHttp();
+      Housekeeping();
+    }
+    PRISM_LOG(INFO) << "event=server_stopped";
+    return Status::Ok();
+  }
+};
+
+Server::Server(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Server::~Server() = default;
+
+StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  auto impl = std::make_unique<Impl>();
+  impl->options = options;
+  std::error_code ec;
+  std::filesystem::create_directories(options.data_dir + "/sessions", ec);
+  if (ec) return UnavailableError("cannot create data dir '" + options.data_dir + "': " + ec.message());
+  impl->wake_fd = ::eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
+  if (impl->wake_fd < 0) return InternalError("eventfd failed");
+  try {
+    zmq::socket_t& r = impl->router;
+    r.set(zmq::sockopt::router_mandatory, 1);
+    r.set(zmq::sockopt::linger, 0);
+    r.set(zmq::sockopt::maxmsgsize, options.max_message_bytes);
+    r.set(zmq::sockopt::heartbeat_ivl, options.heartbeat_ivl_ms);
+    r.set(zmq::sockopt::heartbeat_timeout, options.heartbeat_timeout_ms);
+    r.set(zmq::sockopt::heartbeat_ttl, options.heartbeat_timeout_ms);
+    r.set(zmq::sockopt::sndhwm, options.send_hwm);
+    r.set(zmq::sockopt::rcvhwm, options.send_hwm);
+    r.bind(options.bind);
+    impl->endpoint = r.get(zmq::sockopt::last_endpoint);
+  } catch (const zmq::error_t& e) {
+    return UnavailableError("cannot bind " + options.bind + ": " + e.what());
+  }
+  PRISM_RETURN_IF_ERROR(impl->BindMetrics());
+  impl->pool = std::make_unique<ThreadPool>(options.threads);
+  impl->workers = std::make_unique<DenseWorkers>(options.dense_workers, impl->pool.get());
+  return std::unique_ptr<Server>(new Server(std::move(impl)));
+}
+
+const std::string& Server::endpoint() const { return impl_->endpoint; }
+const std::string& Server::metrics_endpoint() const { return impl_->metrics_endpoint; }
+Status Server::Run() { return impl_->Run(); }
+void Server::RequestStop() {
+  impl_->stop_requested = true;
+  impl_->Wake();
+}
+
+}  // namespace prism::server

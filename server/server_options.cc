@@ -1,0 +1,126 @@
+#include "server/server_options.h"
+
+#include <cstdlib>
+#include <fstream>
+
+namespace prism::server {
+namespace {
+
+bool ParseInt(const std::string& s, long long* out) {
+  char* end = nullptr;
+  *out = std::strtoll(s.c_str(), &end, 10);
+  return !s.empty() && end && *end == '\0';
+}
+bool ParseDouble(const std::string& s, double* out) {
+  char* end = nullptr;
+  *out = std::strtod(s.c_str(), &end);
+  return !s.empty() && end && *end == '\0';
+}
+std::string Trim(const std::string& s) {
+  const size_t b = s.find_first_not_of(" \t\r\n"), e = s.find_last_not_of(" \t\r\n");
+  return b == std::string::npos ? "" : s.substr(b, e - b + 1);
+}
+
+}  // namespace
+
+const char* ServerOptionsHelp() {
+  return R"(  bind ENDPOINT           ZeroMQ endpoint (default tcp://127.0.0.1:5555; tcp://127.0.0.1:* = free port)
+  data-dir DIR            where sessions persist map.ply and summary.json (required)
+  metrics HOST:PORT|off   HTTP /metrics (Prometheus text) and /healthz (default 127.0.0.1:0 = free port)
+  max-sessions N          concurrent sessions before RESOURCE_EXHAUSTED (default 4)
+  dense-workers N         dense keyframe jobs at once over all sessions (default 1)
+  threads N               process-wide worker pool for the dense loops (default 0 = all cores)
+  idle-timeout-ms MS      close sessions silent for this long (default 30000)
+  max-frame-bytes B       largest frame payload (default 16777216)
+  max-message-bytes B     ZMQ_MAXMSGSIZE (default 67108864)
+  heartbeat-ivl-ms MS     ZMTP heartbeat interval (default 1000)
+  heartbeat-timeout-ms MS ZMTP heartbeat timeout (default 5000)
+  send-hwm N              ZMQ_SNDHWM (default 1000)
+  chunk-credits N         map chunks in flight when the client grants none (default 8)
+  frame-queue N           frames queued per session (default 8; also the initial frame credits)
+  input-policy live|upload  full frame queue: drop the oldest (live) or reject (upload) (default live)
+  keyframe-queue N        finished keyframes queued per session for the dense stage (default 4)
+  voxel-m M               map voxel edge, metres (default 0.002)
+  shutdown-deadline-ms MS on SIGTERM, time to finish queued work before stopping (default 10000)
+)";
+}
+
+Status ServerOptions::Check() const {
+  auto bad = [](const std::string& f, const std::string& v, const std::string& rule) {
+    return InvalidArgumentError("ServerOptions." + f + " = " + v + "; violated: " + rule);
+  };
+  if (bind.rfind("tcp://", 0) != 0 && bind.rfind("ipc://", 0) != 0)
+    return bad("bind", "'" + bind + "'", "a tcp:// or ipc:// endpoint");
+  if (data_dir.empty()) return bad("data_dir", "''", "non-empty (--data-dir)");
+  if (max_sessions < 1 || max_sessions > 1024) return bad("max_sessions", std::to_string(max_sessions), "in [1, 1024]");
+  if (dense_workers < 1 || dense_workers > 64) return bad("dense_workers", std::to_string(dense_workers), "in [1, 64]");
+  if (threads < 0 || threads > 256) return bad("threads", std::to_string(threads), "in [0, 256]");
+  if (idle_timeout_ms < 100) return bad("idle_timeout_ms", std::to_string(idle_timeout_ms), ">= 100");
+  if (max_frame_bytes < 1024 || max_frame_bytes > (1ull << 30))
+    return bad("max_frame_bytes", std::to_string(max_frame_bytes), "in [1024, 2^30]");
+  if (max_message_bytes < static_cast<int64_t>(max_frame_bytes) + 65536)
+    return bad("max_message_bytes", std::to_string(max_message_bytes), ">= max_frame_bytes + 64 KiB");
+  if (heartbeat_ivl_ms < 10 || heartbeat_timeout_ms < heartbeat_ivl_ms)
+    return bad("heartbeat_timeout_ms", std::to_string(heartbeat_timeout_ms), ">= heartbeat_ivl_ms >= 10");
+  if (send_hwm < 1) return bad("send_hwm", std::to_string(send_hwm), ">= 1");
+  if (default_chunk_credits < 1) return bad("default_chunk_credits", std::to_string(default_chunk_credits), ">= 1");
+  if (shutdown_deadline_ms < 0) return bad("shutdown_deadline_ms", std::to_string(shutdown_deadline_ms), ">= 0");
+  return pipeline.Check();
+}
+
+Status ApplyServerOption(const std::string& key_in, const std::string& value, ServerOptions* o) {
+  std::string key = key_in;
+  for (char& c : key)
+    if (c == '_') c = '-';
+  long long i = 0;
+  double d = 0;
+  const bool is_int = ParseInt(value, &i), is_double = ParseDouble(value, &d);
+  auto bad = [&] { return InvalidArgumentError("bad value for " + key + ": '" + value + "'"); };
+  if (key == "bind") o->bind = value;
+  else if (key == "data-dir") o->data_dir = value;
+  else if (key == "metrics") o->metrics_bind = value;
+  else if (key == "max-sessions") { if (!is_int) return bad(); o->max_sessions = static_cast<int>(i); }
+  else if (key == "dense-workers") { if (!is_int) return bad(); o->dense_workers = static_cast<int>(i); }
+  else if (key == "threads") { if (!is_int) return bad(); o->threads = static_cast<int>(i); }
+  else if (key == "idle-timeout-ms") { if (!is_int) return bad(); o->idle_timeout_ms = static_cast<int>(i); }
+  else if (key == "max-frame-bytes") { if (!is_int || i < 0) return bad(); o->max_frame_bytes = static_cast<uint64_t>(i); }
+  else if (key == "max-message-bytes") { if (!is_int) return bad(); o->max_message_bytes = i; }
+  else if (key == "heartbeat-ivl-ms") { if (!is_int) return bad(); o->heartbeat_ivl_ms = static_cast<int>(i); }
+  else if (key == "heartbeat-timeout-ms") { if (!is_int) return bad(); o->heartbeat_timeout_ms = static_cast<int>(i); }
+  else if (key == "send-hwm") { if (!is_int) return bad(); o->send_hwm = static_cast<int>(i); }
+  else if (key == "chunk-credits") { if (!is_int) return bad(); o->default_chunk_credits = static_cast<int>(i); }
+  else if (key == "frame-queue") { if (!is_int) return bad(); o->pipeline.frame_queue_capacity = static_cast<int>(i); }
+  else if (key == "keyframe-queue") { if (!is_int) return bad(); o->pipeline.keyframe_queue_capacity = static_cast<int>(i); }
+  else if (key == "voxel-m") { if (!is_double) return bad(); o->pipeline.dense.map.voxel_m = d; }
+  else if (key == "shutdown-deadline-ms") { if (!is_int) return bad(); o->shutdown_deadline_ms = static_cast<int>(i); }
+  else if (key == "input-policy") {
+    if (value == "live") o->pipeline.input_policy = OverflowPolicy::kDropOldest;
+    else if (value == "upload") o->pipeline.input_policy = OverflowPolicy::kReject;
+    else return bad();
+  } else {
+    return InvalidArgumentError("unknown option '" + key_in + "'");
+  }
+  return Status::Ok();
+}
+
+Status LoadServerConfig(const std::string& path, ServerOptions* options) {
+  std::ifstream in(path);
+  if (!in) return NotFoundError("cannot read config file '" + path + "'");
+  std::string line;
+  int n = 0;
+  while (std::getline(in, line)) {
+    ++n;
+    const size_t hash = line.find('#');
+    if (hash != std::string::npos) line.resize(hash);
+    line = Trim(line);
+    if (line.empty()) continue;
+    const size_t eq = line.find_first_of("=:");
+    if (eq == std::string::npos)
+      return InvalidArgumentError(path + ":" + std::to_string(n) + ": expected 'key = value', got '" + line + "'");
+    const Status s = ApplyServerOption(Trim(line.substr(0, eq)), Trim(line.substr(eq + 1)), options);
+    if (!s.ok()) return InvalidArgumentError(path + ":" + std::to_string(n) + ": " + s.message());
+  }
+  return Status::Ok();
+}
+
+}  // namespace prism::server

@@ -1,0 +1,57 @@
+// prism-server's options: flags and a config file ("key = value" lines, '#' comments; the keys are the
+// long flag names without "--"). The defaults here are the single source of truth.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "core/pipeline/session_pipeline.h"
+#include "core/util/status.h"
+
+namespace prism::server {
+
+struct ServerOptions {
+  // ZeroMQ endpoint of the ROUTER socket; "tcp://127.0.0.1:*" picks a free port (printed at start).
+  std::string bind = "tcp://127.0.0.1:5555";
+  // Sessions persist their map and summary under data_dir/sessions/<id>/ when they end. Required.
+  std::string data_dir;
+  // HTTP metrics (/metrics, Prometheus text) and health (/healthz): "HOST:PORT" (port 0 = any free
+  // port) or "off".
+  std::string metrics_bind = "127.0.0.1:0";
+  // Concurrent sessions; OpenSession beyond is refused with RESOURCE_EXHAUSTED, in [1, 1024].
+  int max_sessions = 4;
+  // Dense keyframe jobs running at once over all sessions, in [1, 64].
+  int dense_workers = 1;
+  // Threads of the process-wide pool the dense jobs' inner loops share (0 = all cores), in [0, 256].
+  int threads = 0;
+  // A session without any message from its client for this long is closed, ms, >= 100.
+  int idle_timeout_ms = 30000;
+  // Largest Frame payload accepted, bytes, in [1 KiB, 1 GiB].
+  uint64_t max_frame_bytes = 16u << 20;
+  // ZMQ_MAXMSGSIZE: a peer sending a larger message part is disconnected by ZeroMQ, bytes, >= max_frame_bytes.
+  int64_t max_message_bytes = 64ll << 20;
+  // ZMTP heartbeats: interval, and the timeout after which a silent peer's connection is dropped, ms.
+  int heartbeat_ivl_ms = 1000;
+  int heartbeat_timeout_ms = 5000;
+  // Outgoing messages queued per peer before sends fail (ZMQ_SNDHWM), >= 1. Failed sends of map chunks
+  // are retried; poses and credits are dropped and counted.
+  int send_hwm = 1000;
+  // Map chunks a session may send before the client grants more, when OpenSession gives none.
+  int default_chunk_credits = 8;
+  // On SIGTERM: sessions finish what is queued for at most this long, then stop; ms >= 0.
+  int shutdown_deadline_ms = 10000;
+  // The per-session pipeline (SLAM, dense stage, queues, chunk coding).
+  SessionPipelineOptions pipeline;
+
+  Status Check() const;
+};
+
+// Applies one "key = value" setting (config file or --key value). INVALID_ARGUMENT on an unknown key or
+// a bad value, naming both.
+Status ApplyServerOption(const std::string& key, const std::string& value, ServerOptions* options);
+// Reads a config file of "key = value" lines.
+Status LoadServerConfig(const std::string& path, ServerOptions* options);
+// The keys, one per line with their meaning (for --help).
+const char* ServerOptionsHelp();
+
+}  // namespace prism::server
