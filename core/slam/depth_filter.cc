@@ -1,0 +1,462 @@
+#include "core/slam/depth_filter.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include <opencv2/imgproc.hpp>
+
+#include "core/util/thread_pool.h"
+
+namespace prism {
+namespace {
+
+inline float SampleBilinear(const cv::Mat& img, float u, float v) {
+  const int x0 = static_cast<int>(u), y0 = static_cast<int>(v);
+  const float fx = u - x0, fy = v - y0;
+  const float* r0 = img.ptr<float>(y0);
+  const float* r1 = img.ptr<float>(y0 + 1);
+  return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) + fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
+}
+
+inline bool Inside(const cv::Mat& img, float u, float v, float border) {
+  return u >= border && v >= border && u < img.cols - 1 - border && v < img.rows - 1 - border;
+}
+
+constexpr int kPatchHalf = 2;  // 5 samples
+
+}  // namespace
+
+Status DepthFilterOptions::Check() const {
+  if (!(min_gradient >= 0 && min_gradient <= 255)) return InvalidArgumentError("DepthFilterOptions: min_gradient must be in [0, 255]");
+  if (!(min_gradient_line_cosine >= 0 && min_gradient_line_cosine < 1))
+    return InvalidArgumentError("DepthFilterOptions: min_gradient_line_cosine must be in [0, 1)");
+  if (!(max_match_error > 0)) return InvalidArgumentError("DepthFilterOptions: max_match_error must be > 0");
+  if (!(min_match_ratio >= 1)) return InvalidArgumentError("DepthFilterOptions: min_match_ratio must be >= 1");
+  if (max_search_px < 4) return InvalidArgumentError("DepthFilterOptions: max_search_px must be >= 4");
+  if (!(image_noise_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: image_noise_sigma must be > 0");
+  if (!(epipolar_sigma_px > 0)) return InvalidArgumentError("DepthFilterOptions: epipolar_sigma_px must be > 0");
+  if (!(seed_max_relative_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: seed_max_relative_sigma must be > 0");
+  if (!(outlier_sigmas > 0)) return InvalidArgumentError("DepthFilterOptions: outlier_sigmas must be > 0");
+  if (!(propagation_relative_sigma >= 0))
+    return InvalidArgumentError("DepthFilterOptions: propagation_relative_sigma must be >= 0");
+  if (local_mean_radius_px < 1 || local_mean_radius_px > 32)
+    return InvalidArgumentError("DepthFilterOptions: local_mean_radius_px must be in [1, 32]");
+  if (!(local_mean_floor > 0)) return InvalidArgumentError("DepthFilterOptions: local_mean_floor must be > 0");
+  if (!(min_local_mean >= 0 && min_local_mean <= 255))
+    return InvalidArgumentError("DepthFilterOptions: min_local_mean must be in [0, 255]");
+  if (!(regularise_sigmas > 0)) return InvalidArgumentError("DepthFilterOptions: regularise_sigmas must be > 0");
+  if (min_neighbours < 0 || min_neighbours > 8) return InvalidArgumentError("DepthFilterOptions: min_neighbours must be in [0, 8]");
+  if (min_observations < 0) return InvalidArgumentError("DepthFilterOptions: min_observations must be >= 0");
+  if (!(max_relative_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: max_relative_sigma must be > 0");
+  return Status::Ok();
+}
+
+void KeyframeDepth::NormalisedGrey(const cv::Mat& rgb, const DepthFilterOptions& options, cv::Mat* grey_j,
+                                   cv::Mat* local_mean) {
+  cv::Mat grey(rgb.rows, rgb.cols, CV_32F);
+  for (int y = 0; y < rgb.rows; ++y) {
+    const uint8_t* in = rgb.ptr<uint8_t>(y);
+    float* out = grey.ptr<float>(y);
+    for (int x = 0; x < rgb.cols; ++x) out[x] = (in[3 * x] + in[3 * x + 1] + in[3 * x + 2]) * (1.0f / 3.0f);
+  }
+  const int k = 2 * options.local_mean_radius_px + 1;
+  cv::blur(grey, *local_mean, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+  grey_j->create(rgb.rows, rgb.cols, CV_32F);
+  const float floor = static_cast<float>(options.local_mean_floor);
+  for (int y = 0; y < rgb.rows; ++y) {
+    const float* g = grey.ptr<float>(y);
+    const float* m = local_mean->ptr<float>(y);
+    float* o = grey_j->ptr<float>(y);
+    for (int x = 0; x < rgb.cols; ++x) o[x] = 128.0f * g[x] / (m[x] + floor);
+  }
+}
+
+StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeCamera& camera,
+                                              const DepthFilterOptions& options) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  PRISM_RETURN_IF_ERROR(camera.Check());
+  if (camera.HasDistortion()) return InvalidArgumentError("KeyframeDepth: undistort the images first (camera has distortion)");
+  if (rgb.type() != CV_8UC3 || rgb.cols != camera.width || rgb.rows != camera.height)
+    return InvalidArgumentError("KeyframeDepth: the image must be CV_8UC3 of the camera's size");
+  KeyframeDepth kd;
+  kd.camera_ = camera;
+  kd.options_ = options;
+  kd.rgb_ = rgb.clone();
+  cv::Mat local_mean;
+  NormalisedGrey(rgb, options, &kd.grey_j_, &local_mean);
+  const int w = rgb.cols, h = rgb.rows;
+  kd.grad_x_ = cv::Mat::zeros(h, w, CV_32F);
+  kd.grad_y_ = cv::Mat::zeros(h, w, CV_32F);
+  kd.candidate_ = cv::Mat::zeros(h, w, CV_8U);
+  const float min_g2 = static_cast<float>(options.min_gradient * options.min_gradient);
+  const float min_mean = static_cast<float>(options.min_local_mean);
+  const int border = kPatchHalf + 2;
+  for (int y = 1; y < h - 1; ++y) {
+    const float* up = kd.grey_j_.ptr<float>(y - 1);
+    const float* row = kd.grey_j_.ptr<float>(y);
+    const float* down = kd.grey_j_.ptr<float>(y + 1);
+    const float* m = local_mean.ptr<float>(y);
+    float* gx = kd.grad_x_.ptr<float>(y);
+    float* gy = kd.grad_y_.ptr<float>(y);
+    uint8_t* c = kd.candidate_.ptr<uint8_t>(y);
+    for (int x = 1; x < w - 1; ++x) {
+      gx[x] = 0.5f * (row[x + 1] - row[x - 1]);
+      gy[x] = 0.5f * (down[x] - up[x]);
+      if (x < border || y < border || x >= w - border || y >= h - border) continue;
+      if (m[x] < min_mean) continue;
+      if (gx[x] * gx[x] + gy[x] * gy[x] < min_g2) continue;
+      c[x] = 1;
+      ++kd.num_candidates_;
+    }
+  }
+  kd.pixels_.assign(static_cast<size_t>(w) * h, Pixel{});
+  return kd;
+}
+
+void KeyframeDepth::Seed(const cv::Mat& dense_inverse_depth, double relative_sigma, int observations) {
+  for (int y = 0; y < candidate_.rows; ++y) {
+    const uint8_t* c = candidate_.ptr<uint8_t>(y);
+    const float* d = dense_inverse_depth.ptr<float>(y);
+    for (int x = 0; x < candidate_.cols; ++x) {
+      if (!c[x] || !(d[x] > 0)) continue;
+      Pixel& p = pixels_[static_cast<size_t>(y) * candidate_.cols + x];
+      p.idepth = d[x];
+      const float s = static_cast<float>(relative_sigma) * d[x];
+      p.var = s * s;
+      p.observations = static_cast<uint16_t>(observations);
+      p.outliers = 0;
+    }
+  }
+}
+
+void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& this_from_previous,
+                                  double fill_relative_sigma) {
+  const int w = camera_.width, h = camera_.height;
+  const Eigen::Matrix3f R = this_from_previous.rotation.toRotationMatrix().cast<float>();
+  const Eigen::Vector3f t = this_from_previous.translation.cast<float>();
+  const float fx = static_cast<float>(camera_.fx), fy = static_cast<float>(camera_.fy);
+  const float cx = static_cast<float>(camera_.cx), cy = static_cast<float>(camera_.cy);
+  const float pfx = static_cast<float>(previous.camera_.fx), pfy = static_cast<float>(previous.camera_.fy);
+  const float pcx = static_cast<float>(previous.camera_.cx), pcy = static_cast<float>(previous.camera_.cy);
+  const float noise = static_cast<float>(options_.propagation_relative_sigma);
+  for (int y = 0; y < previous.camera_.height; ++y) {
+    for (int x = 0; x < previous.camera_.width; ++x) {
+      const Pixel& src = previous.pixels_[static_cast<size_t>(y) * previous.camera_.width + x];
+      if (!(src.var > 0) || src.observations == 0) continue;
+      const Eigen::Vector3f ray((x - pcx) / pfx, (y - pcy) / pfy, 1.0f);
+      const Eigen::Vector3f p = R * (ray / src.idepth) + t;
+      if (!(p.z() > 1e-6f)) continue;
+      const float u = fx * p.x() / p.z() + cx, v = fy * p.y() / p.z() + cy;
+      const int iu = static_cast<int>(std::lround(u)), iv = static_cast<int>(std::lround(v));
+      if (iu < 0 || iv < 0 || iu >= w || iv >= h) continue;
+      if (!candidate_.at<uint8_t>(iv, iu)) continue;
+      const float rho = 1.0f / p.z();
+      const float ratio = rho / src.idepth;
+      const float var = src.var * ratio * ratio * ratio * ratio + (noise * rho) * (noise * rho);
+      Pixel& dst = pixels_[static_cast<size_t>(iv) * w + iu];
+      const uint16_t obs = static_cast<uint16_t>(std::min<int>(src.observations, 20));
+      if (!(dst.var > 0)) {
+        dst = Pixel{rho, var, obs, 0};
+        continue;
+      }
+      const float diff = rho - dst.idepth;
+      if (diff * diff < 4.0f * (var + dst.var)) {
+        const float sum = var + dst.var;
+        dst.idepth = (dst.idepth * var + rho * dst.var) / sum;
+        dst.var = var * dst.var / sum;
+        dst.observations = std::max(dst.observations, obs);
+      } else if (rho > dst.idepth) {  // nearer: the other one is occluded
+        dst = Pixel{rho, var, obs, 0};
+      }
+    }
+  }
+  const double mean = MeanInverseDepth();
+  if (mean > 0 && fill_relative_sigma > 0) {
+    const float s = static_cast<float>(fill_relative_sigma * mean);
+    for (int y = 0; y < h; ++y) {
+      const uint8_t* c = candidate_.ptr<uint8_t>(y);
+      for (int x = 0; x < w; ++x) {
+        Pixel& p = pixels_[static_cast<size_t>(y) * w + x];
+        if (c[x] && !(p.var > 0)) p = Pixel{static_cast<float>(mean), s * s, 0, 0};
+      }
+    }
+  }
+}
+
+DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3d& frame_from_keyframe, ThreadPool* pool) {
+  DepthUpdateStats total;
+  if (frame_grey_j.type() != CV_32F || frame_grey_j.cols != camera_.width || frame_grey_j.rows != camera_.height)
+    return total;
+  double mean = MeanInverseDepth();
+  if (!(mean > 0)) {
+    // Only seeds: their mean.
+    double s = 0;
+    int n = 0;
+    for (const Pixel& p : pixels_)
+      if (p.var > 0) s += p.idepth, ++n;
+    mean = n ? s / n : 0;
+  }
+  if (!(mean > 0)) return total;
+  const int h = camera_.height;
+  const int chunk = 16;
+  const int num_chunks = (h + chunk - 1) / chunk;
+  std::vector<DepthUpdateStats> stats(num_chunks);
+  auto run = [&](std::ptrdiff_t i) {
+    UpdateRows(static_cast<int>(i) * chunk, std::min(h, static_cast<int>(i + 1) * chunk), frame_grey_j,
+               frame_from_keyframe, mean, &stats[i]);
+  };
+  if (pool) {
+    pool->ParallelFor(0, num_chunks, run);
+  } else {
+    for (int i = 0; i < num_chunks; ++i) run(i);
+  }
+  for (const DepthUpdateStats& s : stats) {
+    total.searched += s.searched;
+    total.fused += s.fused;
+    total.outliers += s.outliers;
+    total.no_match += s.no_match;
+    total.dropped += s.dropped;
+  }
+  return total;
+}
+
+void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid3d& frame_from_keyframe,
+                               double mean_idepth, DepthUpdateStats* stats) {
+  const int w = camera_.width;
+  const Eigen::Matrix3f R = frame_from_keyframe.rotation.toRotationMatrix().cast<float>();
+  const Eigen::Vector3f t = frame_from_keyframe.translation.cast<float>();
+  const Eigen::Vector3f c = -(R.transpose() * t);  // frame centre in the keyframe
+  const float fx = static_cast<float>(camera_.fx), fy = static_cast<float>(camera_.fy);
+  const float cx = static_cast<float>(camera_.cx), cy = static_cast<float>(camera_.cy);
+  const float min_baseline = 0.003f;  // |t| * rho: baseline over depth
+  if (t.norm() * static_cast<float>(mean_idepth) < min_baseline) return;
+  const float min_cos = static_cast<float>(options_.min_gradient_line_cosine);
+  const float max_err = static_cast<float>(options_.max_match_error) * (2 * kPatchHalf + 1);
+  const float ratio = static_cast<float>(options_.min_match_ratio);
+  const float sigma_l2 = static_cast<float>(options_.epipolar_sigma_px * options_.epipolar_sigma_px);
+  const float sigma_i2 = static_cast<float>(options_.image_noise_sigma * options_.image_noise_sigma);
+  const float outlier2 = static_cast<float>(options_.outlier_sigmas * options_.outlier_sigmas);
+  const int max_search = options_.max_search_px;
+  const float seed_max_rel_var =
+      static_cast<float>(options_.seed_max_relative_sigma * options_.seed_max_relative_sigma);
+
+  auto project = [&](const Eigen::Vector3f& a, float rho, Eigen::Vector2f* out) {
+    const Eigen::Vector3f q = a + rho * t;
+    if (!(q.z() > 1e-6f)) return false;
+    *out = Eigen::Vector2f(fx * q.x() / q.z() + cx, fy * q.y() / q.z() + cy);
+    return true;
+  };
+
+  std::vector<float> errors;
+  for (int y = y0; y < y1; ++y) {
+    const uint8_t* cand = candidate_.ptr<uint8_t>(y);
+    const float* gxr = grad_x_.ptr<float>(y);
+    const float* gyr = grad_y_.ptr<float>(y);
+    for (int x = 0; x < w; ++x) {
+      if (!cand[x]) continue;
+      Pixel& px = pixels_[static_cast<size_t>(y) * w + x];
+      if (!(px.var > 0)) continue;
+      const Eigen::Vector3f ray((x - cx) / fx, (y - cy) / fy, 1.0f);
+      // Epipolar direction in the keyframe (towards the projection of the frame's centre).
+      Eigen::Vector2f dk(fx * (c.x() - ray.x() * c.z()), fy * (c.y() - ray.y() * c.z()));
+      const float dk_norm = dk.norm();
+      if (!(dk_norm > 1e-9f)) continue;
+      dk /= dk_norm;
+      const Eigen::Vector2f g(gxr[x], gyr[x]);
+      const float g_norm = g.norm();
+      const float gcos = std::abs(g.dot(dk)) / std::max(g_norm, 1e-6f);
+      if (gcos < min_cos) continue;
+      // Keyframe patch along the line.
+      float kp[2 * kPatchHalf + 1];
+      if (!Inside(grey_j_, x - kPatchHalf * std::abs(dk.x()) - 1, y - kPatchHalf * std::abs(dk.y()) - 1, 0) ||
+          !Inside(grey_j_, x + kPatchHalf * std::abs(dk.x()) + 1, y + kPatchHalf * std::abs(dk.y()) + 1, 0))
+        continue;
+      for (int i = -kPatchHalf; i <= kPatchHalf; ++i) kp[i + kPatchHalf] = SampleBilinear(grey_j_, x + i * dk.x(), y + i * dk.y());
+      const float grad_along = 0.5f * (kp[kPatchHalf + 1] - kp[kPatchHalf - 1]);
+
+      const Eigen::Vector3f a = R * ray;
+      const float rho = px.idepth;
+      const float sigma = std::sqrt(px.var);
+      float lo = std::max(rho - 2 * sigma, 0.05f * rho);
+      float hi = rho + 2 * sigma;
+      if (t.z() < 0) hi = std::min(hi, 0.99f * (-a.z() / t.z()));
+      if (!(hi > lo)) continue;
+      Eigen::Vector2f pa, pb, pm;
+      if (!project(a, lo, &pa) || !project(a, hi, &pb) || !project(a, rho, &pm)) continue;
+      // The keyframe step dk mapped into the frame (at the current estimate): the patch direction there.
+      const Eigen::Vector3f ray2((x + dk.x() - cx) / fx, (y + dk.y() - cy) / fy, 1.0f);
+      Eigen::Vector2f pm2;
+      if (!project(R * ray2, rho, &pm2)) continue;
+      const Eigen::Vector2f m = pm2 - pm;
+      const float m_norm = m.norm();
+      if (m_norm < 0.4f || m_norm > 2.5f) continue;
+      Eigen::Vector2f seg = pb - pa;
+      float len = seg.norm();
+      Eigen::Vector2f e = len > 1e-6f ? Eigen::Vector2f(seg / len) : Eigen::Vector2f(m / m_norm);
+      Eigen::Vector2f start = pa;
+      if (len > max_search) {
+        const float centre = (pm - pa).dot(e);
+        float s0 = std::clamp(centre - 0.5f * max_search, 0.0f, len - max_search);
+        start = pa + s0 * e;
+        len = static_cast<float>(max_search);
+      }
+      ++stats->searched;
+      const int n = static_cast<int>(std::floor(len)) + 1;
+      errors.assign(n + 2, std::numeric_limits<float>::infinity());
+      int best = -1;
+      float best_err = std::numeric_limits<float>::infinity();
+      // Sample positions: start + (s - 1 + offset) * e for s in [0, n + 1], so errors has a neighbour
+      // on each side of the segment for the parabola.
+      for (int s = 0; s < n + 2; ++s) {
+        const Eigen::Vector2f q = start + (s - 1.0f) * e;
+        const Eigen::Vector2f q0 = q - kPatchHalf * m, q1 = q + kPatchHalf * m;
+        if (!Inside(frame, q0.x(), q0.y(), 0) || !Inside(frame, q1.x(), q1.y(), 0)) continue;
+        float err = 0;
+        for (int i = -kPatchHalf; i <= kPatchHalf; ++i) {
+          const float d = SampleBilinear(frame, q.x() + i * m.x(), q.y() + i * m.y()) - kp[i + kPatchHalf];
+          err += d * d;
+        }
+        errors[s] = err;
+        if (s >= 1 && s <= n && err < best_err) best_err = err, best = s;
+      }
+      if (best < 0 || best_err > max_err) {
+        ++stats->no_match;
+        continue;
+      }
+      float second = std::numeric_limits<float>::infinity();
+      for (int s = 1; s <= n; ++s)
+        if (std::abs(s - best) > 2) second = std::min(second, errors[s]);
+      if (second < ratio * best_err) {
+        ++stats->no_match;
+        continue;
+      }
+      float offset = 0;
+      const float em = errors[best - 1], ep = errors[best + 1];
+      if (std::isfinite(em) && std::isfinite(ep)) {
+        const float denom = em - 2 * best_err + ep;
+        if (denom > 1e-9f) offset = std::clamp(0.5f * (em - ep) / denom, -0.5f, 0.5f);
+      }
+      auto rho_at = [&](const Eigen::Vector2f& q) {
+        const float qx = (q.x() - cx) / fx, qy = (q.y() - cy) / fy;
+        const float den_x = qx * t.z() - t.x(), den_y = qy * t.z() - t.y();
+        if (std::abs(den_x) * fx > std::abs(den_y) * fy) return (a.x() - qx * a.z()) / den_x;
+        return (a.y() - qy * a.z()) / den_y;
+      };
+      const Eigen::Vector2f qb = start + (best - 1.0f + offset) * e;
+      const float rho_obs = rho_at(qb);
+      const float alpha = std::abs(rho_at(qb + 0.5f * e) - rho_at(qb - 0.5f * e));
+      if (!(rho_obs > 0) || !std::isfinite(alpha)) {
+        ++stats->no_match;
+        continue;
+      }
+      const float geo = sigma_l2 / (gcos * gcos);
+      const float photo = 2 * sigma_i2 / std::max(grad_along * grad_along, 1e-2f);
+      const float var_obs = alpha * alpha * (geo + photo + 0.1f);
+      if (px.observations == 0) {
+        // A wide seed: the first match replaces it, once the baseline makes it precise enough.
+        if (var_obs > seed_max_rel_var * rho_obs * rho_obs) {
+          ++stats->no_match;
+          continue;
+        }
+        px.idepth = rho_obs;
+        px.var = var_obs;
+        px.observations = 1;
+        ++stats->fused;
+        continue;
+      }
+      const float diff = rho_obs - px.idepth;
+      if (diff * diff > outlier2 * (px.var + var_obs)) {
+        ++px.outliers;
+        ++stats->outliers;
+        if (px.outliers >= 3 && px.outliers > px.observations) {
+          px.var = 0;
+          px.observations = 0;
+          px.outliers = 0;
+          ++stats->dropped;
+        }
+        continue;
+      }
+      const float sum = px.var + var_obs;
+      px.idepth = (px.idepth * var_obs + rho_obs * px.var) / sum;
+      px.var = px.var * var_obs / sum;
+      if (px.observations < 60000) ++px.observations;
+      ++stats->fused;
+    }
+  }
+}
+
+void KeyframeDepth::Regularise() {
+  const int w = camera_.width, h = camera_.height;
+  std::vector<Pixel> out = pixels_;
+  const float k2 = static_cast<float>(options_.regularise_sigmas * options_.regularise_sigmas);
+  for (int y = 1; y < h - 1; ++y) {
+    for (int x = 1; x < w - 1; ++x) {
+      const Pixel& p = pixels_[static_cast<size_t>(y) * w + x];
+      if (!(p.var > 0) || p.observations == 0) continue;
+      float sw = 1.0f / p.var, swd = p.idepth / p.var;
+      int agree = 0;
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          if (!dx && !dy) continue;
+          const Pixel& q = pixels_[static_cast<size_t>(y + dy) * w + x + dx];
+          if (!(q.var > 0) || q.observations == 0) continue;
+          const float d = q.idepth - p.idepth;
+          if (d * d > k2 * (p.var + q.var)) continue;
+          ++agree;
+          sw += 1.0f / q.var;
+          swd += q.idepth / q.var;
+        }
+      }
+      Pixel& o = out[static_cast<size_t>(y) * w + x];
+      if (agree < options_.min_neighbours) {
+        o = Pixel{};
+        continue;
+      }
+      o.idepth = swd / sw;  // the variance is kept (the neighbours are not independent observations)
+    }
+  }
+  pixels_.swap(out);
+}
+
+InverseDepthMap KeyframeDepth::ToInverseDepthMap() const {
+  return ToInverseDepthMap(options_.min_observations, options_.max_relative_sigma);
+}
+
+InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double max_relative_sigma) const {
+  InverseDepthMap m;
+  m.inverse_depth = cv::Mat::zeros(camera_.height, camera_.width, CV_32F);
+  m.variance = cv::Mat::zeros(camera_.height, camera_.width, CV_32F);
+  const float r2 = static_cast<float>(max_relative_sigma * max_relative_sigma);
+  for (int y = 0; y < camera_.height; ++y) {
+    float* d = m.inverse_depth.ptr<float>(y);
+    float* v = m.variance.ptr<float>(y);
+    for (int x = 0; x < camera_.width; ++x) {
+      const Pixel& p = pixels_[static_cast<size_t>(y) * camera_.width + x];
+      if (!(p.var > 0) || p.observations < std::max(min_observations, 1)) continue;
+      if (p.var > r2 * p.idepth * p.idepth) continue;
+      d[x] = p.idepth;
+      v[x] = p.var;
+    }
+  }
+  return m;
+}
+
+double KeyframeDepth::MeanInverseDepth() const {
+  double s = 0;
+  int n = 0;
+  for (const Pixel& p : pixels_) {
+    if (p.var > 0 && p.observations > 0) s += p.idepth, ++n;
+  }
+  return n ? s / n : 0.0;
+}
+
+int KeyframeDepth::NumValid() const {
+  const float r2 = static_cast<float>(options_.max_relative_sigma * options_.max_relative_sigma);
+  int n = 0;
+  for (const Pixel& p : pixels_)
+    if (p.var > 0 && p.observations >= std::max(options_.min_observations, 1) && p.var <= r2 * p.idepth * p.idepth) ++n;
+  return n;
+}
+
+}  // namespace prism

@@ -1,0 +1,141 @@
+// Semi-dense inverse depth of one keyframe, refined by small-baseline stereo (LSD-SLAM, Engel et al.
+// 2013/2014): every high-gradient keyframe pixel keeps a Gaussian estimate of its inverse depth. For
+// each tracked frame, the pixel's 5-sample patch along its epipolar line is searched for in the
+// frame along the epipolar segment its current +-2 sigma interval maps to; the match becomes an
+// observation whose variance combines the geometric error (epipolar line misplacement against the
+// gradient direction) and the photometric error (image noise over the gradient along the line), and
+// is fused (Kalman update) or counted as an outlier. Matching runs on the local-mean normalised
+// image J = 128 I / (box_mean(I) + floor), which cancels the smooth shading change caused by the
+// lights that move with the camera.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "core/geometry/camera.h"
+#include "core/geometry/point_cloud.h"
+#include "core/geometry/rigid3.h"
+#include "core/io/inverse_depth.h"
+#include "core/util/status.h"
+
+namespace prism {
+
+class ThreadPool;
+
+struct DepthFilterOptions {
+  // Minimum gradient magnitude of J (central differences) for a keyframe pixel to get an estimate,
+  // in [0, 255].
+  double min_gradient = 4.0;
+  // Minimum |cos| between the gradient direction and the epipolar line; below it the match is too
+  // ambiguous along the line, in [0, 1).
+  double min_gradient_line_cosine = 0.3;
+  // Epipolar search: the 5 samples (spacing 1 px) of a patch are compared by SSD on J; a match is
+  // accepted when its mean squared difference per sample is below this (J grey levels^2), > 0 ...
+  double max_match_error = 300.0;
+  // ... and the best match outside +-2 px of it is at least this factor worse, >= 1.
+  double min_match_ratio = 1.5;
+  // At most this many pixels are searched along a line (longer segments are searched around the
+  // current estimate), >= 4.
+  int max_search_px = 64;
+  // Standard deviation of J's noise, grey levels, > 0 (photometric disparity error).
+  double image_noise_sigma = 4.0;
+  // Standard deviation of the epipolar line's position from pose error, pixels, > 0.
+  double epipolar_sigma_px = 0.5;
+  // A pixel without an estimate (a wide seed) takes its first match only when that observation's
+  // relative standard deviation is at most this (small baselines wait), > 0.
+  double seed_max_relative_sigma = 1.0;
+  // An observation further than this many standard deviations from the estimate is an outlier, > 0.
+  double outlier_sigmas = 2.5;
+  // Propagation into a new keyframe adds this relative standard deviation (prediction noise), >= 0.
+  double propagation_relative_sigma = 0.01;
+  // Half size of the box for J's local mean, pixels, in [1, 32]; floor added to it, > 0.
+  int local_mean_radius_px = 5;
+  double local_mean_floor = 8.0;
+  // Pixels whose local mean grey level is below this are not estimated (dark background), in [0, 255].
+  double min_local_mean = 25.0;
+  // Regularisation: an estimate is replaced by the inverse-variance weighted mean of the 3x3
+  // neighbours within this many sigmas of it, > 0; estimates with fewer than `min_neighbours` such
+  // neighbours are dropped, in [0, 8].
+  double regularise_sigmas = 2.0;
+  int min_neighbours = 2;
+  // Output (ToInverseDepthMap): estimates with at least this many fused observations ...
+  int min_observations = 2;
+  // ... and relative standard deviation sigma / rho at most this, > 0.
+  double max_relative_sigma = 0.1;
+
+  Status Check() const;
+};
+
+struct DepthUpdateStats {
+  int searched = 0;      // pixels whose line was searched
+  int fused = 0;         // observations fused
+  int outliers = 0;      // observations rejected as outliers
+  int no_match = 0;      // searches without an acceptable match
+  int dropped = 0;       // estimates dropped (too many outliers)
+};
+
+class KeyframeDepth {
+ public:
+  // rgb: CV_8UC3 of the camera's size (no distortion).
+  static StatusOr<KeyframeDepth> Create(const cv::Mat& rgb, const PinholeCamera& camera,
+                                        const DepthFilterOptions& options);
+
+  // Seeds every candidate pixel (gradient, bright enough) where `dense_inverse_depth` (CV_32F, 0 = none)
+  // is set, with the given relative standard deviation; counts as `observations` fused observations.
+  void Seed(const cv::Mat& dense_inverse_depth, double relative_sigma, int observations);
+  // Propagates the estimates of `previous` into this keyframe: this_from_previous maps points of the
+  // previous keyframe's camera into this one. Where two land on one pixel the nearer wins unless they
+  // agree (then fused). Candidate pixels left without an estimate are seeded at the mean inverse depth
+  // with relative sigma `fill_relative_sigma` (0 observations: searched, not output).
+  void PropagateFrom(const KeyframeDepth& previous, const Rigid3d& this_from_previous, double fill_relative_sigma);
+
+  // One stereo update from a tracked frame: frame_from_keyframe from the tracker. `frame_grey_j` from
+  // NormalisedGrey. Parallel over rows when `pool` is given.
+  DepthUpdateStats Update(const cv::Mat& frame_grey_j, const Rigid3d& frame_from_keyframe, ThreadPool* pool);
+  // Smooths and removes isolated estimates (see DepthFilterOptions::regularise_sigmas).
+  void Regularise();
+
+  // The output estimates (min_observations, max_relative_sigma).
+  InverseDepthMap ToInverseDepthMap() const;
+  // Every estimate with at least `min_observations` observations (for tracking).
+  InverseDepthMap ToInverseDepthMap(int min_observations, double max_relative_sigma) const;
+  // Mean inverse depth over estimates with >= 1 observation (0 if none).
+  double MeanInverseDepth() const;
+  // Number of output estimates, and of estimates with >= 1 observation.
+  int NumValid() const;
+  int NumCandidates() const { return num_candidates_; }
+
+  // The keyframe's local-mean normalised grey image J (CV_32F).
+  const cv::Mat& grey_j() const { return grey_j_; }
+  const cv::Mat& rgb() const { return rgb_; }
+  const PinholeCamera& camera() const { return camera_; }
+  const DepthFilterOptions& options() const { return options_; }
+
+  // J = 128 I / (box_mean(I) + floor) of an RGB image (grey = channel mean); also the raw local mean.
+  static void NormalisedGrey(const cv::Mat& rgb, const DepthFilterOptions& options, cv::Mat* grey_j,
+                             cv::Mat* local_mean);
+
+ private:
+  struct Pixel {
+    float idepth = 0;
+    float var = 0;  // 0 = no estimate
+    uint16_t observations = 0;
+    uint16_t outliers = 0;
+  };
+  KeyframeDepth() = default;
+  void UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid3d& frame_from_keyframe, double mean_idepth,
+                  DepthUpdateStats* stats);
+
+  PinholeCamera camera_;
+  DepthFilterOptions options_;
+  cv::Mat rgb_;
+  cv::Mat grey_j_;     // CV_32F
+  cv::Mat grad_x_, grad_y_;
+  cv::Mat candidate_;  // CV_8U, 1 = high-gradient bright pixel
+  int num_candidates_ = 0;
+  std::vector<Pixel> pixels_;
+};
+
+}  // namespace prism

@@ -1,0 +1,574 @@
+#include "core/slam/slam_system.h"
+
+#include <algorithm>
+#include <cmath>
+#include <deque>
+#include <sstream>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/video/tracking.hpp>
+
+#include "core/photometric/depth_prior.h"
+#include "core/util/logging.h"
+#include "core/util/thread_pool.h"
+
+namespace prism {
+namespace {
+
+constexpr double kRadToDeg = 180.0 / M_PI;
+
+Sim3d ToSim3(const Rigid3d& r) { return Sim3d(1.0, r.rotation, r.translation); }
+
+cv::Mat ToGrey8(const cv::Mat& rgb) {
+  cv::Mat grey;
+  cv::cvtColor(rgb, grey, cv::COLOR_RGB2GRAY);
+  return grey;
+}
+
+}  // namespace
+
+Status SlamOptions::Check() const {
+  PRISM_RETURN_IF_ERROR(tracker.Check());
+  PRISM_RETURN_IF_ERROR(depth.Check());
+  if (!(keyframe_distance_fraction > 0)) return InvalidArgumentError("SlamOptions: keyframe_distance_fraction must be > 0");
+  if (!(keyframe_min_visible_fraction >= 0 && keyframe_min_visible_fraction <= 1))
+    return InvalidArgumentError("SlamOptions: keyframe_min_visible_fraction must be in [0, 1]");
+  if (!(keyframe_max_rotation_deg > 0)) return InvalidArgumentError("SlamOptions: keyframe_max_rotation_deg must be > 0");
+  if (init_min_frames < 2) return InvalidArgumentError("SlamOptions: init_min_frames must be >= 2");
+  if (!(init_min_parallax_fraction > 0)) return InvalidArgumentError("SlamOptions: init_min_parallax_fraction must be > 0");
+  if (init_max_frames < init_min_frames) return InvalidArgumentError("SlamOptions: init_max_frames must be >= init_min_frames");
+  if (relocalise_max_keyframes < 1) return InvalidArgumentError("SlamOptions: relocalise_max_keyframes must be >= 1");
+  if (!(new_pixel_relative_sigma > 0)) return InvalidArgumentError("SlamOptions: new_pixel_relative_sigma must be > 0");
+  if (tracker_refresh_frames < 1) return InvalidArgumentError("SlamOptions: tracker_refresh_frames must be >= 1");
+  return Status::Ok();
+}
+
+const char* SlamStateName(SlamState state) {
+  switch (state) {
+    case SlamState::kInitializing: return "initializing";
+    case SlamState::kTracking: return "tracking";
+    case SlamState::kLost: return "lost";
+  }
+  return "unknown";
+}
+
+struct SlamSystem::Impl {
+  RigCalibration rig;
+  SlamOptions options;
+  ThreadPool* pool = nullptr;
+  std::unique_ptr<Tracker> tracker;
+  std::unique_ptr<Tracker> reloc_tracker;
+
+  struct Keyframe {
+    int id = 0;
+    int64_t frame_id = 0;
+    double timestamp = 0;
+    Sim3d world_from_keyframe;
+    cv::Mat rgb;
+    InverseDepthMap final_depth;  // set when finished
+    bool finished = false;
+    bool handed_out = false;
+  };
+  std::vector<Keyframe> keyframes;
+  std::unique_ptr<KeyframeDepth> current_depth;  // of keyframes.back() while tracking
+  int frames_since_keyframe = 0;
+
+  struct FrameRecord {
+    SlamFrameResult result;
+    Rigid3d frame_from_keyframe;  // valid when result.keyframe_id >= 0
+  };
+  std::vector<FrameRecord> frames;
+  bool initialized = false;
+  int lost_count = 0;
+  // Motion model: the last two good frame_from_keyframe (same keyframe) poses.
+  bool has_last = false, has_prev = false;
+  Rigid3d last_frame_from_kf, prev_frame_from_kf;
+
+  // Initialisation.
+  struct InitFrame {
+    int64_t frame_id;
+    double timestamp;
+    cv::Mat rgb;
+  };
+  std::vector<InitFrame> init_frames;
+  cv::Mat init_prev_grey;
+  std::vector<cv::Point2f> init_points0, init_points;
+
+  StatusOr<SlamFrameResult> Initialise(int64_t frame_id, double timestamp, const cv::Mat& rgb);
+  bool TryInitialise(std::string* why);
+  void ResetInit(int64_t frame_id, double timestamp, const cv::Mat& rgb);
+  StatusOr<SlamFrameResult> TrackFrame(int64_t frame_id, double timestamp, const cv::Mat& rgb);
+  Status MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
+                      const Rigid3d& frame_from_reference, const KeyframeDepth& source);
+  Status RefreshTracker();
+  bool Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index);
+  void FinishCurrent();
+  Rigid3d WorldFromFrame(const FrameRecord& f) const;
+};
+
+StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& rig, const SlamOptions& options,
+                                                         ThreadPool* pool) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  PRISM_RETURN_IF_ERROR(rig.camera.Check());
+  if (rig.camera.HasDistortion()) return InvalidArgumentError("SlamSystem: undistort the images first (camera has distortion)");
+  auto impl = std::make_unique<Impl>();
+  impl->rig = rig;
+  impl->options = options;
+  impl->pool = pool;
+  PRISM_ASSIGN_OR_RETURN(Tracker t, Tracker::Create(rig, options.tracker));
+  impl->tracker = std::make_unique<Tracker>(std::move(t));
+  PRISM_ASSIGN_OR_RETURN(Tracker r, Tracker::Create(rig, options.tracker));
+  impl->reloc_tracker = std::make_unique<Tracker>(std::move(r));
+  return std::unique_ptr<SlamSystem>(new SlamSystem(std::move(impl)));
+}
+
+SlamSystem::SlamSystem(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+SlamSystem::~SlamSystem() = default;
+
+StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::Mat& rgb) {
+  const PinholeCamera& cam = impl_->rig.camera;
+  if (rgb.type() != CV_8UC3 || rgb.cols != cam.width || rgb.rows != cam.height) {
+    std::ostringstream m;
+    m << "SlamSystem::ProcessFrame: expected a CV_8UC3 image of " << cam.width << "x" << cam.height << ", got "
+      << rgb.cols << "x" << rgb.rows << " type " << rgb.type();
+    return InvalidArgumentError(m.str());
+  }
+  const int64_t frame_id = static_cast<int64_t>(impl_->frames.size());
+  if (!impl_->initialized) return impl_->Initialise(frame_id, timestamp, rgb);
+  return impl_->TrackFrame(frame_id, timestamp, rgb);
+}
+
+void SlamSystem::Impl::ResetInit(int64_t frame_id, double timestamp, const cv::Mat& rgb) {
+  init_frames.clear();
+  init_frames.push_back({frame_id, timestamp, rgb.clone()});
+  init_prev_grey = ToGrey8(rgb);
+  init_points0.clear();
+  cv::goodFeaturesToTrack(init_prev_grey, init_points0, 800, 0.01, std::max(4, rig.camera.width / 64));
+  init_points = init_points0;
+}
+
+StatusOr<SlamFrameResult> SlamSystem::Impl::Initialise(int64_t frame_id, double timestamp, const cv::Mat& rgb) {
+  FrameRecord rec;
+  rec.result.frame_id = frame_id;
+  rec.result.timestamp = timestamp;
+  rec.result.state = SlamState::kInitializing;
+  if (init_frames.empty()) {
+    ResetInit(frame_id, timestamp, rgb);
+    rec.result.message = "initialising: waiting for parallax";
+    frames.push_back(rec);
+    return rec.result;
+  }
+  init_frames.push_back({frame_id, timestamp, rgb.clone()});
+  cv::Mat grey = ToGrey8(rgb);
+  std::vector<cv::Point2f> next;
+  std::vector<uint8_t> status;
+  std::vector<float> err;
+  if (!init_points.empty()) {
+    cv::calcOpticalFlowPyrLK(init_prev_grey, grey, init_points, next, status, err, cv::Size(21, 21), 3);
+  }
+  std::vector<cv::Point2f> p0, p1;
+  for (size_t i = 0; i < next.size(); ++i) {
+    if (!status[i]) continue;
+    if (next[i].x < 0 || next[i].y < 0 || next[i].x > rgb.cols - 1 || next[i].y > rgb.rows - 1) continue;
+    p0.push_back(init_points0[i]);
+    p1.push_back(next[i]);
+  }
+  init_points0.swap(p0);
+  init_points.swap(p1);
+  init_prev_grey = grey;
+  frames.push_back(rec);
+
+  std::string why;
+  if (init_points.size() < 40) {
+    why = "too few features tracked since the first frame (restarted initialisation)";
+    // The frames so far stay kInitializing with identity poses and no keyframe.
+    ResetInit(frame_id, timestamp, rgb);
+  } else if (static_cast<int>(init_frames.size()) >= options.init_min_frames && TryInitialise(&why)) {
+    initialized = true;
+    // TryInitialise filled in the buffered frames' records; return this frame's.
+    init_frames.clear();
+    return frames.back().result;
+  }
+  if (!initialized && static_cast<int>(init_frames.size()) >= options.init_max_frames) {
+    why += " (no initialisation within init_max_frames, restarted from this frame)";
+    ResetInit(frame_id, timestamp, rgb);
+  }
+  frames.back().result.message = "initialising: " + why;
+  return frames.back().result;
+}
+
+bool SlamSystem::Impl::TryInitialise(std::string* why) {
+  const PinholeCamera& cam = rig.camera;
+  std::vector<double> disp;
+  for (size_t i = 0; i < init_points.size(); ++i) disp.push_back(cv::norm(init_points[i] - init_points0[i]));
+  std::nth_element(disp.begin(), disp.begin() + disp.size() / 2, disp.end());
+  const double parallax = disp[disp.size() / 2];
+  if (parallax < options.init_min_parallax_fraction * cam.width) {
+    *why = "waiting for parallax";
+    return false;
+  }
+  cv::Mat K = (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
+  cv::Mat inlier_mask;
+  cv::Mat E = cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.0, inlier_mask);
+  if (E.rows != 3 || E.cols != 3) {
+    *why = "essential matrix estimation failed";
+    return false;
+  }
+  cv::Mat Rm, tm;
+  const int good = cv::recoverPose(E, init_points0, init_points, K, Rm, tm, inlier_mask);
+  const int inliers = cv::countNonZero(inlier_mask);
+  // Features on shading (terminators, shadow edges, highlights) move with the lights, not with the
+  // surface, so only a part of them is consistent with one rigid motion: ask for enough RANSAC inliers,
+  // nearly all in front of both cameras.
+  if (inliers < 60 || inliers < 0.15 * static_cast<double>(init_points.size()) || good < 0.9 * inliers) {
+    *why = "relative pose ambiguous (" + std::to_string(good) + " of " + std::to_string(init_points.size()) +
+           " features consistent, " + std::to_string(inliers) + " RANSAC inliers, parallax " +
+           std::to_string(parallax) + " px)";
+    return false;
+  }
+  Eigen::Matrix3d R;
+  Eigen::Vector3d t;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) R(r, c) = Rm.at<double>(r, c);
+    t(r) = tm.at<double>(r, 0);
+  }
+  // Triangulate (midpoint of the two rays) in the first camera.
+  std::vector<Eigen::Vector3d> points;
+  std::vector<cv::Point2f> pixels;
+  for (size_t i = 0; i < init_points.size(); ++i) {
+    if (!inlier_mask.at<uint8_t>(static_cast<int>(i))) continue;
+    const Eigen::Vector3d a = cam.Unproject(Eigen::Vector2d(init_points0[i].x, init_points0[i].y));
+    const Eigen::Vector3d b = R.transpose() * cam.Unproject(Eigen::Vector2d(init_points[i].x, init_points[i].y));
+    const Eigen::Vector3d c = -R.transpose() * t;  // second centre in the first camera
+    // Solve s a - u b = c in least squares.
+    Eigen::Matrix<double, 3, 2> A;
+    A.col(0) = a;
+    A.col(1) = -b;
+    const Eigen::Vector2d su = A.colPivHouseholderQr().solve(c);
+    if (!(su(0) > 0 && su(1) > 0)) continue;
+    const Eigen::Vector3d p = 0.5 * (su(0) * a + c + su(1) * b);
+    if (!(p.z() > 0)) continue;
+    points.push_back(p);
+    pixels.push_back(init_points0[i]);
+  }
+  if (points.size() < 40) {
+    *why = "too few triangulated points";
+    return false;
+  }
+  std::vector<double> depths;
+  for (const auto& p : points) depths.push_back(p.z());
+  std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
+  const double median_depth = depths[depths.size() / 2];
+  const double scale = 1.0 / median_depth;
+
+  // Sparse inverse depth at the features, densified to seed the first keyframe's depth filter.
+  InverseDepthMap sparse;
+  sparse.inverse_depth = cv::Mat::zeros(cam.height, cam.width, CV_32F);
+  sparse.variance = cv::Mat::zeros(cam.height, cam.width, CV_32F);
+  for (size_t i = 0; i < points.size(); ++i) {
+    const int x = static_cast<int>(std::lround(pixels[i].x)), y = static_cast<int>(std::lround(pixels[i].y));
+    if (x < 0 || y < 0 || x >= cam.width || y >= cam.height) continue;
+    const float rho = static_cast<float>(1.0 / (points[i].z() * scale));
+    sparse.inverse_depth.at<float>(y, x) = rho;
+    sparse.variance.at<float>(y, x) = 0.01f * rho * rho;
+  }
+  DensifyOptions dens;
+  dens.sigma_px = std::max(2.0, cam.width / 100.0);
+  dens.levels = 3;
+  const cv::Mat dense = DensifyInverseDepth(sparse, dens);
+
+  const InitFrame& first = init_frames.front();
+  StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(first.rgb, cam, options.depth);
+  if (!kd.ok()) {
+    *why = kd.status().ToString();
+    return false;
+  }
+  auto depth = std::make_unique<KeyframeDepth>(std::move(kd).value());
+  depth->Seed(dense, 0.25, 1);
+
+  // Track the buffered frames against the first one and refine its depth by stereo with each (two
+  // passes: the second re-tracks on the refined depth).
+  std::vector<Rigid3d> poses(init_frames.size());
+  const Rigid3d last_guess(Eigen::Quaterniond(R), t * scale);
+  for (int pass = 0; pass < 2; ++pass) {
+    if (!tracker->SetKeyframe(first.rgb, depth->ToInverseDepthMap(1, 0.5)).ok()) {
+      *why = "too few points to track on the first keyframe";
+      return false;
+    }
+    Rigid3d prev, prev2;
+    for (size_t i = 1; i < init_frames.size(); ++i) {
+      Rigid3d guess = i == 1 ? Rigid3d() : (prev * prev2.Inverse()) * prev;
+      if (pass == 1) guess = poses[i];
+      if (i + 1 == init_frames.size() && pass == 0) guess = last_guess;
+      StatusOr<TrackingResult> tr = tracker->Track(init_frames[i].rgb, guess);
+      if (!tr.ok() || !tr->ok) {
+        *why = "tracking the initialisation frames failed" + (tr.ok() ? ": " + tr->lost_reason : std::string());
+        return false;
+      }
+      poses[i] = tr->frame_from_keyframe;
+      prev2 = prev;
+      prev = poses[i];
+      if (pass == 0) {
+        cv::Mat j, mean;
+        KeyframeDepth::NormalisedGrey(init_frames[i].rgb, options.depth, &j, &mean);
+        depth->Update(j, poses[i], pool);
+      }
+    }
+    if (pass == 0) depth->Regularise();
+  }
+  // Fraction of candidates with converged depth.
+  const double converged = static_cast<double>(depth->NumValid()) / std::max(1, depth->NumCandidates());
+  if (converged < options.init_min_converged_fraction) {
+    *why = "first keyframe's depth did not converge (" + std::to_string(static_cast<int>(100 * converged)) + "%)";
+    return false;
+  }
+
+  Keyframe k;
+  k.id = 0;
+  k.frame_id = first.frame_id;
+  k.timestamp = first.timestamp;
+  k.rgb = first.rgb;
+  keyframes.push_back(k);
+  current_depth = std::move(depth);
+  for (size_t i = 0; i < init_frames.size(); ++i) {
+    FrameRecord& f = frames[static_cast<size_t>(init_frames[i].frame_id)];
+    f.frame_from_keyframe = poses[i];
+    f.result.keyframe_id = 0;
+    f.result.state = SlamState::kTracking;
+    f.result.message.clear();
+    f.result.world_from_camera = WorldFromFrame(f);
+  }
+  frames[static_cast<size_t>(first.frame_id)].result.new_keyframe = true;
+  frames_since_keyframe = static_cast<int>(init_frames.size()) - 1;
+  has_last = true;
+  last_frame_from_kf = poses.back();
+  has_prev = init_frames.size() >= 2;
+  prev_frame_from_kf = poses[poses.size() - 2];
+  PRISM_LOG(INFO) << "slam: initialised on frames " << first.frame_id << ".." << init_frames.back().frame_id
+                  << ", parallax " << parallax << " px, " << points.size() << " points, converged "
+                  << 100 * converged << "%";
+  return RefreshTracker().ok();
+}
+
+Status SlamSystem::Impl::RefreshTracker() {
+  return tracker->SetKeyframe(keyframes.back().rgb, current_depth->ToInverseDepthMap(options.tracking_min_observations, options.tracking_max_relative_sigma));
+}
+
+Rigid3d SlamSystem::Impl::WorldFromFrame(const FrameRecord& f) const {
+  const Keyframe& k = keyframes[static_cast<size_t>(f.result.keyframe_id)];
+  return k.world_from_keyframe.TransformPose(f.frame_from_keyframe.Inverse());
+}
+
+StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double timestamp, const cv::Mat& rgb) {
+  FrameRecord rec;
+  rec.result.frame_id = frame_id;
+  rec.result.timestamp = timestamp;
+  Rigid3d guess = has_last ? last_frame_from_kf : Rigid3d();
+  if (has_last && has_prev) guess = (last_frame_from_kf * prev_frame_from_kf.Inverse()) * last_frame_from_kf;
+  PRISM_ASSIGN_OR_RETURN(TrackingResult tr, tracker->Track(rgb, guess));
+  if (!tr.ok && has_last) {
+    PRISM_ASSIGN_OR_RETURN(TrackingResult retry, tracker->Track(rgb, last_frame_from_kf));
+    if (retry.ok) tr = retry;
+  }
+  int kf_index = static_cast<int>(keyframes.size()) - 1;
+  if (!tr.ok) {
+    ++lost_count;
+    Rigid3d reloc_pose;
+    int reloc_kf = -1;
+    if (lost_count >= options.relocalise_after_lost_frames && Relocalise(rgb, &reloc_pose, &reloc_kf)) {
+      // Resume from the keyframe found: a new keyframe at this frame, seeded from its depth.
+      PRISM_ASSIGN_OR_RETURN(KeyframeDepth source,
+                             KeyframeDepth::Create(keyframes[static_cast<size_t>(reloc_kf)].rgb, rig.camera, options.depth));
+      source.Seed(keyframes[static_cast<size_t>(reloc_kf)].final_depth.inverse_depth, 0.05, 2);
+      FinishCurrent();
+      rec.frame_from_keyframe = reloc_pose;
+      rec.result.keyframe_id = reloc_kf;
+      rec.result.state = SlamState::kTracking;
+      rec.result.message = "relocalised against keyframe " + std::to_string(reloc_kf);
+      rec.result.world_from_camera = WorldFromFrame(rec);
+      frames.push_back(rec);
+      PRISM_RETURN_IF_ERROR(MakeKeyframe(frame_id, timestamp, rgb, reloc_kf, reloc_pose, source));
+      frames.back().result.new_keyframe = true;
+      lost_count = 0;
+      PRISM_LOG(INFO) << "slam: frame " << frame_id << " " << frames.back().result.message;
+      return frames.back().result;
+    }
+    rec.result.state = SlamState::kLost;
+    rec.result.message = "tracking lost: " + tr.lost_reason;
+    // Keep the last good pose.
+    for (auto it = frames.rbegin(); it != frames.rend(); ++it) {
+      if (it->result.state == SlamState::kTracking) {
+        rec.result.world_from_camera = it->result.world_from_camera;
+        break;
+      }
+    }
+    rec.result.keyframe_id = -1;
+    frames.push_back(rec);
+    return rec.result;
+  }
+  lost_count = 0;
+  rec.frame_from_keyframe = tr.frame_from_keyframe;
+  rec.result.keyframe_id = keyframes[static_cast<size_t>(kf_index)].id;
+  rec.result.state = SlamState::kTracking;
+  rec.result.world_from_camera = WorldFromFrame(rec);
+  frames.push_back(rec);
+  prev_frame_from_kf = last_frame_from_kf;
+  has_prev = has_last;
+  last_frame_from_kf = tr.frame_from_keyframe;
+  has_last = true;
+
+  // Stereo update of the keyframe's depth.
+  cv::Mat j, mean;
+  KeyframeDepth::NormalisedGrey(rgb, options.depth, &j, &mean);
+  current_depth->Update(j, tr.frame_from_keyframe, pool);
+  ++frames_since_keyframe;
+
+  // New keyframe?
+  const double mean_idepth = current_depth->MeanInverseDepth();
+  const double distance = tr.frame_from_keyframe.translation.norm() * mean_idepth;
+  const double rotation_deg = RotationAngle(tr.frame_from_keyframe.rotation) * kRadToDeg;
+  if (distance > options.keyframe_distance_fraction || tr.visible_fraction < options.keyframe_min_visible_fraction ||
+      rotation_deg > options.keyframe_max_rotation_deg) {
+    current_depth->Regularise();
+    const Status made = MakeKeyframe(frame_id, timestamp, rgb, kf_index, tr.frame_from_keyframe, *current_depth);
+    if (made.ok()) {
+      frames.back().result.new_keyframe = true;
+    } else {
+      // Keep tracking against the current keyframe; restore the tracker's copy.
+      frames.back().result.message = "no new keyframe: " + std::string(made.message());
+      PRISM_RETURN_IF_ERROR(RefreshTracker());
+    }
+  } else if (frames_since_keyframe % options.tracker_refresh_frames == 0) {
+    current_depth->Regularise();
+    PRISM_RETURN_IF_ERROR(RefreshTracker());
+  }
+  return frames.back().result;
+}
+
+Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
+                                      const Rigid3d& frame_from_reference, const KeyframeDepth& source) {
+  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, KeyframeDepth::Create(rgb, rig.camera, options.depth));
+  kd.PropagateFrom(source, frame_from_reference, options.new_pixel_relative_sigma);
+  // The tracker must accept it before it becomes the keyframe.
+  if (!tracker->SetKeyframe(rgb, kd.ToInverseDepthMap(options.tracking_min_observations,
+                                                      options.tracking_max_relative_sigma)).ok()) {
+    return FailedPreconditionError("too few points with depth in the new keyframe");
+  }
+  FinishCurrent();  // the keyframe being replaced (uses current_depth before it is replaced)
+  Keyframe k;
+  k.id = static_cast<int>(keyframes.size());
+  k.frame_id = frame_id;
+  k.timestamp = timestamp;
+  k.rgb = rgb.clone();
+  k.world_from_keyframe =
+      keyframes[static_cast<size_t>(reference_kf)].world_from_keyframe * ToSim3(frame_from_reference.Inverse());
+  keyframes.push_back(std::move(k));
+  current_depth = std::make_unique<KeyframeDepth>(std::move(kd));
+  frames_since_keyframe = 0;
+  has_last = true;
+  last_frame_from_kf = Rigid3d();
+  has_prev = false;
+  return Status::Ok();
+}
+
+void SlamSystem::Impl::FinishCurrent() {
+  if (!current_depth || keyframes.empty() || keyframes.back().finished) return;
+  keyframes.back().final_depth = current_depth->ToInverseDepthMap();
+  keyframes.back().finished = true;
+}
+
+bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index) {
+  // The last good pose, and the keyframes nearest to it (finished ones have their final depth).
+  Rigid3d last_world_from_camera;
+  for (auto it = frames.rbegin(); it != frames.rend(); ++it) {
+    if (it->result.state == SlamState::kTracking) {
+      last_world_from_camera = it->result.world_from_camera;
+      break;
+    }
+  }
+  std::vector<std::pair<double, int>> candidates;
+  for (const Keyframe& k : keyframes) {
+    if (!k.finished) continue;
+    const double d = (k.world_from_keyframe.translation - last_world_from_camera.translation).norm();
+    candidates.push_back({d, k.id});
+  }
+  std::sort(candidates.begin(), candidates.end());
+  if (static_cast<int>(candidates.size()) > options.relocalise_max_keyframes) candidates.resize(options.relocalise_max_keyframes);
+  for (const auto& [d, id] : candidates) {
+    const Keyframe& k = keyframes[static_cast<size_t>(id)];
+    if (!reloc_tracker->SetKeyframe(k.rgb, k.final_depth).ok()) continue;
+    const Sim3d kf_from_world = k.world_from_keyframe.Inverse();
+    const Rigid3d kf_from_camera = kf_from_world.TransformPose(last_world_from_camera);
+    for (const Rigid3d& guess : {kf_from_camera.Inverse(), Rigid3d()}) {
+      StatusOr<TrackingResult> tr = reloc_tracker->Track(rgb, guess);
+      if (tr.ok() && tr->ok) {
+        *frame_from_kf = tr->frame_from_keyframe;
+        *keyframe_index = id;
+        return true;
+      }
+    }
+  }
+  return false;
+}
+
+std::vector<SlamKeyframe> SlamSystem::TakeFinishedKeyframes() {
+  std::vector<SlamKeyframe> out;
+  for (Impl::Keyframe& k : impl_->keyframes) {
+    if (!k.finished || k.handed_out) continue;
+    SlamKeyframe s;
+    s.id = k.id;
+    s.frame_id = k.frame_id;
+    s.timestamp = k.timestamp;
+    s.world_from_keyframe = k.world_from_keyframe;
+    s.rgb = k.rgb;
+    s.depth = k.final_depth;
+    out.push_back(std::move(s));
+    k.handed_out = true;
+  }
+  return out;
+}
+
+std::vector<SlamKeyframe> SlamSystem::Finish() {
+  if (impl_->current_depth) {
+    impl_->current_depth->Regularise();
+    impl_->FinishCurrent();
+  }
+  return TakeFinishedKeyframes();
+}
+
+std::vector<SlamFrameResult> SlamSystem::Trajectory() const {
+  std::vector<SlamFrameResult> out;
+  out.reserve(impl_->frames.size());
+  for (const Impl::FrameRecord& f : impl_->frames) {
+    SlamFrameResult r = f.result;
+    if (r.state == SlamState::kTracking && r.keyframe_id >= 0) r.world_from_camera = impl_->WorldFromFrame(f);
+    out.push_back(std::move(r));
+  }
+  return out;
+}
+
+PointCloud SlamSystem::SemiDenseCloud() const {
+  PointCloud cloud;
+  const PinholeCamera& cam = impl_->rig.camera;
+  for (const Impl::Keyframe& k : impl_->keyframes) {
+    InverseDepthMap depth = k.finished ? k.final_depth
+                                       : (impl_->current_depth ? impl_->current_depth->ToInverseDepthMap() : InverseDepthMap());
+    if (depth.inverse_depth.empty()) continue;
+    for (int y = 0; y < cam.height; ++y) {
+      const float* d = depth.inverse_depth.ptr<float>(y);
+      const uint8_t* c = k.rgb.ptr<uint8_t>(y);
+      for (int x = 0; x < cam.width; ++x) {
+        if (!(d[x] > 0)) continue;
+        const Eigen::Vector3d p = cam.Unproject(Eigen::Vector2d(x, y)) / d[x];
+        cloud.positions.push_back((k.world_from_keyframe * p).cast<float>());
+        cloud.colors.push_back(Eigen::Matrix<uint8_t, 3, 1>(c[3 * x], c[3 * x + 1], c[3 * x + 2]));
+      }
+    }
+  }
+  return cloud;
+}
+
+int SlamSystem::num_keyframes() const { return static_cast<int>(impl_->keyframes.size()); }
+
+}  // namespace prism

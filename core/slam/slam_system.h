@@ -1,0 +1,136 @@
+// Semi-dense direct monocular SLAM for one session (in the spirit of LSD-SLAM, Engel et al. 2014):
+// every frame is tracked against the current keyframe (tracker.h); the keyframe's semi-dense inverse
+// depth is refined by small-baseline stereo along epipolar lines in the tracked frames (a per-pixel
+// Kalman-style filter, depth_filter.h); when the camera has moved far enough a new keyframe is made and
+// the depth is propagated into it. Keyframes are chained by their tracked poses (Sim(3) with scale 1;
+// no pose-graph optimisation or loop closure yet).
+//
+// Monocular: the scale is arbitrary (fixed at initialisation so that the median depth of the first
+// triangulated points is 1) and drifts slowly; keyframe poses are Sim(3).
+//
+// Not thread-safe: one thread (or one serial strand) calls ProcessFrame in frame order.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "core/geometry/point_cloud.h"
+#include "core/geometry/rigid3.h"
+#include "core/io/calibration_io.h"
+#include "core/io/inverse_depth.h"
+#include "core/slam/depth_filter.h"
+#include "core/slam/tracker.h"
+#include "core/util/status.h"
+
+namespace prism {
+
+class ThreadPool;
+
+struct SlamOptions {
+  // The tracker tracks the local-mean normalised image, which already cancels brightness gain; a free
+  // gain lets a wrong pose "explain" the image with a near-zero contrast, so it is off by default here.
+  TrackerOptions tracker = [] {
+    TrackerOptions t;
+    t.estimate_affine_brightness = false;
+    return t;
+  }();
+  DepthFilterOptions depth;
+  // A new keyframe is made when the camera's translation from the current keyframe exceeds this
+  // fraction of the keyframe's mean depth, > 0 ...
+  double keyframe_distance_fraction = 0.12;
+  // ... or when fewer than this fraction of the keyframe's points are visible, in [0, 1] ...
+  double keyframe_min_visible_fraction = 0.6;
+  // ... or the rotation from the keyframe exceeds this many degrees, > 0.
+  double keyframe_max_rotation_deg = 15.0;
+  // Initialisation: the first frame is a keyframe with random inverse depth (LSD-SLAM) which the depth
+  // filter refines; the system reports kInitializing until this many frames were tracked and at least
+  // this fraction of the keyframe's pixels have converged estimates.
+  int init_min_frames = 10;
+  double init_min_converged_fraction = 0.3;
+  // Initialisation waits until features tracked (KLT) from the first frame moved by a median of this
+  // fraction of the image width, then estimates the relative pose (essential matrix, RANSAC) and
+  // triangulates; when that fails for init_max_frames frames it restarts from the current frame.
+  double init_min_parallax_fraction = 0.03;
+  int init_max_frames = 90;
+  // High-gradient pixels of a new keyframe that received no propagated depth are seeded at the mean
+  // inverse depth with this relative standard deviation and searched along their whole epipolar
+  // segment, > 0.
+  double new_pixel_relative_sigma = 0.5;
+  // The tracker's copy of the current keyframe's depth is refreshed every this many frames, >= 1.
+  int tracker_refresh_frames = 3;
+  // The tracker uses the keyframe's estimates with at least this many observations and at most this
+  // relative standard deviation, >= 1 and > 0.
+  int tracking_min_observations = 1;
+  double tracking_max_relative_sigma = 0.3;
+  // Relocalisation tries at most this many keyframes, nearest to the last good pose first, >= 1.
+  int relocalise_max_keyframes = 5;
+  // After this many consecutive lost frames the system tries to relocalise against every keyframe,
+  // >= 1.
+  int relocalise_after_lost_frames = 1;
+  Status Check() const;
+};
+
+enum class SlamState {
+  kInitializing,  // first keyframe, depth not converged yet; poses are provisional
+  kTracking,      // pose is good
+  kLost,          // tracking failed for this frame; the pose is the last good one
+};
+const char* SlamStateName(SlamState state);
+
+struct SlamFrameResult {
+  int64_t frame_id = 0;  // 0, 1, 2, ... in ProcessFrame order
+  double timestamp = 0;
+  SlamState state = SlamState::kInitializing;
+  // world_from_camera in the SLAM's world frame (the first keyframe's camera) and scale.
+  Rigid3d world_from_camera;
+  bool new_keyframe = false;  // this frame became a keyframe
+  int keyframe_id = -1;       // the keyframe this frame was tracked against
+  std::string message;        // why, when kLost
+};
+
+// A keyframe handed to the dense stage once its depth map is final.
+struct SlamKeyframe {
+  int id = 0;
+  int64_t frame_id = 0;
+  double timestamp = 0;
+  // world_from_keyframe camera, SLAM world and scale (after pose-graph optimisation at hand-over).
+  Sim3d world_from_keyframe;
+  cv::Mat rgb;            // CV_8UC3, the keyframe image
+  InverseDepthMap depth;  // semi-dense, in the keyframe's camera, 1/SLAM unit
+};
+
+class SlamSystem {
+ public:
+  // Fails on invalid options or rig (camera with distortion: undistort first).
+  // `pool` (optional, not owned, may be shared by sessions) parallelises the depth filter.
+  static StatusOr<std::unique_ptr<SlamSystem>> Create(const RigCalibration& rig, const SlamOptions& options,
+                                                      ThreadPool* pool = nullptr);
+  ~SlamSystem();
+
+  // rgb: CV_8UC3 of the camera's size. Fails only on invalid input; tracking loss is a state.
+  StatusOr<SlamFrameResult> ProcessFrame(double timestamp, const cv::Mat& rgb);
+
+  // Keyframes whose depth maps are final (the system has moved on to a newer keyframe), oldest first;
+  // each is returned once.
+  std::vector<SlamKeyframe> TakeFinishedKeyframes();
+  // Ends the sequence: the current keyframe is finished too and returned with any not yet taken.
+  std::vector<SlamKeyframe> Finish();
+
+  // Every processed frame's result, in order (poses of frames tracked against keyframes moved by the
+  // pose graph are updated).
+  std::vector<SlamFrameResult> Trajectory() const;
+  // The semi-dense points of all keyframes in the world frame, with colours.
+  PointCloud SemiDenseCloud() const;
+  int num_keyframes() const;
+
+ private:
+  struct Impl;
+  explicit SlamSystem(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace prism

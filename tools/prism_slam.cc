@@ -1,0 +1,184 @@
+// prism-slam: semi-dense direct monocular SLAM on a sequence folder (core/slam).
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+#include <sstream>
+#include <string>
+
+#include <opencv2/imgcodecs.hpp>
+
+#include "core/eval/depth_metrics.h"
+#include "core/eval/trajectory_metrics.h"
+#include "core/io/ply_io.h"
+#include "core/io/sequence.h"
+#include "core/io/trajectory_io.h"
+#include "core/slam/slam_system.h"
+#include "core/util/thread_pool.h"
+
+namespace {
+
+using namespace prism;
+
+constexpr char kUsage[] = R"(usage: prism-slam --sequence DIR --out DIR [options]
+
+Semi-dense direct monocular SLAM on a sequence folder (rgb.txt + rgb/ + camera.yaml; see README).
+Writes to DIR:
+  trajectory.txt   every frame's world_from_camera (TUM format, SLAM scale; frames before the
+                   initialisation and lost frames are left out)
+  states.txt       per frame: timestamp, state (initializing|tracking|lost), keyframe id, message
+  keyframes/       per keyframe <id>_idepth.tiff and <id>_variance.tiff (32-bit float, 0 = none)
+                   and keyframes.txt (id frame_id timestamp scale tx ty tz qx qy qz qw)
+  semidense.ply    the semi-dense points of all keyframes, world frame, with colours
+  summary.json     frames, keyframes, states, timing; with ground truth in the sequence also the ATE
+                   (Sim(3)-aligned, also as % of the path) and the keyframe depth error (printed too)
+
+options:
+  --max-frames N   process at most N frames
+  --threads N      threads for the depth filter (default: all cores)
+  --no-eval        skip the evaluation against ground truth
+)";
+
+int Fail(const std::string& m) {
+  std::cerr << "prism-slam: " << m << "\n";
+  return 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string sequence_dir, out_dir;
+  long max_frames = -1;
+  int threads = 0;
+  bool eval = true;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--help" || a == "-h") {
+      std::cout << kUsage;
+      return 0;
+    }
+    if (a == "--no-eval") {
+      eval = false;
+      continue;
+    }
+    if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
+    const std::string v = argv[++i];
+    char* end = nullptr;
+    const double num = std::strtod(v.c_str(), &end);
+    const bool is_num = end && *end == '\0' && !v.empty();
+    if (a == "--sequence") sequence_dir = v;
+    else if (a == "--out") out_dir = v;
+    else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
+    else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
+    else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
+  }
+  if (sequence_dir.empty() || out_dir.empty()) return Fail("--sequence and --out are required (see --help)");
+  StatusOr<Sequence> seq = LoadSequence(sequence_dir);
+  if (!seq.ok()) return Fail(seq.status().ToString());
+  if (!seq->has_calibration) return Fail("sequence has no camera.yaml (the camera calibration is needed)");
+  std::error_code ec;
+  std::filesystem::create_directories(out_dir + "/keyframes", ec);
+  if (ec) return Fail("cannot create '" + out_dir + "/keyframes': " + ec.message());
+
+  ThreadPool pool(threads);
+  SlamOptions options;
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);
+  if (!slam.ok()) return Fail(slam.status().ToString());
+
+  const size_t n = max_frames > 0 ? std::min<size_t>(seq->frames.size(), static_cast<size_t>(max_frames))
+                                  : seq->frames.size();
+  std::vector<SlamKeyframe> keyframes;
+  double slam_seconds = 0;
+  for (size_t i = 0; i < n; ++i) {
+    StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
+    if (!rgb.ok()) return Fail(rgb.status().ToString());
+    const auto t0 = std::chrono::steady_clock::now();
+    StatusOr<SlamFrameResult> r = (*slam)->ProcessFrame(seq->frames[i].timestamp_s, *rgb);
+    slam_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (!r.ok()) return Fail("frame " + std::to_string(i) + ": " + r.status().ToString());
+    if (r->state == SlamState::kLost) std::cerr << "prism-slam: frame " << i << ": " << r->message << "\n";
+    for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) keyframes.push_back(std::move(k));
+  }
+  for (SlamKeyframe& k : (*slam)->Finish()) keyframes.push_back(std::move(k));
+
+  // Outputs.
+  const std::vector<SlamFrameResult> results = (*slam)->Trajectory();
+  Trajectory estimate;
+  int counts[3] = {0, 0, 0};
+  std::ofstream states(out_dir + "/states.txt");
+  states << "# timestamp state keyframe_id message\n" << std::setprecision(17);
+  for (const SlamFrameResult& r : results) {
+    ++counts[static_cast<int>(r.state)];
+    states << r.timestamp << " " << SlamStateName(r.state) << " " << r.keyframe_id << " " << r.message << "\n";
+    if (r.state == SlamState::kTracking) estimate.push_back({r.timestamp, r.world_from_camera});
+  }
+  if (Status s = WriteTumTrajectory(out_dir + "/trajectory.txt", estimate); !s.ok()) return Fail(s.ToString());
+  std::ofstream kf_index(out_dir + "/keyframes/keyframes.txt");
+  kf_index << "# id frame_id timestamp scale tx ty tz qx qy qz qw (world_from_keyframe, Sim(3))\n"
+           << std::setprecision(17);
+  for (const SlamKeyframe& k : keyframes) {
+    char name[32];
+    std::snprintf(name, sizeof(name), "%06d", k.id);
+    const std::string base = out_dir + "/keyframes/" + name;
+    if (!cv::imwrite(base + "_idepth.tiff", k.depth.inverse_depth) ||
+        !cv::imwrite(base + "_variance.tiff", k.depth.variance))
+      return Fail("cannot write '" + base + "_*.tiff'");
+    const Sim3d& p = k.world_from_keyframe;
+    kf_index << k.id << " " << k.frame_id << " " << k.timestamp << " " << p.scale << " " << p.translation.x() << " "
+             << p.translation.y() << " " << p.translation.z() << " " << p.rotation.x() << " " << p.rotation.y() << " "
+             << p.rotation.z() << " " << p.rotation.w() << "\n";
+  }
+  const PointCloud cloud = (*slam)->SemiDenseCloud();
+  if (Status s = WritePointCloudPly(out_dir + "/semidense.ply", cloud); !s.ok()) return Fail(s.ToString());
+
+  std::ostringstream json;
+  json << std::setprecision(6) << "{\n  \"frames\": " << results.size() << ",\n  \"keyframes\": " << keyframes.size()
+       << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
+       << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"semidense_points\": " << cloud.size()
+       << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n);
+
+  if (eval && !seq->groundtruth.empty() && estimate.size() >= 3) {
+    TrajectoryEvalOptions eo;
+    eo.alignment = AlignmentModel::kSim3;
+    StatusOr<AteResult> ate = ComputeAte(seq->groundtruth, estimate, eo);
+    if (ate.ok()) {
+      json << ",\n  \"ate_rmse_m\": " << ate->error_m.rmse << ",\n  \"path_length_m\": " << ate->trajectory_length_m
+           << ",\n  \"ate_percent_of_path\": " << 100.0 * ate->error_m.rmse / std::max(1e-12, ate->trajectory_length_m)
+           << ",\n  \"sim3_scale\": " << ate->gt_from_est.scale;
+      // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
+      DepthErrorAccumulator acc;
+      long claimed = 0;
+      for (const SlamKeyframe& k : keyframes) {
+        if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq->frames.size()) continue;
+        if (seq->frames[static_cast<size_t>(k.frame_id)].depth_file.empty()) continue;
+        StatusOr<cv::Mat> gt = seq->ReadDepth(static_cast<size_t>(k.frame_id));
+        if (!gt.ok()) continue;
+        cv::Mat est = cv::Mat::zeros(k.depth.inverse_depth.size(), CV_32F);
+        for (int y = 0; y < est.rows; ++y)
+          for (int x = 0; x < est.cols; ++x) {
+            const float d = k.depth.inverse_depth.at<float>(y, x);
+            if (d > 0) est.at<float>(y, x) = static_cast<float>(ate->gt_from_est.scale / d), ++claimed;
+          }
+        (void)acc.Add(est, *gt);
+      }
+      DepthEvalOptions de;
+      de.scale_alignment = DepthScaleAlignment::kNone;
+      StatusOr<DepthErrorStats> ds = acc.Summarize(de);
+      if (ds.ok()) {
+        json << ",\n  \"depth_pixels\": " << ds->pixels << ",\n  \"depth_median_rel_error\": " << ds->median_rel_error
+             << ",\n  \"depth_coverage_of_image\": " << ds->coverage;
+        DepthEvalOptions dm;
+        StatusOr<DepthErrorStats> dsm = acc.Summarize(dm);
+        if (dsm.ok()) json << ",\n  \"depth_median_rel_error_median_scaled\": " << dsm->median_rel_error;
+      }
+    } else {
+      json << ",\n  \"ate_error\": \"" << ate.status().message() << "\"";
+    }
+  }
+  json << "\n}\n";
+  std::ofstream(out_dir + "/summary.json") << json.str();
+  std::cout << json.str();
+  return 0;
+}
