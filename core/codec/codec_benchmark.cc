@@ -41,7 +41,7 @@ const cv::Mat& Frame() {
 FrameEncodeOptions Options(int codec, int quality) {
   FrameEncodeOptions o;
   o.codec = static_cast<FrameCodec>(codec);
-  o.jpeg_quality = quality;
+  if (quality > 0) o.jpeg_quality = quality;
   return o;
 }
 

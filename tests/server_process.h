@@ -1,0 +1,88 @@
+// A real prism-server process for the integration suites: started on tcp://127.0.0.1:* (a free port),
+// its endpoints read back from the JSON line it prints, stopped with SIGTERM.
+#pragma once
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "tests/test_process.h"
+
+namespace prism::test {
+
+class ServerProcess {
+ public:
+  // args: extra flags ("--max-sessions 1"); stderr goes to log_path.
+  ServerProcess(const std::string& data_dir, const std::vector<std::string>& args, const std::string& log_path) {
+    int out[2];
+    if (pipe(out) != 0) return;
+    pid_ = fork();
+    if (pid_ == 0) {
+      dup2(out[1], 1);
+      const int log = open(log_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+      if (log >= 0) dup2(log, 2);
+      close(out[0]);
+      std::vector<std::string> all = {Bin("prism-server"), "--bind", "tcp://127.0.0.1:*", "--data-dir", data_dir,
+                                      "--metrics", "127.0.0.1:0"};
+      all.insert(all.end(), args.begin(), args.end());
+      std::vector<char*> argv;
+      for (auto& a : all) argv.push_back(a.data());
+      argv.push_back(nullptr);
+      execv(argv[0], argv.data());
+      _exit(127);
+    }
+    close(out[1]);
+    // The first line: {"endpoint": "tcp://127.0.0.1:PORT", "metrics": "http://127.0.0.1:PORT"}
+    std::string line;
+    char c;
+    while (read(out[0], &c, 1) == 1 && c != '\n') line += c;
+    close(out[0]);
+    endpoint_ = Field(line, "endpoint");
+    metrics_ = Field(line, "metrics");
+  }
+  ~ServerProcess() { Stop(); }
+
+  bool ok() const { return pid_ > 0 && !endpoint_.empty(); }
+  const std::string& endpoint() const { return endpoint_; }
+  const std::string& metrics() const { return metrics_; }
+  pid_t pid() const { return pid_; }
+
+  // SIGTERM, then waits up to timeout; returns the exit code (-1 when it had to be killed).
+  int Stop(int timeout_ms = 20000) {
+    if (pid_ <= 0) return exit_code_;
+    kill(pid_, SIGTERM);
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
+    int status = 0;
+    while (waitpid(pid_, &status, WNOHANG) == 0) {
+      if (std::chrono::steady_clock::now() > deadline) {
+        kill(pid_, SIGKILL);
+        waitpid(pid_, &status, 0);
+        pid_ = -1;
+        return exit_code_ = -1;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    pid_ = -1;
+    return exit_code_ = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  }
+
+ private:
+  static std::string Field(const std::string& json, const std::string& key) {
+    const size_t k = json.find("\"" + key + "\": \"");
+    if (k == std::string::npos) return "";
+    const size_t b = k + key.size() + 5, e = json.find('"', b);
+    return json.substr(b, e - b);
+  }
+  pid_t pid_ = -1;
+  int exit_code_ = -1;
+  std::string endpoint_, metrics_;
+};
+
+}  // namespace prism::test

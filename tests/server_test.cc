@@ -1,0 +1,373 @@
+// prism-server as a real process on 127.0.0.1, driven by scripted DEALER clients speaking the wire
+// protocol directly (so malformed input can be sent) and by libprism_client: every bad input gets a
+// readable Error, and the server and the other sessions go on.
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
+#include <zmq.hpp>
+
+#include "core/codec/frame_codec.h"
+#include "core/synth/presets.h"
+#include "prism/v1/session.pb.h"
+#include "tests/server_process.h"
+
+namespace prism {
+namespace {
+namespace fs = std::filesystem;
+using test::ServerProcess;
+
+constexpr int kWidth = 160, kHeight = 120;
+
+// One scripted client: a DEALER speaking [Envelope][payload].
+class RawClient {
+ public:
+  explicit RawClient(const std::string& endpoint) : socket_(context_, zmq::socket_type::dealer) {
+    socket_.set(zmq::sockopt::linger, 0);
+    socket_.connect(endpoint);
+  }
+  void SendParts(const std::vector<std::string>& parts) {
+    for (size_t i = 0; i < parts.size(); ++i)
+      socket_.send(zmq::buffer(parts[i]), i + 1 < parts.size() ? zmq::send_flags::sndmore : zmq::send_flags::none);
+  }
+  void Send(const v1::Envelope& env, const std::string* payload = nullptr) {
+    std::vector<std::string> parts = {env.SerializeAsString()};
+    if (payload) parts.push_back(*payload);
+    SendParts(parts);
+  }
+  // The next envelope whose body is `body` (others skipped), within timeout.
+  std::optional<v1::Envelope> Await(v1::Envelope::BodyCase body, int timeout_ms = 10000) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
+    while (std::chrono::steady_clock::now() < deadline) {
+      zmq::pollitem_t item{socket_.handle(), 0, ZMQ_POLLIN, 0};
+      zmq::poll(&item, 1, std::chrono::milliseconds(50));
+      zmq::message_t part;
+      while (socket_.recv(part, zmq::recv_flags::dontwait)) {
+        v1::Envelope env;
+        const bool parsed = env.ParseFromArray(part.data(), static_cast<int>(part.size()));
+        while (part.more()) (void)socket_.recv(part, zmq::recv_flags::none);
+        if (parsed && env.body_case() == body) return env;
+      }
+    }
+    return std::nullopt;
+  }
+  std::optional<std::string> Open(v1::Envelope* reply = nullptr) {
+    Send(OpenEnvelope());
+    for (;;) {
+      std::optional<v1::Envelope> r = AwaitAny({v1::Envelope::kSessionOpened, v1::Envelope::kError});
+      if (!r) return std::nullopt;
+      if (reply) *reply = *r;
+      if (r->has_session_opened()) return r->session_opened().session_id();
+      return std::nullopt;
+    }
+  }
+  std::optional<v1::Envelope> AwaitAny(const std::vector<v1::Envelope::BodyCase>& bodies, int timeout_ms = 10000) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
+    while (std::chrono::steady_clock::now() < deadline) {
+      zmq::pollitem_t item{socket_.handle(), 0, ZMQ_POLLIN, 0};
+      zmq::poll(&item, 1, std::chrono::milliseconds(50));
+      zmq::message_t part;
+      while (socket_.recv(part, zmq::recv_flags::dontwait)) {
+        v1::Envelope env;
+        const bool parsed = env.ParseFromArray(part.data(), static_cast<int>(part.size()));
+        while (part.more()) (void)socket_.recv(part, zmq::recv_flags::none);
+        if (!parsed) continue;
+        for (auto b : bodies)
+          if (env.body_case() == b) return env;
+      }
+    }
+    return std::nullopt;
+  }
+  static v1::Envelope OpenEnvelope() {
+    const RigCalibration rig = synth::MakeDefaultRig(kWidth, kHeight);
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::OpenSession* o = env.mutable_open_session();
+    o->set_protocol_version(v1::PROTOCOL_VERSION_1);
+    o->set_codec(v1::FRAME_CODEC_PNG);
+    o->set_client_name("server_test");
+    v1::CameraIntrinsics* c = o->mutable_calibration()->mutable_camera();
+    c->set_width(kWidth);
+    c->set_height(kHeight);
+    c->set_fx(rig.camera.fx);
+    c->set_fy(rig.camera.fy);
+    c->set_cx(rig.camera.cx);
+    c->set_cy(rig.camera.cy);
+    for (const Light& l : rig.lights) {
+      v1::LightCalibration* w = o->mutable_calibration()->add_lights();
+      w->set_name(l.name);
+      w->set_type(v1::LightCalibration::TYPE_POINT);
+      w->mutable_position_in_camera()->set_x(l.position_in_camera.x());
+      w->mutable_position_in_camera()->set_y(l.position_in_camera.y());
+      w->mutable_position_in_camera()->set_z(l.position_in_camera.z());
+      w->mutable_color()->set_x(l.color.x());
+      w->mutable_color()->set_y(l.color.y());
+      w->mutable_color()->set_z(l.color.z());
+      w->set_intensity(l.intensity);
+    }
+    for (int i = 0; i < 9; ++i) o->mutable_calibration()->add_crosstalk(rig.crosstalk(i / 3, i % 3));
+    return env;
+  }
+  static v1::Envelope FrameEnvelope(const std::string& session, uint64_t seq, v1::FrameCodec codec) {
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::Frame* f = env.mutable_frame();
+    f->set_session_id(session);
+    f->set_sequence_number(seq);
+    f->set_timestamp_ns(static_cast<int64_t>(seq) * 33'333'333);
+    f->set_codec(codec);
+    return env;
+  }
+
+ private:
+  zmq::context_t context_{1};
+  zmq::socket_t socket_;
+};
+
+std::string Png(int width, int height) {
+  cv::Mat rgb(height, width, CV_8UC3);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x) rgb.at<cv::Vec3b>(y, x) = cv::Vec3b(x % 256, y % 256, (x * y) % 256);
+  std::vector<uint8_t> bytes;
+  FrameEncodeOptions o;
+  EXPECT_TRUE(EncodeFrame(rgb, o, &bytes).ok());
+  return std::string(bytes.begin(), bytes.end());
+}
+
+std::string HttpGet(const std::string& url) {
+  const size_t host_begin = url.find("//") + 2, colon = url.rfind(':'), path = url.find('/', colon);
+  const std::string host = url.substr(host_begin, colon - host_begin);
+  const int port = std::stoi(url.substr(colon + 1, path == std::string::npos ? std::string::npos : path - colon - 1));
+  const std::string target = path == std::string::npos ? "/" : url.substr(path);
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_port = htons(static_cast<uint16_t>(port));
+  inet_pton(AF_INET, host.c_str(), &addr.sin_addr);
+  if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0) {
+    close(fd);
+    return "";
+  }
+  const std::string req = "GET " + target + " HTTP/1.0\r\n\r\n";
+  (void)!write(fd, req.data(), req.size());
+  std::string resp;
+  char buf[4096];
+  ssize_t n;
+  while ((n = read(fd, buf, sizeof(buf))) > 0) resp.append(buf, static_cast<size_t>(n));
+  close(fd);
+  return resp;
+}
+
+class ServerTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() / ("prism_server_test_" + std::to_string(getpid()) + "_" +
+                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override {
+    if (!HasFailure()) fs::remove_all(dir_);
+  }
+  std::unique_ptr<ServerProcess> Start(const std::vector<std::string>& args = {}) {
+    auto s = std::make_unique<ServerProcess>((dir_ / "data").string(), args, (dir_ / "server.log").string());
+    EXPECT_TRUE(s->ok()) << "prism-server did not start; log in " << dir_;
+    return s;
+  }
+  fs::path dir_;
+};
+
+TEST_F(ServerTest, BadVersionAndMalformedMessagesGetErrorsAndTheServerGoesOn) {
+  auto server = Start();
+  ASSERT_TRUE(server->ok());
+  RawClient c(server->endpoint());
+  v1::Envelope env = RawClient::OpenEnvelope();
+  env.set_protocol_version(static_cast<v1::ProtocolVersion>(7));
+  c.Send(env);
+  std::optional<v1::Envelope> e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_EQ(e->error().code(), v1::ERROR_CODE_VERSION_MISMATCH);
+  EXPECT_NE(e->error().message().find("version 7"), std::string::npos) << e->error().message();
+
+  c.SendParts({std::string("\x08\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff", 12)});
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_EQ(e->error().code(), v1::ERROR_CODE_INVALID_ARGUMENT);
+  EXPECT_NE(e->error().message().find("malformed envelope"), std::string::npos) << e->error().message();
+
+  c.SendParts({RawClient::OpenEnvelope().SerializeAsString(), "x", "y", "z"});
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_NE(e->error().message().find("4 parts"), std::string::npos) << e->error().message();
+
+  v1::Envelope empty;
+  empty.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  c.Send(empty);
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_NE(e->error().message().find("no body"), std::string::npos) << e->error().message();
+
+  // The server is still there for this client and a new one.
+  EXPECT_TRUE(c.Open().has_value());
+  RawClient other(server->endpoint());
+  EXPECT_TRUE(other.Open().has_value());
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+TEST_F(ServerTest, WrongSizeCorruptImagesAndUnknownSessionsAreErrorsAndTheSessionGoesOn) {
+  auto server = Start();
+  ASSERT_TRUE(server->ok());
+  RawClient c(server->endpoint());
+  std::optional<std::string> id = c.Open();
+  ASSERT_TRUE(id.has_value());
+
+  // Wrong size: a 100x100 PNG for a 160x120 camera.
+  const std::string small = Png(100, 100);
+  c.Send(RawClient::FrameEnvelope(*id, 0, v1::FRAME_CODEC_PNG), &small);
+  std::optional<v1::Envelope> e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_EQ(e->error().code(), v1::ERROR_CODE_INVALID_ARGUMENT);
+  EXPECT_TRUE(e->error().has_frame());
+  EXPECT_EQ(e->error().frame_sequence_number(), 0u);
+  EXPECT_NE(e->error().message().find("100x100"), std::string::npos) << e->error().message();
+  EXPECT_FALSE(e->error().session_closed());
+
+  // Corrupt PNG: a valid header, garbage after it.
+  std::string corrupt = Png(kWidth, kHeight);
+  for (size_t i = 40; i < corrupt.size(); ++i) corrupt[i] = static_cast<char>(i * 131);
+  c.Send(RawClient::FrameEnvelope(*id, 1, v1::FRAME_CODEC_PNG), &corrupt);
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_NE(e->error().message().find("corrupt"), std::string::npos) << e->error().message();
+
+  // Corrupt JPEG, and a raw frame of the wrong length.
+  const std::string not_jpeg(5000, '\x42');
+  c.Send(RawClient::FrameEnvelope(*id, 2, v1::FRAME_CODEC_JPEG), &not_jpeg);
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_NE(e->error().message().find("JPEG"), std::string::npos) << e->error().message();
+  const std::string short_raw(kWidth * kHeight * 3 - 1, '\0');
+  c.Send(RawClient::FrameEnvelope(*id, 3, v1::FRAME_CODEC_RAW), &short_raw);
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_NE(e->error().message().find("raw frame has"), std::string::npos) << e->error().message();
+
+  // A frame without payload, and one for a session that does not exist.
+  c.Send(RawClient::FrameEnvelope(*id, 4, v1::FRAME_CODEC_PNG));
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_NE(e->error().message().find("payload"), std::string::npos) << e->error().message();
+  const std::string good = Png(kWidth, kHeight);
+  c.Send(RawClient::FrameEnvelope("no-such-session", 5, v1::FRAME_CODEC_PNG), &good);
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_EQ(e->error().code(), v1::ERROR_CODE_NOT_FOUND);
+  EXPECT_NE(e->error().message().find("unknown session 'no-such-session'"), std::string::npos);
+
+  // The session goes on: a good frame is tracked and its pose comes back.
+  c.Send(RawClient::FrameEnvelope(*id, 6, v1::FRAME_CODEC_PNG), &good);
+  std::optional<v1::Envelope> pose = c.Await(v1::Envelope::kPoseUpdate, 30000);
+  ASSERT_TRUE(pose.has_value());
+  EXPECT_EQ(pose->pose_update().frame_sequence_number(), 6u);
+
+  // Close: summary; frames after close are refused.
+  v1::Envelope close;
+  close.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  close.mutable_close()->set_session_id(*id);
+  c.Send(close);
+  std::optional<v1::Envelope> summary = c.Await(v1::Envelope::kSessionSummary, 30000);
+  ASSERT_TRUE(summary.has_value());
+  EXPECT_EQ(summary->session_summary().reason(), "closed by client");
+  EXPECT_GE(summary->session_summary().frames_rejected(), 5u);
+  c.Send(RawClient::FrameEnvelope(*id, 7, v1::FRAME_CODEC_PNG), &good);
+  e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_EQ(e->error().code(), v1::ERROR_CODE_NOT_FOUND);
+  EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / *id / "summary.txt"));
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+TEST_F(ServerTest, AdmissionLimitRefusesWithResourceExhaustedUntilASessionCloses) {
+  auto server = Start({"--max-sessions", "1"});
+  ASSERT_TRUE(server->ok());
+  RawClient a(server->endpoint()), b(server->endpoint());
+  std::optional<std::string> id = a.Open();
+  ASSERT_TRUE(id.has_value());
+  v1::Envelope reply;
+  EXPECT_FALSE(b.Open(&reply).has_value());
+  ASSERT_TRUE(reply.has_error());
+  EXPECT_EQ(reply.error().code(), v1::ERROR_CODE_RESOURCE_EXHAUSTED);
+  EXPECT_TRUE(reply.error().retryable());
+  EXPECT_NE(reply.error().message().find("1 of 1 sessions"), std::string::npos) << reply.error().message();
+  v1::Envelope close;
+  close.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  close.mutable_close()->set_session_id(*id);
+  a.Send(close);
+  ASSERT_TRUE(a.Await(v1::Envelope::kSessionSummary, 30000).has_value());
+  EXPECT_TRUE(b.Open().has_value());
+  const std::string metrics = HttpGet(server->metrics() + "/metrics");
+  EXPECT_NE(metrics.find("prism_sessions_rejected_total{reason=\"capacity\"} 1"), std::string::npos) << metrics;
+  EXPECT_NE(metrics.find("prism_sessions_opened_total 2"), std::string::npos) << metrics;
+  EXPECT_NE(HttpGet(server->metrics() + "/healthz").find("200 OK"), std::string::npos);
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+TEST_F(ServerTest, OversizedFramesAndMessagesAreRefusedAndTheServerGoesOn) {
+  auto server = Start({"--max-frame-bytes", "4096", "--max-message-bytes", "70000"});
+  ASSERT_TRUE(server->ok());
+  RawClient c(server->endpoint());
+  std::optional<std::string> id = c.Open();
+  ASSERT_TRUE(id.has_value());
+  const std::string big(10000, 'x');
+  c.Send(RawClient::FrameEnvelope(*id, 0, v1::FRAME_CODEC_RAW), &big);
+  std::optional<v1::Envelope> e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_NE(e->error().message().find("exceeds 4096"), std::string::npos) << e->error().message();
+  // Beyond ZMQ_MAXMSGSIZE ZeroMQ drops the connection; the server itself goes on.
+  RawClient rogue(server->endpoint());
+  ASSERT_TRUE(rogue.Open().has_value());
+  const std::string huge(200000, 'y');
+  rogue.Send(RawClient::FrameEnvelope("x", 0, v1::FRAME_CODEC_RAW), &huge);
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  RawClient after(server->endpoint());
+  EXPECT_TRUE(after.Open().has_value());
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+TEST_F(ServerTest, IdleSessionsAreReapedAndSigtermPersistsOpenSessions) {
+  auto server = Start({"--idle-timeout-ms", "400"});
+  ASSERT_TRUE(server->ok());
+  RawClient idle(server->endpoint());
+  std::optional<std::string> idle_id = idle.Open();
+  ASSERT_TRUE(idle_id.has_value());
+  std::optional<v1::Envelope> e = idle.Await(v1::Envelope::kError, 5000);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_TRUE(e->error().session_closed());
+  EXPECT_NE(e->error().message().find("without a message"), std::string::npos) << e->error().message();
+  std::optional<v1::Envelope> summary = idle.Await(v1::Envelope::kSessionSummary, 5000);
+  ASSERT_TRUE(summary.has_value());
+  EXPECT_EQ(summary->session_summary().reason(), "idle timeout");
+  EXPECT_NE(HttpGet(server->metrics() + "/metrics").find("prism_sessions_reaped_total 1"), std::string::npos);
+
+  RawClient open(server->endpoint());
+  std::optional<std::string> id = open.Open();
+  ASSERT_TRUE(id.has_value());
+  EXPECT_EQ(server->Stop(), 0);  // SIGTERM while the session is open
+  std::optional<v1::Envelope> last = open.Await(v1::Envelope::kSessionSummary, 2000);
+  ASSERT_TRUE(last.has_value());
+  EXPECT_EQ(last->session_summary().reason(), "server shutdown");
+  EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / *id / "summary.txt"));
+}
+
+}  // namespace
+}  // namespace prism

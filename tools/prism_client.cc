@@ -1,0 +1,221 @@
+// prism-client: streams a sequence to prism-server and writes what comes back.
+//   prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [--realtime] [--codec png|jpeg|raw]
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <prism/client/client.h>
+
+#include "core/io/ply_io.h"
+#include "core/io/sequence.h"
+
+namespace {
+
+constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [options]
+
+Streams the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth output) to
+prism-server and writes to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera,
+metres once the server has estimated the scale), map.ply (the running map: positions, normals,
+colours), chunks/<sequence>.drc (the Draco map chunks as received; Debian's draco_decoder reads
+them) and summary.json (also printed). Progress goes to stderr.
+
+options:
+  --realtime            send at the sequence's frame rate as a live camera: the server drops the oldest
+                        queued frame when behind, and frames without credit are skipped here (counted)
+  --codec C             png (lossless, default), jpeg (4:4:4) or raw
+  --jpeg-quality Q      1..100 (default 95)
+  --max-frames N        stop after N frames
+  --timeout-ms MS       wait for the server this long (open, credits; default 20000)
+  --close-timeout-ms MS wait this long for the last keyframes after the stream (default 300000)
+  --help                this text
+)";
+
+int Fail(const std::string& m) {
+  std::cerr << "prism-client: " << m << "\n";
+  return 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  namespace pc = prism::client;
+  if (argc >= 2 && (std::string(argv[1]) == "--help" || std::string(argv[1]) == "-h")) {
+    std::cout << kUsage;
+    return 0;
+  }
+  if (argc < 2 || std::string(argv[1]) != "stream") return Fail("expected the 'stream' command (see --help)");
+  std::string server, sequence_dir, out_dir;
+  bool realtime = false;
+  pc::SessionOptions options;
+  options.timeout_ms = 20000;
+  int max_frames = 1 << 30, close_timeout_ms = 300000;
+  for (int i = 2; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--help" || a == "-h") {
+      std::cout << kUsage;
+      return 0;
+    }
+    if (a == "--realtime") {
+      realtime = true;
+      continue;
+    }
+    if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
+    const std::string v = argv[++i];
+    char* end = nullptr;
+    const long n = std::strtol(v.c_str(), &end, 10);
+    const bool is_int = !v.empty() && *end == '\0';
+    if (a == "--server") server = v;
+    else if (a == "--sequence") sequence_dir = v;
+    else if (a == "--out") out_dir = v;
+    else if (a == "--codec" && v == "png") options.codec = pc::Codec::kPng;
+    else if (a == "--codec" && (v == "jpeg" || v == "jpg")) options.codec = pc::Codec::kJpeg;
+    else if (a == "--codec" && v == "raw") options.codec = pc::Codec::kRaw;
+    else if (a == "--jpeg-quality" && is_int && n >= 1 && n <= 100) options.jpeg_quality = static_cast<int>(n);
+    else if (a == "--max-frames" && is_int && n >= 1) max_frames = static_cast<int>(n);
+    else if (a == "--timeout-ms" && is_int && n >= 1) options.timeout_ms = static_cast<int>(n);
+    else if (a == "--close-timeout-ms" && is_int && n >= 1) close_timeout_ms = static_cast<int>(n);
+    else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
+  }
+  if (server.empty() || sequence_dir.empty() || out_dir.empty())
+    return Fail("--server, --sequence and --out are required (see --help)");
+  options.live = realtime;
+  options.client_name = "prism-client";
+
+  prism::StatusOr<prism::Sequence> seq = prism::LoadSequence(sequence_dir);
+  if (!seq.ok()) return Fail(seq.status().ToString());
+  if (!seq->has_calibration) return Fail("sequence '" + sequence_dir + "' has no camera.yaml (the rig calibration)");
+  std::error_code ec;
+  std::filesystem::create_directories(out_dir + "/chunks", ec);
+  if (ec) return Fail("cannot create '" + out_dir + "/chunks': " + ec.message());
+
+  const prism::RigCalibration& cal = seq->calibration;
+  pc::Rig rig;
+  rig.camera.width = cal.camera.width;
+  rig.camera.height = cal.camera.height;
+  rig.camera.fx = cal.camera.fx;
+  rig.camera.fy = cal.camera.fy;
+  rig.camera.cx = cal.camera.cx;
+  rig.camera.cy = cal.camera.cy;
+  rig.camera.distortion = cal.camera.distortion;
+  for (size_t l = 0; l < 3; ++l) {
+    const prism::Light& src = cal.lights[l];
+    pc::Light& dst = rig.lights[l];
+    dst.name = src.name;
+    dst.directional = src.type == prism::LightType::kDirectional;
+    for (int k = 0; k < 3; ++k) {
+      dst.position_in_camera[k] = src.position_in_camera[k];
+      dst.direction_in_camera[k] = src.direction_in_camera[k];
+      dst.color[k] = src.color[k];
+    }
+    dst.intensity = src.intensity;
+  }
+  for (int k = 0; k < 9; ++k) rig.crosstalk[k] = cal.crosstalk(k / 3, k % 3);
+
+  std::unique_ptr<pc::Session> session;
+  pc::Status st = pc::Session::Open(server, rig, options, &session);
+  if (!st.ok()) return Fail("cannot open a session on " + server + ": " + st.ToString());
+  std::cerr << "prism-client: session " << session->session_id() << " on " << server << "\n";
+
+  std::vector<pc::Pose> poses;
+  size_t chunks = 0, chunk_bytes = 0, frame_errors = 0, skipped = 0;
+  std::string fatal;
+  auto drain = [&](int timeout_ms) {
+    pc::Event e;
+    while (session->Poll(&e, timeout_ms)) {
+      timeout_ms = 0;
+      if (e.kind == pc::Event::Kind::kPose) poses.push_back(e.pose);
+      else if (e.kind == pc::Event::Kind::kChunk) {
+        char name[64];
+        std::snprintf(name, sizeof(name), "/chunks/%06llu.drc", static_cast<unsigned long long>(e.chunk.sequence_number));
+        std::ofstream(out_dir + name, std::ios::binary)
+            .write(reinterpret_cast<const char*>(e.chunk.draco.data()), static_cast<std::streamsize>(e.chunk.draco.size()));
+        ++chunks;
+        chunk_bytes += e.chunk.draco.size();
+        std::cerr << "prism-client: chunk " << e.chunk.sequence_number << " (keyframe " << e.chunk.keyframe_id << "): "
+                  << e.chunk.points.size() << " points, " << e.chunk.draco.size() << " bytes\n";
+      } else if (e.kind == pc::Event::Kind::kError) {
+        ++frame_errors;
+        std::cerr << "prism-client: server error: " << e.error.ToString() << "\n";
+        if (e.error.code == pc::Code::kNotFound || e.error.code == pc::Code::kInternal ||
+            e.error.code == pc::Code::kUnavailable)
+          fatal = e.error.ToString();
+      }
+    }
+  };
+
+  const auto start = std::chrono::steady_clock::now();
+  const size_t n = std::min(seq->frames.size(), static_cast<size_t>(max_frames));
+  const double t0 = n ? seq->frames[0].timestamp_s : 0.0;
+  for (size_t i = 0; i < n && fatal.empty(); ++i) {
+    prism::StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
+    if (!rgb.ok()) return Fail(rgb.status().ToString());
+    if (realtime) {
+      std::this_thread::sleep_until(start + std::chrono::duration<double>(seq->frames[i].timestamp_s - t0));
+      drain(0);
+      if (session->frame_credits() <= 0) {  // a live camera does not wait
+        ++skipped;
+        continue;
+      }
+    }
+    const int64_t ts = static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9 + 0.5);
+    st = session->PushFrame(ts, rgb->ptr<uint8_t>(), rgb->cols, rgb->rows, static_cast<int>(rgb->step));
+    if (!st.ok()) return Fail("frame " + std::to_string(i) + ": " + st.ToString());
+    drain(0);
+    if ((i + 1) % 10 == 0 || i + 1 == n)
+      std::cerr << "prism-client: sent " << (i + 1) << "/" << n << " frames, " << poses.size() << " poses, " << chunks
+                << " chunks\n";
+  }
+  if (!fatal.empty()) return Fail("the session failed: " + fatal);
+  pc::Summary summary;
+  std::cerr << "prism-client: stream done; waiting for the last keyframes\n";
+  // Close, handling events as they come (chunks keep arriving while the server finishes).
+  st = session->Close(close_timeout_ms, &summary);
+  drain(0);
+  if (!st.ok()) return Fail("close: " + st.ToString());
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+
+  // Trajectory, scaled to metres by the final session scale when known.
+  const double s = summary.metres_per_unit > 0 ? summary.metres_per_unit : 1.0;
+  {
+    std::ofstream traj(out_dir + "/trajectory.txt");
+    traj << "# timestamp tx ty tz qx qy qz qw (world_from_camera, metres per unit " << s << ")\n";
+    char line[256];
+    for (const pc::Pose& p : poses) {
+      std::snprintf(line, sizeof(line), "%.6f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", p.timestamp_ns * 1e-9,
+                    p.translation[0] * s, p.translation[1] * s, p.translation[2] * s, p.rotation_xyzw[0],
+                    p.rotation_xyzw[1], p.rotation_xyzw[2], p.rotation_xyzw[3]);
+      traj << line;
+    }
+  }
+  const std::vector<pc::Point> map = session->Map();
+  prism::PointCloud cloud;
+  for (const pc::Point& p : map) {
+    cloud.positions.emplace_back(p.position[0], p.position[1], p.position[2]);
+    cloud.normals.emplace_back(p.normal[0], p.normal[1], p.normal[2]);
+    cloud.colors.emplace_back(p.color[0], p.color[1], p.color[2]);
+  }
+  if (prism::Status w = prism::WritePointCloudPly(out_dir + "/map.ply", cloud); !w.ok()) return Fail(w.ToString());
+  char json[1024];
+  std::snprintf(json, sizeof(json),
+                "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"poses\": %zu, "
+                "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"errors\": %zu, "
+                "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
+                "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"metres_per_unit\": %.6g, "
+                "\"reason\": \"%s\"}\n",
+                session->session_id().c_str(), n - skipped, skipped, poses.size(), chunks, chunk_bytes, map.size(),
+                frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
+                n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0,
+                seconds, seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,
+                static_cast<unsigned long long>(summary.keyframes),
+                static_cast<unsigned long long>(summary.keyframes_failed), summary.metres_per_unit,
+                summary.reason.c_str());
+  std::cout << json;
+  std::ofstream(out_dir + "/summary.json") << json;
+  return 0;
+}
