@@ -11,8 +11,8 @@
 #include <Eigen/Dense>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
-#include <opencv2/ximgproc/slic.hpp>
 
+#include "core/photometric/superpixels.h"
 #include "core/util/thread_pool.h"
 
 namespace prism {
@@ -310,74 +310,107 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   if (plane_priors) {
     // Prior normals fitted as planes to the real SLAM samples in a window. A plane's inverse depth is
     // linear in the normalised image coordinates: 1/z = A x + B y + C with (A, B, C) parallel to its
-    // normal, and SLAM's noise is in inverse depth, so a linear least-squares fit (box-filtered
-    // moments) has the right noise model. With ~10% of pixels holding a sample, a +-8 px window
-    // averages ~30 samples, where finite differences of the interpolated depth see one or two.
-    // Windows whose samples lie along one curve (semi-dense points follow edges) or whose residual is
-    // too large for a plane (a depth edge) are rejected.
-    const int r = options.plane_radius_px;
-    constexpr int kMoments = 10;  // 1, x, y, xx, xy, yy, w, xw, yw, ww
-    // Integral images of the moments (one pass; sums over any window in O(1)), row-major with a
-    // zero first row and column: I[(y+1)(w+1)+(x+1)] = sum over [0,x]x[0,y].
-    const int iw = w + 1;
-    std::vector<double> integral(static_cast<size_t>(kMoments) * (h + 1) * iw, 0.0);
-    auto at = [&](int k, int y, int x) -> double& {
-      return integral[(static_cast<size_t>(k) * (h + 1) + y) * iw + x];
-    };
-    std::array<double, kMoments> row;
-    for (int y = 0; y < h; ++y) {
-      row.fill(0.0);
-      const float* id_row = prior.inverse_depth.ptr<float>(y);
-      const double py = (y - rig.camera.cy) / rig.camera.fy;
-      for (int x = 0; x < w; ++x) {
-        const float id = id_row[x];
-        if (id > 0) {
-          const double px = (x - rig.camera.cx) / rig.camera.fx;
-          const double v[kMoments] = {1, px, py, px * px, px * py, py * py, id, px * id, py * id,
-                                      static_cast<double>(id) * id};
-          for (int k = 0; k < kMoments; ++k) row[k] += v[k];
-        }
-        for (int k = 0; k < kMoments; ++k) at(k, y + 1, x + 1) = at(k, y, x + 1) + row[k];
+    // normal, and SLAM's noise is in inverse depth, so a linear least-squares fit (windowed moments)
+    // has the right noise model. With ~10% of pixels holding a sample, a +-8 px window averages ~30
+    // samples, where finite differences of the interpolated depth see one or two. Windows whose
+    // samples lie along one curve (semi-dense points follow edges) or whose residual is too large
+    // for a plane (a depth edge) are rejected.
+    // Most candidates are rejected (~85% on the synthetic scenes), so every candidate is tested, in
+    // raster order: the window moments come from column sums slid down the image and a prefix sum
+    // along the row, all in cache. Row blocks are independent (each starts its column sums afresh).
+    std::vector<Eigen::Vector3f> plane_normal(candidates.size());
+    std::vector<uint8_t> accepted(candidates.size(), 0);
+    std::vector<size_t> row_begin(h + 1);
+    {
+      size_t i = 0;
+      for (int y = 0; y <= h; ++y) {
+        while (i < candidates.size() && candidates[i].y < y) ++i;
+        row_begin[y] = i;
       }
     }
-    auto window_sum = [&](int k, int x, int y) {
-      const int x0 = std::max(0, x - r), y0 = std::max(0, y - r);
-      const int x1 = std::min(w - 1, x + r) + 1, y1 = std::min(h - 1, y + r) + 1;
-      return at(k, y1, x1) - at(k, y0, x1) - at(k, y1, x0) + at(k, y0, x0);
+    constexpr int kRowsPerBlock = 32;
+    const int num_blocks = (h + kRowsPerBlock - 1) / kRowsPerBlock;
+    auto fit_block = [&](std::ptrdiff_t block) {
+      const int r = options.plane_radius_px;
+      const int y_begin = static_cast<int>(block) * kRowsPerBlock, y_end = std::min(h, y_begin + kRowsPerBlock);
+      if (row_begin[y_begin] == row_begin[y_end]) return;
+      constexpr int kMoments = 10;  // 1, x, y, xx, xy, yy, w, xw, yw, ww
+      std::vector<double> column(static_cast<size_t>(kMoments) * w, 0.0);        // [x][k]
+      std::vector<double> prefix(static_cast<size_t>(kMoments) * (w + 1), 0.0);  // [x + 1][k]
+      auto add_row = [&](int y, double sign) {
+        if (y < 0 || y >= h) return;
+        const float* id_row = prior.inverse_depth.ptr<float>(y);
+        const double py = (y - rig.camera.cy) / rig.camera.fy;
+        for (int x = 0; x < w; ++x) {
+          const double id = id_row[x];
+          if (!(id > 0)) continue;
+          const double px = (x - rig.camera.cx) / rig.camera.fx;
+          const double v[kMoments] = {1, px, py, px * px, px * py, py * py, id, px * id, py * id, id * id};
+          double* c = &column[static_cast<size_t>(x) * kMoments];
+          for (int k = 0; k < kMoments; ++k) c[k] += sign * v[k];
+        }
+      };
+      for (int y = y_begin - r; y < y_begin + r; ++y) add_row(y, 1.0);
+      for (int y = y_begin; y < y_end; ++y) {
+        add_row(y + r, 1.0);
+        if (y > y_begin) add_row(y - r - 1, -1.0);
+        if (row_begin[y] == row_begin[y + 1]) continue;
+        for (int x = 0; x < w; ++x)
+          for (int k = 0; k < kMoments; ++k)
+            prefix[static_cast<size_t>(x + 1) * kMoments + k] =
+                prefix[static_cast<size_t>(x) * kMoments + k] + column[static_cast<size_t>(x) * kMoments + k];
+        for (size_t i = row_begin[y]; i < row_begin[y + 1]; ++i) {
+          const int x = candidates[i].x;
+          const double* hi = &prefix[static_cast<size_t>(std::min(w - 1, x + r) + 1) * kMoments];
+          const double* lo = &prefix[static_cast<size_t>(std::max(0, x - r)) * kMoments];
+          const double n = std::round(hi[0] - lo[0]);  // a count: exact up to the sliding sums' rounding
+          if (n < options.min_plane_samples) continue;
+          double m[kMoments];
+          for (int k = 0; k < kMoments; ++k) m[k] = hi[k] - lo[k];
+          // Spread of the samples in the image: both principal variances of (x, y) must be sizeable
+          // (closed-form eigenvalues of the 2x2 covariance).
+          const double mx = m[1] / n, my = m[2] / n;
+          const double cxx = m[3] / n - mx * mx, cxy = m[4] / n - mx * my, cyy = m[5] / n - my * my;
+          const double mean = 0.5 * (cxx + cyy), dev = std::sqrt(0.25 * (cxx - cyy) * (cxx - cyy) + cxy * cxy);
+          if (!(mean - dev > options.min_plane_spread * (mean + dev))) continue;
+          Eigen::Matrix3d ata;
+          ata << m[3], m[4], m[1], m[4], m[5], m[2], m[1], m[2], n;
+          const Eigen::Vector3d atb(m[7], m[8], m[6]);
+          const Eigen::Vector3d abc = ata.ldlt().solve(atb);
+          if (!abc.allFinite()) continue;
+          // Residual: sum (w - A x - B y - C)^2 = sum w^2 - 2 abc.atb + abc' ata abc.
+          const double sse = m[9] - 2 * abc.dot(atb) + abc.dot(ata * abc);
+          const double mean_w = m[6] / n;
+          if (!(mean_w > 0) || std::sqrt(std::max(0.0, sse) / n) > options.max_plane_residual * mean_w) continue;
+          // (A, B, C) . (x, y, 1) = 1/z > 0 for visible points: the normal facing the camera is -(A, B, C).
+          const Eigen::Vector3d normal = -abc.normalized();
+          const Eigen::Vector3d ray((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
+          if (normal.dot(ray) > 0) continue;
+          plane_normal[i] = normal.cast<float>();
+          accepted[i] = 1;
+        }
+      }
     };
-    // Shuffle first so the per-pixel solves run only on the pixels kept.
-    std::shuffle(candidates.begin(), candidates.end(), rng);
-    std::vector<FitPixel> kept;
-    for (const Candidate& cand : candidates) {
-      FitPixel p = make_fit_pixel(cand);
-      const double n = window_sum(0, p.x, p.y);
-      if (n < options.min_plane_samples) continue;
-      double m[kMoments];
-      for (int k = 0; k < kMoments; ++k) m[k] = window_sum(k, p.x, p.y);
-      // Spread of the samples in the image: both principal variances of (x, y) must be sizeable.
-      const double mx = m[1] / n, my = m[2] / n;
-      Eigen::Matrix2d cxy;
-      cxy << m[3] / n - mx * mx, m[4] / n - mx * my, m[4] / n - mx * my, m[5] / n - my * my;
-      Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> e2;
-      e2.computeDirect(cxy);
-      if (!(e2.eigenvalues()[0] > options.min_plane_spread * e2.eigenvalues()[1])) continue;
-      Eigen::Matrix3d ata;
-      ata << m[3], m[4], m[1], m[4], m[5], m[2], m[1], m[2], n;
-      const Eigen::Vector3d atb(m[7], m[8], m[6]);
-      const Eigen::Vector3d abc = ata.ldlt().solve(atb);
-      if (!abc.allFinite()) continue;
-      // Residual: sum (w - A x - B y - C)^2 = sum w^2 - 2 abc.atb + abc' ata abc.
-      const double sse = m[9] - 2 * abc.dot(atb) + abc.dot(ata * abc);
-      const double mean_w = m[6] / n;
-      if (!(mean_w > 0) || std::sqrt(std::max(0.0, sse) / n) > options.max_plane_residual * mean_w) continue;
-      // (A, B, C) . (x, y, 1) = 1/z > 0 for visible points: the normal facing the camera is -(A, B, C).
-      Eigen::Vector3d normal = -abc.normalized();
-      if (normal.dot(p.ray) > 0) continue;
-      p.n0 = normal;
-      kept.push_back(p);
-      if (static_cast<int>(kept.size()) >= options.max_fit_pixels) break;
+    if (pool) {
+      pool->ParallelFor(0, num_blocks, fit_block, 1);
+    } else {
+      for (int b = 0; b < num_blocks; ++b) fit_block(b);
     }
-    fit.swap(kept);
+    std::vector<uint32_t> kept;
+    for (size_t i = 0; i < candidates.size(); ++i)
+      if (accepted[i]) kept.push_back(static_cast<uint32_t>(i));
+    // A random subset of max_fit_pixels, in random order (a partial Fisher-Yates shuffle).
+    const size_t num_kept = std::min(kept.size(), static_cast<size_t>(options.max_fit_pixels));
+    for (size_t i = 0; i < num_kept; ++i) {
+      std::uniform_int_distribution<size_t> pick(i, kept.size() - 1);
+      std::swap(kept[i], kept[pick(rng)]);
+    }
+    fit.reserve(num_kept);
+    for (size_t j = 0; j < num_kept; ++j) {
+      FitPixel p = make_fit_pixel(candidates[kept[j]]);
+      p.n0 = plane_normal[kept[j]].cast<double>();
+      fit.push_back(p);
+    }
   } else {
     if (static_cast<int>(candidates.size()) > options.max_fit_pixels) {
       std::shuffle(candidates.begin(), candidates.end(), rng);
@@ -420,18 +453,14 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   cv::Mat sp_labels;
   int num_sp = 0;
   if (options.superpixel_size_px > 0) {
-    // SLIC runs on an image downsampled by superpixel_downsample (it dominates the cost at full
-    // resolution: ~50 ms at 512x512); labels are upsampled by nearest neighbour.
+    // SLIC runs on an image downsampled by superpixel_downsample (~1.5 ms at 256x256); labels are
+    // upsampled by nearest neighbour.
     const int f = options.superpixel_downsample;
     cv::Mat small = rgb;
     if (f > 1) cv::resize(rgb, small, cv::Size((w + f - 1) / f, (h + f - 1) / f), 0, 0, cv::INTER_AREA);
     cv::Mat lab;
     cv::cvtColor(small, lab, cv::COLOR_RGB2Lab);
-    auto slic = cv::ximgproc::createSuperpixelSLIC(lab, cv::ximgproc::SLICO,
-                                                   std::max(2, options.superpixel_size_px / f));
-    slic->iterate(5);
-    slic->getLabels(sp_labels);
-    num_sp = slic->getNumberOfSuperpixels();
+    num_sp = SlicSuperpixels(lab, std::max(2, options.superpixel_size_px / f), 5, &sp_labels);
     if (f > 1) cv::resize(sp_labels, sp_labels, cv::Size(w, h), 0, 0, cv::INTER_NEAREST);
   }
 

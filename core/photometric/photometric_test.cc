@@ -7,6 +7,7 @@
 
 #include "core/eval/normal_metrics.h"
 #include "core/photometric/photometric_stereo.h"
+#include "core/photometric/superpixels.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
 #include "core/synth/semidense.h"
@@ -108,6 +109,33 @@ TEST(PhotometricStereoTest, BadInputIsAnError) {
   PhotometricOptions bad;
   bad.max_clusters = 0;
   EXPECT_FALSE(bad.Check().ok());
+}
+
+// Superpixels follow colour edges: on a noisy image of two colours split by a slanted line no
+// superpixel mixes them, and every pixel gets a label.
+TEST(SuperpixelTest, SlicRespectsColourEdges) {
+  std::mt19937 rng(3);
+  std::normal_distribution<double> noise(0, 2);
+  cv::Mat lab(120, 160, CV_8UC3);
+  auto left = [](int x, int y) { return x < 50 + y / 3; };
+  for (int y = 0; y < lab.rows; ++y)
+    for (int x = 0; x < lab.cols; ++x) {
+      const cv::Vec3d base = left(x, y) ? cv::Vec3d(120, 160, 110) : cv::Vec3d(150, 100, 170);
+      for (int c = 0; c < 3; ++c) lab.at<cv::Vec3b>(y, x)[c] = cv::saturate_cast<uchar>(base[c] + noise(rng));
+    }
+  cv::Mat labels;
+  const int n = SlicSuperpixels(lab, 10, 5, &labels);
+  ASSERT_GT(n, 100);
+  std::vector<int> left_count(n, 0), right_count(n, 0);
+  for (int y = 0; y < lab.rows; ++y)
+    for (int x = 0; x < lab.cols; ++x) {
+      const int l = labels.at<int>(y, x);
+      ASSERT_TRUE(l >= 0 && l < n);
+      (left(x, y) ? left_count : right_count)[l]++;
+    }
+  int mixed_pixels = 0;
+  for (int l = 0; l < n; ++l) mixed_pixels += std::min(left_count[l], right_count[l]);
+  EXPECT_LE(mixed_pixels, /*max_pixels_on_the_wrong_side=*/0);
 }
 
 // DiLiGenT "ball": three real images (one light per colour channel) make one RGB image; M in c = M n
