@@ -787,88 +787,126 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   }
 
   // Label every pixel: its superpixel's cluster, or the nearest centre by its own chromaticity.
-  result.labels = cv::Mat(h, w, CV_32S, cv::Scalar(-1));
-  result.normals = cv::Mat(h, w, CV_32FC3, cv::Scalar(0, 0, 0));
-  result.confidence = cv::Mat(h, w, CV_32F, cv::Scalar(0));
-  // Light geometry for the per-pixel solve: point lights use position and intensity (S row =
-  // I v / |v|^3), directional ones direction and intensity (the same as Light::Illuminate).
+  // The outputs are written in full by the per-pixel loop (no separate initialisation pass).
+  result.labels.create(h, w, CV_32S);
+  result.normals.create(h, w, CV_32FC3);
+  result.confidence.create(h, w, CV_32F);
+  // Light geometry for the per-pixel solve, in float: point lights use position and intensity (S
+  // row = I v / |v|^3), directional ones direction and intensity (the same as Light::Illuminate).
   bool point_light[3];
-  Eigen::Vector3d light_position[3], light_direction[3];
-  double light_intensity[3];
+  Eigen::Vector3f light_position[3], light_row[3];
+  float light_intensity[3];
   for (int l = 0; l < 3; ++l) {
-    light_position[l] = rig.lights[l].position_in_camera;
-    light_direction[l] = rig.lights[l].direction_in_camera.normalized();
-    light_intensity[l] = rig.lights[l].intensity;
+    light_position[l] = rig.lights[l].position_in_camera.cast<float>();
+    light_intensity[l] = static_cast<float>(rig.lights[l].intensity);
+    light_row[l] = (rig.lights[l].intensity * rig.lights[l].direction_in_camera.normalized()).cast<float>();
     point_light[l] = rig.lights[l].type == LightType::kPoint;
   }
-  const double cos_max_prior_deviation = std::cos(options.max_prior_deviation_deg * M_PI / 180);
+  std::vector<Eigen::Vector3f> inverse_albedo_f(k + 1, Eigen::Vector3f::Ones());
+  std::vector<Eigen::Matrix3f> m_inv_f(k + 1);
+  for (int m = 0; m <= k; ++m) {
+    if (calibrated) inverse_albedo_f[m] = inverse_albedo[m].cast<float>();
+    m_inv_f[m] = m_inv[m].cast<float>();
+  }
+  const Eigen::Matrix3f demix_solve = demix.cast<float>();
+  const Eigen::Matrix3f global_m_f = global_m.cast<float>();
+  std::vector<Eigen::Vector2f> centres_f;
+  for (const Eigen::Vector2d& c : centres) centres_f.push_back(c.cast<float>());
+  const float cos_max_prior_deviation = static_cast<float>(std::cos(options.max_prior_deviation_deg * M_PI / 180));
+  const float min_level = static_cast<float>(options.min_level), saturation_level = static_cast<float>(options.saturation_level);
+  const float level_scale = 1.f / static_cast<float>(3.0 * std::max(1.0, options.min_level));
+  const float fscale = static_cast<float>(scale);
   auto solve_row = [&](std::ptrdiff_t row) {
     const int y = static_cast<int>(row);
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
+    const cv::Vec3f* col = color.ptr<cv::Vec3f>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
     const cv::Vec3f* n0 = result.prior_normals.empty() ? nullptr : result.prior_normals.ptr<cv::Vec3f>(y);
+    const int* sp_row = num_sp > 0 ? sp_labels.ptr<int>(y) : nullptr;
     int* lab = result.labels.ptr<int>(y);
     cv::Vec3f* out = result.normals.ptr<cv::Vec3f>(y);
     float* conf = result.confidence.ptr<float>(y);
+    const float ray_y = static_cast<float>((y - rig.camera.cy) / rig.camera.fy);
+    const float inv_fx = static_cast<float>(1.0 / rig.camera.fx), cx = static_cast<float>(rig.camera.cx);
     for (int x = 0; x < w; ++x) {
+      lab[x] = -1;
+      out[x] = cv::Vec3f(0, 0, 0);
+      conf[x] = 0;
       const int mx = std::max({c[x][0], c[x][1], c[x][2]});
-      if (mx < options.min_level) continue;
-      int label = num_sp > 0 ? sp_cluster[sp_labels.at<int>(y, x)] : -1;
-      FitPixel p;
-      p.x = x;
-      p.y = y;
-      const cv::Vec3f cf = color.at<cv::Vec3f>(y, x);
-      p.q = demix * Eigen::Vector3d(cf[0], cf[1], cf[2]);
-      p.ray = Eigen::Vector3d((x - rig.camera.cx) / rig.camera.fx, (y - rig.camera.cy) / rig.camera.fy, 1.0);
-      p.inverse_depth = inv[x];
-      p.n0 = n0 ? Eigen::Vector3d(n0[x][0], n0[x][1], n0[x][2]) : Eigen::Vector3d::Zero();
-      if (label < 0 && p.n0.squaredNorm() > 0 && (!calibrated || p.inverse_depth > 0)) {
-        Eigen::Vector2d ch;
-        if (chroma_of(p, &ch)) label = Nearest(centres, ch);
+      if (mx < min_level) continue;
+      int label = sp_row ? sp_cluster[sp_row[x]] : -1;
+      const Eigen::Vector3f ray((x - cx) * inv_fx, ray_y, 1.f);
+      const Eigen::Vector3f prior_normal = n0 ? Eigen::Vector3f(n0[x][0], n0[x][1], n0[x][2]) : Eigen::Vector3f::Zero();
+      const bool has_prior = prior_normal.squaredNorm() > 0;
+      const Eigen::Vector3f q = demix_solve * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
+      if (calibrated && !(inv[x] > 0)) {
+        lab[x] = label;
+        continue;
+      }
+      // S(p) rows E_l l_l^T for point lights, inlined (this loop runs on every pixel).
+      Eigen::Matrix3f sm = Eigen::Matrix3f::Zero();
+      if (calibrated) {
+        const Eigen::Vector3f point = ray * (fscale / inv[x]);
+        for (int l = 0; l < 3; ++l) {
+          if (point_light[l]) {
+            const Eigen::Vector3f v = light_position[l] - point;
+            const float d2 = v.squaredNorm();
+            sm.row(l) = (light_intensity[l] / (d2 * std::sqrt(d2))) * v.transpose();
+          } else {
+            sm.row(l) = light_row[l].transpose();
+          }
+        }
+      }
+      if (label < 0 && has_prior) {
+        // Superpixels without fit pixels (a third of the pixels on the synthetic scenes): the
+        // nearest centre to the pixel's own albedo chromaticity under its prior normal.
+        const Eigen::Vector3f pred = calibrated ? Eigen::Vector3f((sm * prior_normal).cwiseMax(0.f)) : global_m_f * prior_normal;
+        if ((pred.array() > 1e-4f).all()) {
+          const Eigen::Vector3f rho = q.cwiseQuotient(pred);
+          const float sum = rho.sum();
+          if (rho.allFinite() && rho.minCoeff() > 0) {
+            const float cr = rho.x() / sum, cg = rho.y() / sum;
+            float best = std::numeric_limits<float>::infinity();
+            for (int m = 0; m < k; ++m) {
+              const float dr = cr - centres_f[m].x(), dg = cg - centres_f[m].y();
+              const float d = dr * dr + dg * dg;
+              if (d < best) {
+                best = d;
+                label = m;
+              }
+            }
+          }
+        }
       }
       lab[x] = label;
       const int model = label >= 0 ? label : k;
-      Eigen::Vector3d n;
-      double quality = 1.0;
+      Eigen::Vector3f n;
+      float quality = 1.f;
       if (calibrated) {
-        if (!(p.inverse_depth > 0)) continue;
-        // S(p) rows E_l l_l^T for point lights, inlined (this loop runs on every pixel).
-        const double depth = scale / p.inverse_depth;
-        const Eigen::Vector3d point = p.ray * depth;
-        Eigen::Matrix3d s;
-        for (int l = 0; l < 3; ++l) {
-          if (point_light[l]) {
-            const Eigen::Vector3d v = light_position[l] - point;
-            const double d2 = v.squaredNorm();
-            s.row(l) = (light_intensity[l] / (d2 * std::sqrt(d2))) * v.transpose();
-          } else {
-            s.row(l) = light_intensity[l] * light_direction[l].transpose();
-          }
-        }
-        const Eigen::Vector3d b = p.q.cwiseProduct(inverse_albedo[model]);
-        n = s.inverse() * b;  // closed-form 3x3
+        const Eigen::Vector3f b = q.cwiseProduct(inverse_albedo_f[model]);
+        n = sm.inverse() * b;  // closed-form 3x3
         // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light
         // solve unreliable: compare each band with the others, relative to its irradiance.
-        const double len = n.norm();
-        const Eigen::Vector3d shading = s * (n / std::max(len, 1e-9));
-        if (shading.minCoeff() < 0.1 * shading.maxCoeff()) quality *= 0.2;
+        const float len = n.norm();
+        const Eigen::Vector3f shading = sm * (n / std::max(len, 1e-9f));
+        if (shading.minCoeff() < 0.1f * shading.maxCoeff()) quality *= 0.2f;
       } else {
-        n = m_inv[model] * p.q;
+        n = m_inv_f[model] * q;
       }
-      const double len = n.norm();
-      if (!(len > 1e-9) || !n.allFinite()) continue;
+      const float len = n.norm();
+      if (!(len > 1e-9f) || !n.allFinite()) continue;
       n /= len;
-      if (n.dot(p.ray) > 0) {  // facing away: flip, and trust it less
+      if (n.dot(ray) > 0) {  // facing away: flip, and trust it less
         n = -n;
-        quality *= 0.2;
+        quality *= 0.2f;
       }
-      if (mx >= options.saturation_level) quality *= 0.2;
-      if (label < 0) quality *= 0.5;
-      quality *= std::min(1.0, mx / (3.0 * std::max(1.0, options.min_level)));
+      if (mx >= saturation_level) quality *= 0.2f;
+      if (label < 0) quality *= 0.5f;
+      quality *= std::min(1.f, mx * level_scale);
       // Far from the (coarse) prior normal: likely a shadow or a mislabelled albedo, not detail.
-      if (p.n0.squaredNorm() > 0 && n.dot(p.n0) < cos_max_prior_deviation) quality *= 0.1;
-      out[x] = cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
-      conf[x] = static_cast<float>(std::clamp(quality, 0.0, 1.0));
+      if (has_prior && n.dot(prior_normal) < cos_max_prior_deviation) quality *= 0.1f;
+      out[x] = cv::Vec3f(n.x(), n.y(), n.z());
+      conf[x] = std::clamp(quality, 0.f, 1.f);
     }
   };
   if (pool) {
