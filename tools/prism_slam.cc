@@ -150,6 +150,8 @@ int main(int argc, char** argv) {
       // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
       DepthErrorAccumulator acc;
       long claimed = 0;
+      std::ostringstream per_keyframe;
+      per_keyframe << std::setprecision(4);
       for (const SlamKeyframe& k : keyframes) {
         if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq->frames.size()) continue;
         if (seq->frames[static_cast<size_t>(k.frame_id)].depth_file.empty()) continue;
@@ -162,6 +164,13 @@ int main(int argc, char** argv) {
             if (d > 0) est.at<float>(y, x) = static_cast<float>(ate->gt_from_est.scale / d), ++claimed;
           }
         (void)acc.Add(est, *gt);
+        DepthEvalOptions per;
+        StatusOr<DepthErrorStats> one = ComputeDepthError(est, *gt, cv::Mat(), per);
+        if (one.ok()) {
+          per_keyframe << (per_keyframe.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id << ", \"points\": " << one->pixels
+                       << ", \"scale\": " << one->scale << ", \"median_rel_error_own_scale\": " << one->median_rel_error
+                       << "}";
+        }
       }
       DepthEvalOptions de;
       de.scale_alignment = DepthScaleAlignment::kNone;
@@ -172,6 +181,7 @@ int main(int argc, char** argv) {
         DepthEvalOptions dm;
         StatusOr<DepthErrorStats> dsm = acc.Summarize(dm);
         if (dsm.ok()) json << ",\n  \"depth_median_rel_error_median_scaled\": " << dsm->median_rel_error;
+        json << ",\n  \"keyframe_depth\": [" << per_keyframe.str() << "]";
       }
     } else {
       json << ",\n  \"ate_error\": \"" << ate.status().message() << "\"";

@@ -64,8 +64,8 @@ struct SlamOptions {
   int tracker_refresh_frames = 3;
   // The tracker uses the keyframe's estimates with at least this many observations and at most this
   // relative standard deviation, >= 1 and > 0.
-  int tracking_min_observations = 1;
-  double tracking_max_relative_sigma = 0.3;
+  int tracking_min_observations = 2;
+  double tracking_max_relative_sigma = 0.1;
   // Relocalisation tries at most this many keyframes, nearest to the last good pose first, >= 1.
   int relocalise_max_keyframes = 5;
   // After this many consecutive lost frames the system tries to relocalise against every keyframe,
