@@ -346,8 +346,13 @@ struct Server::Impl {
       case v1::Envelope::kOpenSession: return OpenSession(peer, env.open_session());
       case v1::Envelope::kFrame: return HandleFrame(peer, env.frame(), payload);
       case v1::Envelope::kChunkCredits: {
-        Session* s = FindSession(peer, env.chunk_credits().session_id());
-        if (!s) return;
+        // Credits for a session that has just ended (granted for its last chunks) are harmless: no error.
+        auto it = sessions.find(env.chunk_credits().session_id());
+        if (it == sessions.end() || it->second->peer != peer) {
+          metrics.Add("prism_stale_credits_total");
+          return;
+        }
+        Session* s = it->second.get();
         s->last_activity = Clock::now();
         s->chunk_credits = std::min<int64_t>(s->chunk_credits + env.chunk_credits().chunks(), 1 << 20);
         FlushChunks(s);

@@ -20,7 +20,7 @@ constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT
 
 Streams the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth output) to
 prism-server and writes to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera,
-metres once the server has estimated the scale), map.ply (the running map: positions, normals,
+metres once the server has estimated the scale; tracked frames only, as prism-slam), map.ply (the running map: positions, normals,
 colours), chunks/<sequence>.drc (the Draco map chunks as received; Debian's draco_decoder reads
 them) and summary.json (also printed). Progress goes to stderr.
 
@@ -187,6 +187,7 @@ int main(int argc, char** argv) {
     traj << "# timestamp tx ty tz qx qy qz qw (world_from_camera, metres per unit " << s << ")\n";
     char line[256];
     for (const pc::Pose& p : poses) {
+      if (p.state != pc::TrackingState::kTracking) continue;  // provisional (initialising) or lost
       std::snprintf(line, sizeof(line), "%.6f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", p.timestamp_ns * 1e-9,
                     p.translation[0] * s, p.translation[1] * s, p.translation[2] * s, p.rotation_xyzw[0],
                     p.rotation_xyzw[1], p.rotation_xyzw[2], p.rotation_xyzw[3]);

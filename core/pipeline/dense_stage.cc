@@ -90,32 +90,64 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
 
   // The keyframe cloud in the metric world, registered to the map.
   t0 = std::chrono::steady_clock::now();
-  Sim3d world_from_keyframe = keyframe.world_from_keyframe;
-  if (options_.world_in_slam_units)
-    world_from_keyframe = Sim3d(result.metres_per_unit, Eigen::Quaterniond::Identity(), Eigen::Vector3d::Zero()) *
-                          world_from_keyframe;
   PRISM_ASSIGN_OR_RETURN(result.cloud, DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera,
-                                                    world_from_keyframe, 1, cv::Mat(), result.photometric.confidence));
-  Rigid3d correction;  // map_from_cloud; identity unless ICP passes the guard
-  if (options_.icp_enabled && !map_.empty()) {
-    StatusOr<IcpTarget> target = IcpTarget::Create(map_.ToPointCloud(), options_.icp);
-    if (target.ok()) {
-      StatusOr<IcpSummary> s = AlignIcp(result.cloud, *target, Rigid3d(), options_.icp, &result.icp_estimate);
-      if (s.ok()) {
-        result.icp_attempted = true;
-        result.icp = *s;
-        const bool plausible = result.icp_estimate.translation.norm() <= options_.max_icp_correction_m &&
-                               RotationAngle(result.icp_estimate.rotation) * 180 / M_PI <=
-                                   options_.max_icp_correction_deg;
-        result.icp_applied = s->converged && s->inlier_fraction >= options_.min_icp_inlier_fraction && plausible;
-        if (result.icp_applied) correction = result.icp_estimate;
-      }
+                                                    keyframe.world_from_keyframe, 1, cv::Mat(),
+                                                    result.photometric.confidence));
+  if (!options_.world_in_slam_units) {
+    PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, &result));
+  } else {
+    pending_.push_back({keyframe.id, result.cloud});
+    result.pending = depth_scale_.count() < options_.scale_keyframes;
+    if (!result.pending) {
+      PRISM_RETURN_IF_ERROR(MergePending(depth_scale_.value(), &result));
+      for (Eigen::Vector3f& p : result.cloud.positions) p *= static_cast<float>(depth_scale_.value());
     }
   }
-  PRISM_ASSIGN_OR_RETURN(result.insert, map_.Insert(result.cloud, correction, keyframe.id));
   result.changes = map_.TakeChanges();
   result.map_ms = MsSince(t0);
   return result;
+}
+
+Status DenseStage::Merge(const PointCloud& cloud, uint64_t keyframe_id, DenseKeyframeResult* result) {
+  Rigid3d correction;  // map_from_cloud; identity unless ICP passes the guard
+  result->icp_attempted = false;
+  result->icp_applied = false;
+  result->icp_estimate = Rigid3d();
+  if (options_.icp_enabled && !map_.empty()) {
+    StatusOr<IcpTarget> target = IcpTarget::Create(map_.ToPointCloud(), options_.icp);
+    if (target.ok()) {
+      StatusOr<IcpSummary> s = AlignIcp(cloud, *target, Rigid3d(), options_.icp, &result->icp_estimate);
+      if (s.ok()) {
+        result->icp_attempted = true;
+        result->icp = *s;
+        const bool plausible = result->icp_estimate.translation.norm() <= options_.max_icp_correction_m &&
+                               RotationAngle(result->icp_estimate.rotation) * 180 / M_PI <=
+                                   options_.max_icp_correction_deg;
+        result->icp_applied = s->converged && s->inlier_fraction >= options_.min_icp_inlier_fraction && plausible;
+        if (result->icp_applied) correction = result->icp_estimate;
+      }
+    }
+  }
+  PRISM_ASSIGN_OR_RETURN(MapInsertStats stats, map_.Insert(cloud, correction, keyframe_id));
+  result->insert += stats;
+  return Status::Ok();
+}
+
+Status DenseStage::MergePending(double metres_per_unit, DenseKeyframeResult* result) {
+  std::vector<PendingCloud> pending;
+  pending.swap(pending_);
+  for (PendingCloud& p : pending) {
+    for (Eigen::Vector3f& x : p.cloud_in_slam_world.positions) x *= static_cast<float>(metres_per_unit);
+    PRISM_RETURN_IF_ERROR(Merge(p.cloud_in_slam_world, p.keyframe_id, result));
+  }
+  return Status::Ok();
+}
+
+StatusOr<MapChunk> DenseStage::Flush() {
+  if (pending_.empty() || !depth_scale_.has_value()) return MapChunk();
+  DenseKeyframeResult scratch;
+  PRISM_RETURN_IF_ERROR(MergePending(depth_scale_.value(), &scratch));
+  return map_.TakeChanges();
 }
 
 }  // namespace prism

@@ -48,8 +48,10 @@ struct DenseStageOptions {
   // In [0, 1].
   double min_icp_inlier_fraction = 0.3;
   // true: DenseKeyframe::world_from_keyframe maps into the SLAM world (SLAM units) and the stage maps
-  // it to metres with the session depth scale (the live pipeline). false: it already maps into a
-  // metric world (prism-fuse with ground-truth poses).
+  // it to metres with the session depth scale (the live pipeline). The first scale_keyframes clouds
+  // wait until that scale is fixed (it is the median of their estimates), so that every cloud enters
+  // the map with the same scale. false: it already maps into a metric world (prism-fuse with
+  // ground-truth poses) and each cloud is merged at once.
   bool world_in_slam_units = true;
 
   Status Check() const;
@@ -72,7 +74,9 @@ struct DenseKeyframeResult {
   cv::Mat depth;                  // CV_32F fused depth, SLAM units, depth-edge pixels set to 0
   double metres_per_unit = 1.0;   // session depth scale after this keyframe
   // The keyframe cloud in the (metric) world frame before the ICP correction; confidences from PS.
+  // While pending (world_in_slam_units, scale not fixed yet) it is in SLAM units and not in the map.
   PointCloud cloud;
+  bool pending = false;
   bool icp_attempted = false;
   IcpSummary icp;
   Rigid3d icp_estimate;      // map_from_cloud found by ICP (identity when not attempted)
@@ -94,6 +98,10 @@ class DenseStage {
   // the wrong type or size.
   StatusOr<DenseKeyframeResult> Process(const DenseKeyframe& keyframe);
 
+  // Merges the clouds still waiting for the session scale with the current estimate (end of a session
+  // with fewer than scale_keyframes keyframes) and returns the changed voxels; empty when none wait.
+  StatusOr<MapChunk> Flush();
+
   const GlobalMap& map() const { return map_; }
   const SessionDepthScale& depth_scale() const { return depth_scale_; }
   const RigCalibration& rig() const { return rig_; }
@@ -101,6 +109,9 @@ class DenseStage {
 
  private:
   DenseStage(const RigCalibration& rig, const DenseStageOptions& options, ThreadPool* pool);
+  // ICP against the map (with the guard) and merge; fills the ICP fields and insert stats of result.
+  Status Merge(const PointCloud& cloud_in_world, uint64_t keyframe_id, DenseKeyframeResult* result);
+  Status MergePending(double metres_per_unit, DenseKeyframeResult* result);
 
   RigCalibration rig_;
   DenseStageOptions options_;
@@ -108,6 +119,11 @@ class DenseStage {
   DepthNormalFusion fusion_;
   GlobalMap map_;
   SessionDepthScale depth_scale_;
+  struct PendingCloud {
+    uint64_t keyframe_id = 0;
+    PointCloud cloud_in_slam_world;
+  };
+  std::vector<PendingCloud> pending_;
 };
 
 }  // namespace prism

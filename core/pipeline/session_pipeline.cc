@@ -197,8 +197,23 @@ void SessionPipeline::SlamLoop() {
       Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));
     }
   }
-  // Last job of the strand: after every keyframe queued above.
+  // Last job of the strand: after every keyframe queued above. Clouds still waiting for the session
+  // scale (fewer keyframes than DenseStageOptions::scale_keyframes) enter the map now.
   strand_->Post([this] {
+    if (!aborted_ && !failed_) {
+      try {
+        StatusOr<MapChunk> rest = InternalError("not run");
+        size_t map_points = 0;
+        {
+          std::lock_guard<std::mutex> lock(map_mutex_);
+          rest = dense_->Flush();
+          map_points = dense_->map().size();
+        }
+        if (rest.ok() && !rest->empty()) EmitChunk(*rest, 0, Rigid3d(), map_points);
+      } catch (const std::exception& ex) {
+        Fail(InternalError(std::string("dense stage failed at the end: ") + ex.what()));
+      }
+    }
     PipelineEvent e;
     e.kind = PipelineEvent::Kind::kFinished;
     e.stats = stats();
@@ -217,6 +232,30 @@ void SessionPipeline::QueueKeyframe(SlamKeyframe keyframe) {
     keyframes_.push_back(std::move(keyframe));
   }
   strand_->Post([this] { DenseJob(); });
+}
+
+void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, const Rigid3d& world_from_keyframe,
+                                size_t map_points) {
+  MapChunkCodecOptions chunk_options = options_.chunk;
+  chunk_options.voxel_m = options_.dense.map.voxel_m;
+  StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(changes.cloud, chunk_options);
+  if (!encoded.ok()) return;  // nothing encodable (every point off the grid)
+  PipelineEvent e;
+  e.kind = PipelineEvent::Kind::kChunk;
+  e.keyframe_id = keyframe_id;
+  e.chunk_sequence = changes.sequence;
+  e.num_points = encoded->num_points;
+  e.draco = std::move(encoded->bytes);
+  e.world_from_keyframe = world_from_keyframe;
+  e.map_points = map_points;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++stats_.chunks;
+    stats_.chunk_bytes += e.draco.size();
+    stats_.chunk_points += e.num_points;
+    stats_.map_points = map_points;
+  }
+  sink_(std::move(e));
 }
 
 void SessionPipeline::DenseJob() {
@@ -259,28 +298,11 @@ void SessionPipeline::DenseJob() {
     }
     metres_per_unit_ = r->metres_per_unit;
     if (r->changes.empty()) return;
-    MapChunkCodecOptions chunk_options = options_.chunk;
-    chunk_options.voxel_m = options_.dense.map.voxel_m;
-    StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(r->changes.cloud, chunk_options);
-    if (!encoded.ok()) return;  // nothing encodable (every point off the grid)
-    PipelineEvent e;
-    e.kind = PipelineEvent::Kind::kChunk;
-    e.keyframe_id = dk.id;
-    e.chunk_sequence = r->changes.sequence;
-    e.num_points = encoded->num_points;
-    e.draco = std::move(encoded->bytes);
     const double s = r->metres_per_unit;
-    e.world_from_keyframe = Rigid3d(kf.world_from_keyframe.rotation, s * kf.world_from_keyframe.translation);
-    e.map_points = map_points;
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      ++stats_.chunks;
-      stats_.chunk_bytes += e.draco.size();
-      stats_.chunk_points += e.num_points;
-      stats_.map_points = map_points;
-      stats_.dense_ms_total += MsSince(t0);
-    }
-    sink_(std::move(e));
+    EmitChunk(r->changes, dk.id, Rigid3d(kf.world_from_keyframe.rotation, s * kf.world_from_keyframe.translation),
+              map_points);
+    std::lock_guard<std::mutex> lock(mutex_);
+    stats_.dense_ms_total += MsSince(t0);
   } catch (const std::exception& ex) {
     Fail(InternalError(std::string("dense stage failed: ") + ex.what()));
   }

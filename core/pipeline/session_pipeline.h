@@ -130,6 +130,8 @@ class SessionPipeline {
   void SlamLoop();
   void QueueKeyframe(SlamKeyframe keyframe);
   void DenseJob();
+  // Encodes the changed voxels and hands the chunk to the sink (strand jobs only).
+  void EmitChunk(const MapChunk& changes, uint64_t keyframe_id, const Rigid3d& world_from_keyframe, size_t map_points);
   void Fail(const Status& status);
 
   const RigCalibration rig_;
