@@ -237,9 +237,23 @@ struct Server::Impl {
       } else if (request.rfind("GET /healthz", 0) == 0) {
         body = draining ? "draining\n" : "ok\n";
         if (draining) status = "503 Service Unavailable";
+      } else if (request.rfind("GET /allocate", 0) == 0) {
+        // Where a new session should go (the Agones pattern behind a Kubernetes Service): this server's
+        // advertised endpoint and free capacity; 503 when full or draining, so the caller asks another
+        // replica. Advisory: OpenSession's admission control stays the guard against races.
+        const int active = static_cast<int>(sessions.size());
+        const int free_slots = draining ? 0 : std::max(0, options.max_sessions - active);
+        type = "application/json";
+        body = "{\"endpoint\": \"" + (options.advertise.empty() ? endpoint : options.advertise) +
+               "\", \"sessions_active\": " + std::to_string(active) +
+               ", \"sessions_capacity\": " + std::to_string(options.max_sessions) +
+               ", \"free\": " + std::to_string(free_slots) + ", \"draining\": " + (draining ? "true" : "false") +
+               "}\n";
+        if (free_slots == 0) status = "503 Service Unavailable";
+        metrics.Add("prism_allocate_requests_total");
       } else {
         status = "404 Not Found";
-        body = "GET /metrics or /healthz\n";
+        body = "GET /metrics, /healthz or /allocate\n";
       }
       const std::string response = "HTTP/1.0 " + status + "\r\nContent-Type: " + type +
                                    "\r\nContent-Length: " + std::to_string(body.size()) +

@@ -26,7 +26,8 @@ std::string Trim(const std::string& s) {
 const char* ServerOptionsHelp() {
   return R"(  bind ENDPOINT           ZeroMQ endpoint (default tcp://127.0.0.1:5555; tcp://127.0.0.1:* = free port)
   data-dir DIR            where sessions persist map.ply and summary.json (required)
-  metrics HOST:PORT|off   HTTP /metrics (Prometheus text) and /healthz (default 127.0.0.1:0 = free port)
+  metrics HOST:PORT|off   HTTP /metrics (Prometheus text), /healthz and /allocate (default 127.0.0.1:0 = free port)
+  advertise ENDPOINT      endpoint GET /allocate hands to clients (default: the bound one)
   max-sessions N          concurrent sessions before RESOURCE_EXHAUSTED (default 4)
   dense-workers N         dense keyframe jobs at once over all sessions (default 1)
   threads N               process-wide worker pool for the dense loops (default 0 = all cores)
@@ -52,6 +53,8 @@ Status ServerOptions::Check() const {
   if (bind.rfind("tcp://", 0) != 0 && bind.rfind("ipc://", 0) != 0)
     return bad("bind", "'" + bind + "'", "a tcp:// or ipc:// endpoint");
   if (data_dir.empty()) return bad("data_dir", "''", "non-empty (--data-dir)");
+  if (!advertise.empty() && advertise.rfind("tcp://", 0) != 0)
+    return bad("advertise", "'" + advertise + "'", "a tcp:// endpoint or empty");
   if (max_sessions < 1 || max_sessions > 1024) return bad("max_sessions", std::to_string(max_sessions), "in [1, 1024]");
   if (dense_workers < 1 || dense_workers > 64) return bad("dense_workers", std::to_string(dense_workers), "in [1, 64]");
   if (threads < 0 || threads > 256) return bad("threads", std::to_string(threads), "in [0, 256]");
@@ -79,6 +82,7 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   if (key == "bind") o->bind = value;
   else if (key == "data-dir") o->data_dir = value;
   else if (key == "metrics") o->metrics_bind = value;
+  else if (key == "advertise") o->advertise = value;
   else if (key == "max-sessions") { if (!is_int) return bad(); o->max_sessions = static_cast<int>(i); }
   else if (key == "dense-workers") { if (!is_int) return bad(); o->dense_workers = static_cast<int>(i); }
   else if (key == "threads") { if (!is_int) return bad(); o->threads = static_cast<int>(i); }

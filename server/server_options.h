@@ -18,6 +18,9 @@ struct ServerOptions {
   // HTTP metrics (/metrics, Prometheus text) and health (/healthz): "HOST:PORT" (port 0 = any free
   // port) or "off".
   std::string metrics_bind = "127.0.0.1:0";
+  // The ZeroMQ endpoint GET /allocate tells clients to connect to, e.g. the pod's own DNS name behind a
+  // Kubernetes headless Service; "" = the bound endpoint. A tcp:// endpoint or "".
+  std::string advertise;
   // Concurrent sessions; OpenSession beyond is refused with RESOURCE_EXHAUSTED, in [1, 1024].
   int max_sessions = 4;
   // Dense keyframe jobs running at once over all sessions, in [1, 64].

@@ -1,0 +1,119 @@
+// The allocation endpoint a Kubernetes deployment routes new sessions with
+// (deploy/k8s/README.md): a real prism-server, queried with prism-probe (the
+// tool the container's HEALTHCHECK uses), filled to capacity with a real client
+// session.
+#include <unistd.h>
+
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include <gtest/gtest.h>
+
+#include "prism/client/client.h"
+#include "tests/server_process.h"
+#include "tests/test_process.h"
+
+namespace prism {
+namespace {
+namespace fs = std::filesystem;
+using test::Bin;
+using test::Execute;
+using test::JsonNumber;
+using test::ProcessResult;
+using test::ServerProcess;
+
+client::Rig SmallRig() {
+  client::Rig rig;
+  rig.camera = {160, 120, 150, 150, 80, 60, {0, 0, 0, 0, 0}};
+  const double x[3] = {-0.2, 0.2, 0.0}, y[3] = {0.0, 0.0, -0.2};
+  for (int l = 0; l < 3; ++l) {
+    rig.lights[l].name = l == 0 ? "red" : l == 1 ? "green" : "blue";
+    rig.lights[l].position_in_camera = {x[l], y[l], 0.0};
+    rig.lights[l].color = {l == 0 ? 1.0 : 0.0, l == 1 ? 1.0 : 0.0,
+                           l == 2 ? 1.0 : 0.0};
+  }
+  return rig;
+}
+
+class AllocateTest : public ::testing::Test {
+protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("prism_allocate_test_" + std::to_string(getpid()));
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override {
+    if (!HasFailure())
+      fs::remove_all(dir_);
+  }
+  fs::path dir_;
+};
+
+TEST_F(AllocateTest, AdvertisesTheEndpointAndFreeCapacityThenRefusesWhenFull) {
+  ServerProcess server((dir_ / "data").string(),
+                       {"--max-sessions", "1", "--advertise",
+                        "tcp://prism-0.prism-pods.default.svc:5555"},
+                       (dir_ / "server.log").string());
+  ASSERT_TRUE(server.ok());
+  const std::string probe = Bin("prism-probe") + " " + server.metrics();
+
+  ProcessResult r = Execute(probe + "/healthz");
+  EXPECT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(r.out, "ok\n");
+
+  r = Execute(probe + "/allocate");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NE(
+      r.out.find("\"endpoint\": \"tcp://prism-0.prism-pods.default.svc:5555\""),
+      std::string::npos)
+      << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "free"), 1) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "sessions_capacity"), 1) << r.out;
+
+  // One open session fills the server: /allocate says 503 with free 0, so a
+  // caller asks another replica.
+  std::unique_ptr<client::Session> session;
+  const client::Status open =
+      client::Session::Open(server.endpoint(), SmallRig(), {}, &session);
+  ASSERT_TRUE(open.ok()) << open.ToString();
+  r = Execute(probe + "/allocate");
+  EXPECT_EQ(r.exit_code, 1) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "free"), 0) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "sessions_active"), 1) << r.out;
+
+  client::Summary summary;
+  EXPECT_TRUE(session->Close(20000, &summary).ok());
+  session.reset();
+  r = Execute(probe + "/allocate");
+  EXPECT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "free"), 1) << r.out;
+
+  r = Execute(probe + "/nothing-here");
+  EXPECT_EQ(r.exit_code, 1) << r.out;
+  EXPECT_EQ(server.Stop(), 0);
+  // Nobody listens any more: prism-probe says so with exit code 2.
+  r = Execute(Bin("prism-probe") + " --timeout-ms 500 " + server.metrics() +
+              "/healthz");
+  EXPECT_EQ(r.exit_code, 2) << r.out;
+}
+
+TEST_F(AllocateTest, ProbeRejectsBadArguments) {
+  EXPECT_EQ(Execute(Bin("prism-probe") + " ftp://x/").exit_code, 2);
+  EXPECT_EQ(Execute(Bin("prism-probe") + " http://127.0.0.1/healthz").exit_code,
+            2);
+  EXPECT_EQ(Execute(Bin("prism-probe") + " --timeout-ms 0 http://127.0.0.1:1/")
+                .exit_code,
+            2);
+}
+
+TEST(ServerOptionsTest, AdvertiseMustBeATcpEndpoint) {
+  const ProcessResult r = Execute(Bin("prism-server") +
+                                  " --data-dir /tmp --advertise prism-0:5555");
+  EXPECT_EQ(r.exit_code, 2) << r.out;
+  EXPECT_NE(r.out.find("advertise"), std::string::npos) << r.out;
+}
+
+} // namespace
+} // namespace prism
