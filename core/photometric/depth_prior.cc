@@ -1,9 +1,12 @@
 #include "core/photometric/depth_prior.h"
 
 #include <cmath>
+#include <limits>
 #include <sstream>
 
 #include <opencv2/imgproc.hpp>
+
+#include "core/util/thread_pool.h"
 
 namespace prism {
 
@@ -89,48 +92,71 @@ cv::Mat DensifyInverseDepth(const InverseDepthMap& sparse, const DensifyOptions&
   return dense;
 }
 
-cv::Mat PriorNormals(const cv::Mat& raw, const PinholeCamera& camera, const PriorNormalOptions& options) {
-  cv::Mat normals(raw.size(), CV_32FC3, cv::Scalar(0, 0, 0));
+cv::Mat PriorNormals(const cv::Mat& raw, const PinholeCamera& camera, const PriorNormalOptions& options,
+                     ThreadPool* pool, cv::Mat* smoothed_inverse_depth) {
+  const int w = raw.cols, h = raw.rows;
+  cv::Mat normals(raw.size(), CV_32FC3, cv::Scalar(0, 0, 0));  // the stencil's border stays 0
   cv::Mat inv = raw;
   if (options.smoothing_sigma_px > 0) {
     // Normalised smoothing over valid pixels only, so holes do not pull depth towards 0.
-    cv::Mat valid = raw > 0, num, den;
-    valid.convertTo(valid, CV_32F, 1.0 / 255.0);
+    cv::Mat valid(raw.size(), CV_32F), num, den;
+    for (int y = 0; y < h; ++y) {
+      const float* r = raw.ptr<float>(y);
+      float* v = valid.ptr<float>(y);
+      for (int x = 0; x < w; ++x) v[x] = r[x] > 0 ? 1.f : 0.f;
+    }
     const int k = static_cast<int>(std::ceil(3 * options.smoothing_sigma_px)) * 2 + 1;
     cv::GaussianBlur(raw, num, cv::Size(k, k), options.smoothing_sigma_px);
     cv::GaussianBlur(valid, den, cv::Size(k, k), options.smoothing_sigma_px);
-    inv = num / cv::max(den, 1e-6f);
-    inv.setTo(0, raw <= 0);
+    inv = num;  // normalised in place
+    for (int y = 0; y < h; ++y) {
+      const float* r = raw.ptr<float>(y);
+      const float* d = den.ptr<float>(y);
+      float* out = inv.ptr<float>(y);
+      for (int x = 0; x < w; ++x) out[x] = r[x] > 0 ? out[x] / std::max(d[x], 1e-6f) : 0.f;
+    }
   }
   const int s = options.step_px;
   const float max_jump = static_cast<float>(options.max_relative_depth_jump);
-  auto point = [&](int x, int y, Eigen::Vector3d* p) {
-    const float id = inv.at<float>(y, x);
-    if (!(id > 0)) return false;
-    *p = Eigen::Vector3d((x - camera.cx) / camera.fx, (y - camera.cy) / camera.fy, 1.0) / id;
-    return true;
-  };
-  for (int y = s; y < inv.rows - s; ++y) {
-    cv::Vec3f* out = normals.ptr<cv::Vec3f>(y);
-    for (int x = s; x < inv.cols - s; ++x) {
-      const float c = inv.at<float>(y, x);
-      if (!(c > 0)) continue;
-      // Depth edge test on the stencil (relative change of inverse depth = of depth, to first order).
-      const float l = inv.at<float>(y, x - s), r = inv.at<float>(y, x + s), u = inv.at<float>(y - s, x),
-                  d = inv.at<float>(y + s, x);
-      if (!(l > 0 && r > 0 && u > 0 && d > 0)) continue;
-      // Second differences: a smooth surface is locally linear in inverse depth; a depth edge is not.
-      if (std::abs(l + r - 2 * c) > max_jump * c || std::abs(u + d - 2 * c) > max_jump * c) continue;
-      Eigen::Vector3d pl, pr, pu, pd;
-      if (!point(x - s, y, &pl) || !point(x + s, y, &pr) || !point(x, y - s, &pu) || !point(x, y + s, &pd)) continue;
-      Eigen::Vector3d n = (pr - pl).cross(pd - pu);
-      const double len = n.norm();
-      if (len <= 0) continue;
-      n /= len;
-      const Eigen::Vector3d ray((x - camera.cx) / camera.fx, (y - camera.cy) / camera.fy, 1.0);
-      if (n.dot(ray) > 0) n = -n;  // face the camera
-      out[x] = cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
+  const float inv_fx = static_cast<float>(1.0 / camera.fx), inv_fy = static_cast<float>(1.0 / camera.fy);
+  const float cx = static_cast<float>(camera.cx), cy = static_cast<float>(camera.cy);
+  // Float and branch-free over a row so that the compiler vectorises it (~20 ns -> a few ns a pixel).
+  auto normals_row = [&](std::ptrdiff_t row) {
+    const int y = static_cast<int>(row) + s;
+    const float* up = inv.ptr<float>(y - s);
+    const float* mid = inv.ptr<float>(y);
+    const float* down = inv.ptr<float>(y + s);
+    float* out = normals.ptr<float>(y);
+    const float ry = (y - cy) * inv_fy, ry_up = (y - s - cy) * inv_fy, ry_down = (y + s - cy) * inv_fy;
+    for (int x = s; x < w - s; ++x) {
+      const float c = mid[x], l = mid[x - s], r = mid[x + s], u = up[x], d = down[x];
+      // Holes, and depth edges on the stencil: a smooth surface is locally linear in inverse depth
+      // (second differences relative to the centre; relative change of inverse depth = of depth).
+      const bool valid = c > 0 && l > 0 && r > 0 && u > 0 && d > 0 && std::abs(l + r - 2 * c) <= max_jump * c &&
+                         std::abs(u + d - 2 * c) <= max_jump * c;
+      // Back-projected stencil points (ray / inverse depth): horizontal and vertical differences.
+      const float rx = (x - cx) * inv_fx, rx_l = (x - s - cx) * inv_fx, rx_r = (x + s - cx) * inv_fx;
+      const float il = 1.f / (valid ? l : 1.f), ir = 1.f / (valid ? r : 1.f);
+      const float iu = 1.f / (valid ? u : 1.f), id = 1.f / (valid ? d : 1.f);
+      const float hx = rx_r * ir - rx_l * il, hy = ry * (ir - il), hz = ir - il;
+      const float vx = rx * (id - iu), vy = ry_down * id - ry_up * iu, vz = id - iu;
+      float nx = hy * vz - hz * vy, ny = hz * vx - hx * vz, nz = hx * vy - hy * vx;
+      const float len2 = nx * nx + ny * ny + nz * nz;
+      const bool ok = valid && len2 > 0 && len2 <= std::numeric_limits<float>::max();
+      // Unit length, facing the camera.
+      const float facing = nx * rx + ny * ry + nz;
+      const float scale = ok ? (facing > 0 ? -1.f : 1.f) / std::sqrt(ok ? len2 : 1.f) : 0.f;
+      out[3 * x] = ok ? nx * scale : 0.f;
+      out[3 * x + 1] = ok ? ny * scale : 0.f;
+      out[3 * x + 2] = ok ? nz * scale : 0.f;
     }
+  };
+  if (smoothed_inverse_depth) *smoothed_inverse_depth = inv;
+  const int rows = std::max(0, h - 2 * s);
+  if (pool) {
+    pool->ParallelFor(0, rows, normals_row, 16);
+  } else {
+    for (int r = 0; r < rows; ++r) normals_row(r);
   }
   return normals;
 }

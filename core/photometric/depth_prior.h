@@ -10,6 +10,8 @@
 
 namespace prism {
 
+class ThreadPool;
+
 struct DensifyOptions {
   // Gaussian scale of the first normalised-convolution pass, pixels, in [0.5, 50].
   double sigma_px = 2.0;
@@ -40,7 +42,10 @@ struct PriorNormalOptions {
 };
 
 // Normals of the surface given by a dense inverse depth, in the camera frame, facing the camera;
-// (0,0,0) at depth edges and holes.
-cv::Mat PriorNormals(const cv::Mat& dense_inverse_depth, const PinholeCamera& camera, const PriorNormalOptions& options);
+// (0,0,0) at depth edges and holes. Rows are spread over `pool` when given. The inverse depth they
+// are differentiated from (smoothed by options.smoothing_sigma_px over valid pixels; shares data
+// with the input when not smoothed) goes to *smoothed_inverse_depth when given.
+cv::Mat PriorNormals(const cv::Mat& dense_inverse_depth, const PinholeCamera& camera, const PriorNormalOptions& options,
+                     ThreadPool* pool = nullptr, cv::Mat* smoothed_inverse_depth = nullptr);
 
 }  // namespace prism

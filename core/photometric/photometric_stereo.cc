@@ -246,8 +246,13 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   result.dense_inverse_depth = DensifyInverseDepth(prior, options.densify);
   const bool plane_priors = options.prior_normals == PriorNormalSource::kPlaneFit;
   // Dense prior normals: the fitting input in kDenseDepth mode; otherwise only an optional output.
+  // When the prior normals are computed, the dense prior used from here on (fit pixels' depth, the
+  // per-pixel S(p), the returned map) is the smoothed one they are differentiated from. Earlier
+  // versions did this through an aliasing side effect of PriorNormals; the results (depth scale,
+  // accuracy, fusion) were measured with it, so it is kept, now on purpose.
   if (!plane_priors || options.output_prior_normals)
-    result.prior_normals = PriorNormals(result.dense_inverse_depth, rig.camera, options.prior);
+    result.prior_normals =
+        PriorNormals(result.dense_inverse_depth, rig.camera, options.prior, pool, &result.dense_inverse_depth);
   const Eigen::Matrix3d demix = calibrated ? Eigen::Matrix3d(rig.crosstalk.inverse()) : Eigen::Matrix3d::Identity();
   const int w = rgb.cols, h = rgb.rows;
 
