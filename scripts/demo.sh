@@ -1,9 +1,14 @@
 #!/usr/bin/env bash
-# The main job: sets up this machine, builds Prism, renders the demo sequence (the first preset)
-# with ground truth, runs the dense stage on it (photometric stereo + fusion + ICP map, with
-# simulated semi-dense SLAM depth until the SLAM lands) and evaluates the result.
-# Output: out/demo/map.ply (the dense reconstruction), out/demo/dense/ (per-keyframe normals,
-# depth, clouds), out/demo/sequence/ (TUM layout), out/demo/gt_cloud.ply, out/demo/eval_*.json
+# The main job: sets up this machine, builds Prism, renders the demo sequence (the first preset,
+# with ground truth), starts prism-server, streams the sequence to it with prism-client (the real
+# round trip: PNG frames up, poses and Draco map chunks down), then scores what came back against
+# the ground truth and renders a picture of the map.
+# Output (out/demo/): map.ply (the dense map the server streamed back), map.png (a picture of it),
+# trajectory.txt (TUM, every tracked frame), chunks/*.drc (the Draco chunks as received),
+# eval_traj.json / eval_map.json (against ground truth), sequence/ (the rendered input, TUM layout),
+# gt_cloud.ply (the true surface), server.log.
+# Environment: FRAMES (default 300), OUT (default out/demo), REFERENCE=1 also runs the dense stage
+# alone with ground-truth poses (prism-fuse) into $OUT/reference/ for comparison.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -15,17 +20,35 @@ PRESET=$($BIN/prism-synth --list-presets | head -n 1)
 rm -rf "$OUT"
 mkdir -p "$OUT"
 echo "== rendering preset '$PRESET' ($FRAMES frames, 512x512)"
-$BIN/prism-synth --preset "$PRESET" --out "$OUT/sequence" --frames "$FRAMES" --gt-cloud "$OUT/gt_cloud.ply" | tee "$OUT/synth.json"
-echo "== trajectory: ground truth against itself (all zeros)"
-$BIN/prism-eval traj --gt "$OUT/sequence/groundtruth.txt" --est "$OUT/sequence/groundtruth.txt" --align sim3 | tee "$OUT/eval_traj.json"
-echo "== normals: ground truth against itself (all zeros)"
-$BIN/prism-eval normals --sequence "$OUT/sequence" --normals "$OUT/sequence/normals" | tee "$OUT/eval_normals.json"
-echo "== dense stage: photometric stereo + fusion + ICP map (prism-fuse)"
-$BIN/prism-fuse --sequence "$OUT/sequence" --out "$OUT/dense" > "$OUT/dense_summary.json"
-cp "$OUT/dense/map.ply" "$OUT/map.ply"
-head -n 12 "$OUT/dense_summary.json"
-echo "== the reconstructed map against the ground-truth object surface"
-$BIN/prism-eval cloud --sequence "$OUT/sequence" --cloud "$OUT/map.ply" --object-only | tee "$OUT/eval_map.json"
+$BIN/prism-synth --preset "$PRESET" --out "$OUT/sequence" --frames "$FRAMES" --gt-cloud "$OUT/gt_cloud.ply" > "$OUT/synth.json"
+
+echo "== starting prism-server on a free port"
+$BIN/prism-server --bind 'tcp://127.0.0.1:*' --data-dir "$OUT/server-data" --input-policy upload \
+  --keyframe-queue 64 > "$OUT/server.json" 2> "$OUT/server.log" &
+SERVER_PID=$!
+trap 'kill -TERM $SERVER_PID 2>/dev/null || true' EXIT
+for _ in $(seq 100); do [ -s "$OUT/server.json" ] && break; sleep 0.1; done
+ENDPOINT=$(sed -n 's/.*"endpoint": "\([^"]*\)".*/\1/p' "$OUT/server.json")
+[ -n "$ENDPOINT" ] || { echo "prism-server did not start; see $OUT/server.log"; exit 1; }
+echo "   listening on $ENDPOINT"
+
+echo "== streaming the sequence with prism-client"
+$BIN/prism-client stream --server "$ENDPOINT" --sequence "$OUT/sequence" --out "$OUT" | tee "$OUT/client_summary.json"
+kill -TERM $SERVER_PID
+wait $SERVER_PID || true
+trap - EXIT
+
+echo "== trajectory against ground truth (Sim(3)-aligned)"
+$BIN/prism-eval traj --gt "$OUT/sequence/groundtruth.txt" --est "$OUT/trajectory.txt" --align sim3 | tee "$OUT/eval_traj.json"
+echo "== the streamed map against the ground-truth object surface"
+$BIN/prism-eval cloud --sequence "$OUT/sequence" --cloud "$OUT/map.ply" --align-trajectory "$OUT/trajectory.txt" --object-only | tee "$OUT/eval_map.json"
+$BIN/prism-preview --cloud "$OUT/map.ply" --trajectory "$OUT/trajectory.txt" --out "$OUT/map.png" > /dev/null
+
+if [ "${REFERENCE:-0}" = 1 ]; then
+  echo "== reference: the dense stage alone with ground-truth poses and simulated SLAM depth (prism-fuse)"
+  $BIN/prism-fuse --sequence "$OUT/sequence" --out "$OUT/reference" > "$OUT/reference_summary.json"
+  $BIN/prism-eval cloud --sequence "$OUT/sequence" --cloud "$OUT/reference/map.ply" --object-only | tee "$OUT/eval_reference_map.json"
+fi
 echo
-echo "Done. Open $OUT/map.ply (reconstruction) or $OUT/gt_cloud.ply (ground truth) in any PLY viewer"
-echo "(MeshLab, CloudCompare, Open3D); per-keyframe normal maps are in $OUT/dense/normals_vis/."
+echo "Done. Open $OUT/map.ply in any PLY viewer (MeshLab, CloudCompare, Open3D) or look at $OUT/map.png;"
+echo "$OUT/gt_cloud.ply is the true surface."

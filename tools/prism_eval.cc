@@ -323,6 +323,9 @@ constexpr char kCloudUsage[] =
     "                      more than 3 tau behind its surface)\n"
     "  --frame-step K      use every K-th frame for the ground truth (default 10)\n"
     "  --threads N         worker threads for the distance queries (default 0 = all cores)\n"
+    "  --align-trajectory EST  the cloud is in the frame of this estimated trajectory (TUM/KITTI, e.g.\n"
+    "                      SLAM output): it is moved by the Sim(3) that aligns EST to the ground truth\n"
+    "                      (as prism-eval traj --align sim3) before it is scored\n"
     "\n"
     "Prints JSON: accuracy_m (mean), accuracy_median_m, precision, completeness, fscore, points,\n"
     "non_finite_points, tau_m, tau_source (given | bbox_diagonal_1pct | default_5mm), gt_samples,\n"
@@ -334,7 +337,8 @@ int RunCloud(const std::vector<std::string>& args) {
     std::fputs(kCloudUsage, stdout);
     return kExitOk;
   }
-  auto flags = Flags::Parse(args, {"sequence", "cloud", "tau", "frame-step", "threads"}, {"object-only"});
+  auto flags =
+      Flags::Parse(args, {"sequence", "cloud", "tau", "frame-step", "threads", "align-trajectory"}, {"object-only"});
   if (!flags.ok()) return Fail(cmd, kExitUsage, flags.status());
   auto sequence_dir = flags->Required("sequence");
   if (!sequence_dir.ok()) return Fail(cmd, kExitUsage, sequence_dir.status());
@@ -363,6 +367,21 @@ int RunCloud(const std::vector<std::string>& args) {
   if (!sequence.ok()) return Fail(cmd, kExitFailure, sequence.status());
   auto cloud = ReadPointCloudPly(*cloud_path);
   if (!cloud.ok()) return Fail(cmd, kExitFailure, cloud.status());
+  double alignment_scale = 1.0;
+  if (flags->Has("align-trajectory")) {
+    auto est_path = flags->Required("align-trajectory");
+    if (!est_path.ok()) return Fail(cmd, kExitUsage, est_path.status());
+    auto est = ReadTrajectoryAutoDetect(*est_path);
+    if (!est.ok()) return Fail(cmd, kExitFailure, est.status());
+    TrajectoryEvalOptions align_options;
+    align_options.alignment = AlignmentModel::kSim3;
+    auto ate = ComputeAte(sequence->groundtruth, *est, align_options);
+    if (!ate.ok()) return Fail(cmd, kExitFailure, ate.status());
+    const Sim3d& t = ate->gt_from_est;
+    alignment_scale = t.scale;
+    for (auto& p : cloud->positions) p = (t * p.cast<double>()).cast<float>();
+    for (auto& n : cloud->normals) n = (t.rotation * n.cast<double>()).cast<float>();
+  }
 
   if (tau_source.empty()) {
     if (sampling.object_only) {
@@ -410,6 +429,7 @@ int RunCloud(const std::vector<std::string>& args) {
   json.Number("gt_voxel_m", sampling.voxel_size_m);
   json.Integer("frame_step", sampling.frame_step);
   json.Bool("object_only", sampling.object_only);
+  if (flags->Has("align-trajectory")) json.Number("aligned_with_scale", alignment_scale);
   Print(json);
   return kExitOk;
 }
