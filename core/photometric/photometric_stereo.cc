@@ -128,6 +128,38 @@ int Nearest(const std::vector<Eigen::Vector2d>& centres, const Eigen::Vector2d& 
 }
 
 
+// The per-pixel 3x3 solves of a row with three point lights, n ~ S^-1 b up to a positive factor
+// (adj(S) b sign(det S)), S rows I_l v_l / |v_l|^3 with v_l from the surface point ray * scale /
+// inverse_depth to light l. Plain float arrays and no branches, so that the compiler vectorises it.
+void SolveNearLightRow(int w, float ray_x0, float ray_dx, float ray_y, float scale, const float* lx, const float* ly,
+                       const float* lz, const float* li, const float* __restrict inverse_depth,
+                       const float* __restrict b0, const float* __restrict b1, const float* __restrict b2,
+                       float* __restrict n0, float* __restrict n1, float* __restrict n2) {
+  const float l0x = lx[0], l0y = ly[0], l0z = lz[0], i0 = li[0];
+  const float l1x = lx[1], l1y = ly[1], l1z = lz[1], i1 = li[1];
+  const float l2x = lx[2], l2y = ly[2], l2z = lz[2], i2 = li[2];
+  for (int x = 0; x < w; ++x) {
+    const float depth = scale / inverse_depth[x];
+    const float px = (ray_x0 + ray_dx * static_cast<float>(x)) * depth, py = ray_y * depth, pz = depth;
+    const float ax = l0x - px, ay = l0y - py, az = l0z - pz;
+    const float bx = l1x - px, by = l1y - py, bz = l1z - pz;
+    const float cx = l2x - px, cy = l2y - py, cz = l2z - pz;
+    const float da = ax * ax + ay * ay + az * az, db = bx * bx + by * by + bz * bz, dc = cx * cx + cy * cy + cz * cz;
+    const float fa = i0 / (da * std::sqrt(da)), fb = i1 / (db * std::sqrt(db)), fc = i2 / (dc * std::sqrt(dc));
+    const float m00 = fa * ax, m01 = fa * ay, m02 = fa * az;
+    const float m10 = fb * bx, m11 = fb * by, m12 = fb * bz;
+    const float m20 = fc * cx, m21 = fc * cy, m22 = fc * cz;
+    const float c00 = m11 * m22 - m12 * m21, c01 = m12 * m20 - m10 * m22, c02 = m10 * m21 - m11 * m20;
+    const float c10 = m02 * m21 - m01 * m22, c11 = m00 * m22 - m02 * m20, c12 = m01 * m20 - m00 * m21;
+    const float c20 = m01 * m12 - m02 * m11, c21 = m02 * m10 - m00 * m12, c22 = m00 * m11 - m01 * m10;
+    const float det = m00 * c00 + m01 * c01 + m02 * c02;
+    const float sign = det < 0 ? -1.f : 1.f;
+    n0[x] = sign * (c00 * b0[x] + c10 * b1[x] + c20 * b2[x]);
+    n1[x] = sign * (c01 * b0[x] + c11 * b1[x] + c21 * b2[x]);
+    n2[x] = sign * (c02 * b0[x] + c12 * b1[x] + c22 * b2[x]);
+  }
+}
+
 }  // namespace
 
 Status PhotometricOptions::Check() const {
@@ -821,8 +853,30 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   const float min_level = static_cast<float>(options.min_level), saturation_level = static_cast<float>(options.saturation_level);
   const float level_scale = 1.f / static_cast<float>(3.0 * std::max(1.0, options.min_level));
   const float fscale = static_cast<float>(scale);
-  auto solve_row = [&](std::ptrdiff_t row) {
+  // Per row: (1) labels and the right-hand sides, scalar; (2) for kCalibrated the 3x3 solves, in
+  // float structure-of-arrays and branch-free so that the compiler vectorises them; (3) confidence.
+  // n = S^-1 b is only needed up to scale: n ~ adj(S) b sign(det S). And S n = b, so the shading
+  // test (each band's share of the light reaching the surface) is a test on b.
+  const bool all_point_lights = point_light[0] && point_light[1] && point_light[2];
+  float lx[3], ly[3], lz[3], li[3];
+  for (int l = 0; l < 3; ++l) {
+    lx[l] = light_position[l].x();
+    ly[l] = light_position[l].y();
+    lz[l] = light_position[l].z();
+    li[l] = light_intensity[l];
+  }
+  struct RowBuffers {
+    std::vector<float> b[3], n[3], inverse_depth;
+    std::vector<uint8_t> solve;
+  };
+  auto solve_row = [&](std::ptrdiff_t row, RowBuffers& buf) {
     const int y = static_cast<int>(row);
+    for (int i = 0; i < 3; ++i) {
+      buf.b[i].resize(w);
+      buf.n[i].resize(w);
+    }
+    buf.solve.assign(w, 0);
+    buf.inverse_depth.assign(w, 1.f);  // 1 where there is nothing to solve (keeps the kernel finite)
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
     const cv::Vec3f* col = color.ptr<cv::Vec3f>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
@@ -833,6 +887,22 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     float* conf = result.confidence.ptr<float>(y);
     const float ray_y = static_cast<float>((y - rig.camera.cy) / rig.camera.fy);
     const float inv_fx = static_cast<float>(1.0 / rig.camera.fx), cx = static_cast<float>(rig.camera.cx);
+    // S(p) rows E_l l_l^T for point lights (this runs on every pixel).
+    auto near_light_matrix = [&](float ray_x, float inverse_depth) {
+      const Eigen::Vector3f point = Eigen::Vector3f(ray_x, ray_y, 1.f) * (fscale / inverse_depth);
+      Eigen::Matrix3f sm;
+      for (int l = 0; l < 3; ++l) {
+        if (point_light[l]) {
+          const Eigen::Vector3f v = light_position[l] - point;
+          const float d2 = v.squaredNorm();
+          sm.row(l) = (light_intensity[l] / (d2 * std::sqrt(d2))) * v.transpose();
+        } else {
+          sm.row(l) = light_row[l].transpose();
+        }
+      }
+      return sm;
+    };
+    // (1)
     for (int x = 0; x < w; ++x) {
       lab[x] = -1;
       out[x] = cv::Vec3f(0, 0, 0);
@@ -840,32 +910,15 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       const int mx = std::max({c[x][0], c[x][1], c[x][2]});
       if (mx < min_level) continue;
       int label = sp_row ? sp_cluster[sp_row[x]] : -1;
-      const Eigen::Vector3f ray((x - cx) * inv_fx, ray_y, 1.f);
       const Eigen::Vector3f prior_normal = n0 ? Eigen::Vector3f(n0[x][0], n0[x][1], n0[x][2]) : Eigen::Vector3f::Zero();
-      const bool has_prior = prior_normal.squaredNorm() > 0;
       const Eigen::Vector3f q = demix_solve * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
-      if (calibrated && !(inv[x] > 0)) {
-        lab[x] = label;
-        continue;
-      }
-      // S(p) rows E_l l_l^T for point lights, inlined (this loop runs on every pixel).
-      Eigen::Matrix3f sm = Eigen::Matrix3f::Zero();
-      if (calibrated) {
-        const Eigen::Vector3f point = ray * (fscale / inv[x]);
-        for (int l = 0; l < 3; ++l) {
-          if (point_light[l]) {
-            const Eigen::Vector3f v = light_position[l] - point;
-            const float d2 = v.squaredNorm();
-            sm.row(l) = (light_intensity[l] / (d2 * std::sqrt(d2))) * v.transpose();
-          } else {
-            sm.row(l) = light_row[l].transpose();
-          }
-        }
-      }
-      if (label < 0 && has_prior) {
+      const bool lit = !calibrated || inv[x] > 0;
+      if (label < 0 && lit && prior_normal.squaredNorm() > 0) {
         // Superpixels without fit pixels (a third of the pixels on the synthetic scenes): the
         // nearest centre to the pixel's own albedo chromaticity under its prior normal.
-        const Eigen::Vector3f pred = calibrated ? Eigen::Vector3f((sm * prior_normal).cwiseMax(0.f)) : global_m_f * prior_normal;
+        const Eigen::Vector3f pred = calibrated
+                                         ? Eigen::Vector3f((near_light_matrix((x - cx) * inv_fx, inv[x]) * prior_normal).cwiseMax(0.f))
+                                         : Eigen::Vector3f(global_m_f * prior_normal);
         if ((pred.array() > 1e-4f).all()) {
           const Eigen::Vector3f rho = q.cwiseQuotient(pred);
           const float sum = rho.sum();
@@ -884,40 +937,75 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         }
       }
       lab[x] = label;
+      if (!lit) continue;
       const int model = label >= 0 ? label : k;
-      Eigen::Vector3f n;
-      float quality = 1.f;
+      buf.solve[x] = 1;
+      if (calibrated) buf.inverse_depth[x] = inv[x];
       if (calibrated) {
         const Eigen::Vector3f b = q.cwiseProduct(inverse_albedo_f[model]);
-        n = sm.inverse() * b;  // closed-form 3x3
-        // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light
-        // solve unreliable: compare each band with the others, relative to its irradiance.
-        const float len = n.norm();
-        const Eigen::Vector3f shading = sm * (n / std::max(len, 1e-9f));
-        if (shading.minCoeff() < 0.1f * shading.maxCoeff()) quality *= 0.2f;
+        for (int i = 0; i < 3; ++i) buf.b[i][x] = b[i];
       } else {
-        n = m_inv_f[model] * q;
+        const Eigen::Vector3f n = m_inv_f[model] * q;
+        for (int i = 0; i < 3; ++i) buf.n[i][x] = n[i];
       }
+    }
+    // (2)
+    if (calibrated && all_point_lights) {
+      SolveNearLightRow(w, static_cast<float>(-cx * inv_fx), inv_fx, ray_y, fscale, lx, ly, lz, li, buf.inverse_depth.data(),
+                        buf.b[0].data(), buf.b[1].data(), buf.b[2].data(), buf.n[0].data(), buf.n[1].data(),
+                        buf.n[2].data());
+    } else if (calibrated) {
+      for (int x = 0; x < w; ++x) {
+        if (!buf.solve[x]) continue;
+        const Eigen::Vector3f n =
+            near_light_matrix((x - cx) * inv_fx, inv[x]).inverse() * Eigen::Vector3f(buf.b[0][x], buf.b[1][x], buf.b[2][x]);
+        for (int i = 0; i < 3; ++i) buf.n[i][x] = n[i];
+      }
+    }
+    // (3)
+    for (int x = 0; x < w; ++x) {
+      if (!buf.solve[x]) continue;
+      Eigen::Vector3f n(buf.n[0][x], buf.n[1][x], buf.n[2][x]);
       const float len = n.norm();
-      if (!(len > 1e-9f) || !n.allFinite()) continue;
+      if (!(len > 1e-30f) || !n.allFinite()) continue;
       n /= len;
+      const int mx = std::max({c[x][0], c[x][1], c[x][2]});
+      float quality = 1.f;
+      // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light
+      // solve unreliable: compare each band with the others, relative to its irradiance.
+      if (calibrated) {
+        const float b0 = buf.b[0][x], b1 = buf.b[1][x], b2 = buf.b[2][x];
+        if (std::min({b0, b1, b2}) < 0.1f * std::max({b0, b1, b2})) quality *= 0.2f;
+      }
+      const Eigen::Vector3f ray((x - cx) * inv_fx, ray_y, 1.f);
       if (n.dot(ray) > 0) {  // facing away: flip, and trust it less
         n = -n;
         quality *= 0.2f;
       }
       if (mx >= saturation_level) quality *= 0.2f;
-      if (label < 0) quality *= 0.5f;
+      if (lab[x] < 0) quality *= 0.5f;
       quality *= std::min(1.f, mx * level_scale);
       // Far from the (coarse) prior normal: likely a shadow or a mislabelled albedo, not detail.
-      if (has_prior && n.dot(prior_normal) < cos_max_prior_deviation) quality *= 0.1f;
+      if (n0) {
+        const Eigen::Vector3f prior_normal(n0[x][0], n0[x][1], n0[x][2]);
+        if (prior_normal.squaredNorm() > 0 && n.dot(prior_normal) < cos_max_prior_deviation) quality *= 0.1f;
+      }
       out[x] = cv::Vec3f(n.x(), n.y(), n.z());
       conf[x] = std::clamp(quality, 0.f, 1.f);
     }
   };
+  // Rows in blocks, each block with its own buffers.
+  constexpr int kSolveRows = 16;
+  auto solve_block = [&](std::ptrdiff_t block) {
+    RowBuffers buf;
+    for (int y = static_cast<int>(block) * kSolveRows; y < std::min(h, static_cast<int>(block + 1) * kSolveRows); ++y)
+      solve_row(y, buf);
+  };
+  const int solve_blocks = (h + kSolveRows - 1) / kSolveRows;
   if (pool) {
-    pool->ParallelFor(0, h, solve_row, 8);
+    pool->ParallelFor(0, solve_blocks, solve_block, 1);
   } else {
-    for (int y = 0; y < h; ++y) solve_row(y);
+    for (int b = 0; b < solve_blocks; ++b) solve_block(b);
   }
   return result;
 }
