@@ -1,7 +1,9 @@
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <iostream>
 #include <mutex>
+#include <string>
 #include <thread>
 #include <vector>
 
@@ -12,6 +14,9 @@
 #include "core/pipeline/dense_workers.h"
 #include "core/pipeline/session_pipeline.h"
 #include "core/synth/presets.h"
+#include "core/synth/renderer.h"
+#include "core/synth/trajectory.h"
+#include "core/util/thread_pool.h"
 
 namespace prism {
 namespace {
@@ -145,6 +150,106 @@ TEST(SessionPipelineTest, RejectPolicyRefusesWhenFullAndCountsIt) {
   ASSERT_TRUE(log.WaitFinished(10000));
   EXPECT_EQ(log.events.back().stats.frames_rejected, static_cast<uint64_t>(rejected));
   EXPECT_EQ(log.events.back().stats.frames_received + rejected, 200u);
+}
+
+// Renders `frames` raw frames of a preset at 256x256 (enough texture for SLAM to make keyframes).
+struct RenderedSequence {
+  RigCalibration rig;
+  std::vector<EncodedFrame> frames;
+};
+RenderedSequence RenderSequence(const std::string& preset, int frames) {
+  synth::PresetOptions po;
+  po.width = 256;
+  po.height = 256;
+  po.frames = frames;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, po);
+  RenderedSequence seq;
+  if (!setup.ok()) return seq;
+  seq.rig = setup->rig;
+  ThreadPool pool(2);
+  const Trajectory trajectory = synth::MakeTrajectory(setup->trajectory);
+  for (size_t i = 0; i < trajectory.size(); ++i) {
+    const synth::RenderedFrame r = synth::RenderFrame(setup->scene, setup->rig, trajectory[i].world_from_camera,
+                                                      setup->render, /*noise_seed=*/i + 1, &pool);
+    EncodedFrame f;
+    f.sequence_number = i;
+    f.timestamp_ns = static_cast<int64_t>(trajectory[i].timestamp_s * 1e9);
+    f.codec = FrameCodec::kRaw;
+    f.bytes.assign(r.rgb.data, r.rgb.data + r.rgb.total() * 3);
+    seq.frames.push_back(std::move(f));
+  }
+  return seq;
+}
+
+// The dense stage is held (its only worker blocked by a gate job) while SLAM produces keyframes into a
+// one-slot keyframe queue: an upload session keeps every finished keyframe (SLAM waits, so it stops
+// taking frames), a live session drops the oldest ones and counts them.
+TEST(SessionPipelineTest, UploadWaitsForTheDenseStageAndLiveDropsTheOldestKeyframe) {
+  const RenderedSequence seq = RenderSequence("sphere-multicolor-sideways", 40);
+  if (seq.frames.empty()) GTEST_SKIP() << "preset unavailable";
+  for (const OverflowPolicy policy : {OverflowPolicy::kReject, OverflowPolicy::kDropOldest}) {
+    SCOPED_TRACE(policy == OverflowPolicy::kReject ? "upload" : "live");
+    ThreadPool pool(2);
+    DenseWorkers workers(1, &pool);
+    std::mutex gate_mutex;
+    std::condition_variable gate_cv;
+    bool gate_open = false;
+    auto gate = workers.NewStrand();
+    gate->Post([&] {
+      std::unique_lock<std::mutex> lock(gate_mutex);
+      gate_cv.wait(lock, [&] { return gate_open; });
+    });
+    EventLog log;
+    SessionPipelineOptions options;
+    options.frame_queue_capacity = 64;  // every frame fits: only the keyframe queue can push back
+    options.keyframe_queue_capacity = 1;
+    options.input_policy = policy;
+    StatusOr<std::unique_ptr<SessionPipeline>> p = SessionPipeline::Create(seq.rig, options, &workers, log.Sink());
+    ASSERT_TRUE(p.ok()) << p.status();
+    for (const EncodedFrame& f : seq.frames) ASSERT_TRUE((*p)->Push(f).ok());
+    // Let SLAM run against the closed gate until it stops making progress.
+    uint64_t processed = 0;
+    for (int stable = 0; stable < 10;) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(200));
+      const uint64_t now = (*p)->stats().frames_processed;
+      stable = now == processed ? stable + 1 : 0;
+      processed = now;
+    }
+    const PipelineStats held = (*p)->stats();
+    if (policy == OverflowPolicy::kReject) {
+      // One keyframe queued, one waiting in SLAM: SLAM stopped before the end of the sequence.
+      EXPECT_EQ(held.keyframes_dropped, 0u);
+      EXPECT_GE(held.keyframe_waits, 1u);
+      EXPECT_LT(held.frames_processed, seq.frames.size());
+    } else {
+      EXPECT_EQ(held.frames_processed, seq.frames.size());
+      EXPECT_EQ(held.keyframe_waits, 0u);
+    }
+    {
+      std::lock_guard<std::mutex> lock(gate_mutex);
+      gate_open = true;
+    }
+    gate_cv.notify_all();
+    (*p)->Finish();
+    ASSERT_TRUE(log.WaitFinished(120000));
+    const PipelineStats& s = log.events.back().stats;
+    std::cout << "keyframes " << s.keyframes << " dropped " << s.keyframes_dropped << " failed " << s.keyframes_failed
+              << " chunks " << s.chunks << " waits " << s.keyframe_waits << "\n";
+    ASSERT_GE(s.keyframes, 3u);  // enough keyframes to overflow a one-slot queue
+    EXPECT_EQ(s.frames_processed, seq.frames.size());
+    if (policy == OverflowPolicy::kReject) {
+      EXPECT_EQ(s.keyframes_dropped, 0u);
+    } else {
+      EXPECT_GE(s.keyframes_dropped, 1u);
+    }
+    // Every keyframe that was not dropped went through the dense stage.
+    size_t keyframe_events = 0;
+    for (const PipelineEvent& e : log.events)
+      if ((e.kind == PipelineEvent::Kind::kChunk && e.keyframe_id != 0) ||
+          (e.kind == PipelineEvent::Kind::kError && !e.has_frame && !e.fatal))
+        ++keyframe_events;
+    EXPECT_LE(keyframe_events, s.keyframes - s.keyframes_dropped);
+  }
 }
 
 TEST(SessionPipelineTest, InvalidOptionsAreRefused) {

@@ -108,6 +108,7 @@ void SessionPipeline::Abort() {
   stats_.frames_dropped += dropped;
   stats_.keyframes_dropped += keyframes_.size();
   keyframes_.clear();
+  keyframe_room_.notify_all();
 }
 
 PipelineStats SessionPipeline::stats() const {
@@ -135,6 +136,7 @@ void SessionPipeline::Fail(const Status& status) {
   frames_.Close();
   std::lock_guard<std::mutex> lock(mutex_);
   stats_.frames_dropped += dropped;
+  keyframe_room_.notify_all();
 }
 
 void SessionPipeline::SlamLoop() {
@@ -223,11 +225,22 @@ void SessionPipeline::SlamLoop() {
 
 void SessionPipeline::QueueKeyframe(SlamKeyframe keyframe) {
   {
-    std::lock_guard<std::mutex> lock(mutex_);
+    std::unique_lock<std::mutex> lock(mutex_);
     ++stats_.keyframes;
-    if (keyframes_.size() >= static_cast<size_t>(options_.keyframe_queue_capacity)) {
-      keyframes_.pop_front();
-      ++stats_.keyframes_dropped;
+    const size_t capacity = static_cast<size_t>(options_.keyframe_queue_capacity);
+    if (keyframes_.size() >= capacity) {
+      if (options_.input_policy == OverflowPolicy::kReject) {
+        // Upload: hold SLAM (and so the frame credits) until the dense stage takes a keyframe.
+        ++stats_.keyframe_waits;
+        keyframe_room_.wait(lock, [&] { return keyframes_.size() < capacity || aborted_ || failed_; });
+        if (aborted_ || failed_) {
+          ++stats_.keyframes_dropped;
+          return;
+        }
+      } else {
+        keyframes_.pop_front();
+        ++stats_.keyframes_dropped;
+      }
     }
     keyframes_.push_back(std::move(keyframe));
   }
@@ -265,6 +278,7 @@ void SessionPipeline::DenseJob() {
     if (keyframes_.empty()) return;  // dropped by the overflow policy or Abort
     kf = std::move(keyframes_.front());
     keyframes_.pop_front();
+    keyframe_room_.notify_all();
     if (aborted_ || failed_) {
       ++stats_.keyframes_dropped;
       return;

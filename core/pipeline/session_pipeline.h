@@ -13,6 +13,7 @@
 #pragma once
 
 #include <atomic>
+#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -42,8 +43,11 @@ struct SessionPipelineOptions {
   int frame_queue_capacity = 8;
   // A full frame queue drops its oldest frame (live camera) or rejects the new one (upload).
   OverflowPolicy input_policy = OverflowPolicy::kDropOldest;
-  // Finished keyframes waiting for the dense stage, in [1, 256]; a full queue drops its oldest
-  // keyframe (counted): SLAM never waits for the dense stage.
+  // Finished keyframes waiting for the dense stage, in [1, 256]. When full, a live session
+  // (input_policy kDropOldest) drops its oldest keyframe (counted): SLAM never waits for the dense
+  // stage. An upload session (kReject) never drops a finished keyframe: the SLAM thread waits for
+  // room, so it stops consuming frames, the frame queue fills and the server stops granting frame
+  // credits (memory stays bounded by the two queue capacities).
   int keyframe_queue_capacity = 4;
 
   Status Check() const;
@@ -64,6 +68,7 @@ struct PipelineStats {
   uint64_t frames_processed = 0;  // tracked by SLAM
   uint64_t keyframes = 0;         // finished keyframes from SLAM
   uint64_t keyframes_dropped = 0;
+  uint64_t keyframe_waits = 0;     // upload: times SLAM waited for room in the keyframe queue
   uint64_t keyframes_failed = 0;  // dense stage errors
   uint64_t chunks = 0;
   uint64_t chunk_bytes = 0;
@@ -121,6 +126,8 @@ class SessionPipeline {
   void Abort();
 
   PipelineStats stats() const;
+  // Frames in the queue, not yet taken by the SLAM thread.
+  size_t queued_frames() const { return frames_.size(); }
   // The merged map so far (call after kFinished, or accept a snapshot taken between keyframes).
   PointCloud MapSnapshot() const;
 
@@ -147,6 +154,7 @@ class SessionPipeline {
   std::atomic<bool> failed_{false};
   std::atomic<double> metres_per_unit_{0.0};
   mutable std::mutex mutex_;
+  std::condition_variable keyframe_room_;  // signalled when keyframes_ shrinks or on Abort/Fail
   std::deque<SlamKeyframe> keyframes_;  // Guarded by mutex_.
   PipelineStats stats_;                 // Guarded by mutex_.
   mutable std::mutex map_mutex_;        // held by dense jobs while they write the map
