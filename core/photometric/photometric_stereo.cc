@@ -558,50 +558,91 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   constexpr double kCauchyScale = 0.2;  // sine of the angle at which a prior normal counts half
   std::vector<Eigen::Matrix3d> a;    // A_i at the scale of the last fit_directions call
   std::vector<Eigen::Matrix3d> apa;  // A_i^T (I - n0 n0^T) A_i
-  std::vector<bool> usable;
+  std::vector<uint8_t> usable;  // not vector<bool>: written from several threads
   // Uses the first `num_pixels` fit pixels (they are shuffled) and `iterations` IRLS rounds.
+  // The fit pixels are processed in fixed chunks (on the pool when given) whose sums are added in
+  // chunk order: the result does not depend on the number of threads.
+  constexpr size_t kFitChunk = 1024;
+  auto for_chunks = [&](size_t n, const std::function<void(size_t, size_t, size_t)>& fn) {
+    const size_t chunks = (n + kFitChunk - 1) / kFitChunk;
+    auto run = [&](std::ptrdiff_t c) {
+      const size_t begin = static_cast<size_t>(c) * kFitChunk;
+      fn(static_cast<size_t>(c), begin, std::min(n, begin + kFitChunk));
+    };
+    if (pool && chunks > 1) {
+      pool->ParallelFor(0, static_cast<std::ptrdiff_t>(chunks), run, 1);
+    } else {
+      for (size_t c = 0; c < chunks; ++c) run(static_cast<std::ptrdiff_t>(c));
+    }
+    return chunks;
+  };
+  struct ChunkSums {
+    std::vector<Eigen::Matrix3d> h;
+    std::vector<int> counts;
+    double cost = 0, weight_sum = 0;
+  };
+  std::vector<ChunkSums> chunk_sums;
   auto fit_directions = [&](double s, size_t num_pixels, int iterations) {
     const int k = static_cast<int>(centres.size());
     const size_t n_fit = std::min(num_pixels, fit.size());
-    a.assign(fit.size(), Eigen::Matrix3d::Zero());
-    apa.assign(fit.size(), Eigen::Matrix3d::Zero());
-    usable.assign(fit.size(), false);
-    for (size_t i = 0; i < n_fit; ++i) {
-      const Eigen::Matrix3d sm = NearLightMatrix(rig, fit[i].ray * (s / fit[i].inverse_depth));
-      const double det = sm.determinant();
-      if (!(std::abs(det) > 1e-12)) continue;
-      a[i] = sm.inverse() * fit[i].q.asDiagonal();  // closed-form 3x3 inverse
-      usable[i] = a[i].allFinite();
-      // A^T (I - n0 n0^T) A is fixed across the IRLS rounds: only the weights change.
-      const Eigen::Vector3d an0 = a[i].transpose() * fit[i].n0;
-      apa[i] = a[i].transpose() * a[i] - an0 * an0.transpose();
-    }
+    a.resize(fit.size());
+    apa.resize(fit.size());
+    usable.assign(fit.size(), 0);
+    for_chunks(n_fit, [&](size_t, size_t begin, size_t end) {
+      for (size_t i = begin; i < end; ++i) {
+        const Eigen::Matrix3d sm = NearLightMatrix(rig, fit[i].ray * (s / fit[i].inverse_depth));
+        const double det = sm.determinant();
+        if (!(std::abs(det) > 1e-12)) continue;
+        a[i] = sm.inverse() * fit[i].q.asDiagonal();  // closed-form 3x3 inverse
+        usable[i] = a[i].allFinite();
+        // A^T (I - n0 n0^T) A is fixed across the IRLS rounds: only the weights change.
+        const Eigen::Vector3d an0 = a[i].transpose() * fit[i].n0;
+        apa[i] = a[i].transpose() * a[i] - an0 * an0.transpose();
+      }
+    });
     inverse_albedo.assign(k + 1, Eigen::Vector3d::Ones());
     double cost = 0;
     double weight_sum = 0;
     for (int iter = 0; iter < iterations; ++iter) {
+      // Only the last round's cost is returned.
+      const bool want_cost = iter + 1 == iterations;
+      chunk_sums.resize((n_fit + kFitChunk - 1) / kFitChunk);
+      const size_t chunks = for_chunks(n_fit, [&](size_t chunk, size_t begin, size_t end) {
+        ChunkSums& sums = chunk_sums[chunk];
+        sums.h.assign(k + 1, Eigen::Matrix3d::Zero());
+        sums.counts.assign(k + 1, 0);
+        sums.cost = sums.weight_sum = 0;
+        for (size_t i = begin; i < end; ++i) {
+          if (!usable[i]) continue;
+          for (int m : {fit[i].label, k}) {
+            if (m < 0) continue;
+            const Eigen::Vector3d n = a[i] * inverse_albedo[m];
+            const double len2 = n.squaredNorm();
+            if (len2 < 1e-18) continue;
+            // sin^2 of the angle to n0: |(I - n0 n0^T) n|^2 / |n|^2 = 1 - (n0 . n)^2 / |n|^2.
+            const double c = fit[i].n0.dot(n);
+            const double r2 = std::max(0.0, 1.0 - c * c / len2) / (kCauchyScale * kCauchyScale);
+            const double w = 1.0 / (1.0 + r2);
+            sums.h[m] += (w / len2) * apa[i];
+            sums.counts[m]++;
+            if (want_cost && m == (fit[i].label >= 0 ? fit[i].label : k)) {
+              sums.cost += std::log1p(r2);
+              sums.weight_sum += 1;
+            }
+          }
+        }
+      });
       std::vector<Eigen::Matrix3d> h(k + 1, Eigen::Matrix3d::Zero());
       std::vector<int> counts(k + 1, 0);
       cost = 0;
       weight_sum = 0;
-      for (size_t i = 0; i < n_fit; ++i) {
-        if (!usable[i]) continue;
-        for (int m : {fit[i].label, k}) {
-          if (m < 0) continue;
-          const Eigen::Vector3d n = a[i] * inverse_albedo[m];
-          const double len2 = n.squaredNorm();
-          if (len2 < 1e-18) continue;
-          // sin^2 of the angle to n0: |(I - n0 n0^T) n|^2 / |n|^2 = 1 - (n0 . n)^2 / |n|^2.
-          const double c = fit[i].n0.dot(n);
-          const double r = std::sqrt(std::max(0.0, 1.0 - c * c / len2));
-          const double w = 1.0 / (1.0 + (r / kCauchyScale) * (r / kCauchyScale));
-          h[m] += (w / len2) * apa[i];
-          counts[m]++;
-          if (m == (fit[i].label >= 0 ? fit[i].label : k)) {
-            cost += std::log1p((r / kCauchyScale) * (r / kCauchyScale));
-            weight_sum += 1;
-          }
+      for (size_t c = 0; c < chunks; ++c) {
+        for (int m = 0; m <= k; ++m) {
+          h[m] += chunk_sums[c].h[m];
+          counts[m] += chunk_sums[c].counts[m];
         }
+        cost += chunk_sums[c].cost;
+        weight_sum += chunk_sums[c].weight_sum;
       }
       for (int m = k; m >= 0; --m) {
         const bool own = counts[m] >= options.min_cluster_pixels || m == k;

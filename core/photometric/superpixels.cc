@@ -7,6 +7,31 @@
 #include "core/util/check.h"
 
 namespace prism {
+namespace {
+
+// One row of a centre's window: the SLICO distance of each pixel to the centre (colour over the
+// centre's normaliser plus squared image distance over the grid step squared), and the pixel joins
+// the centre when closer than to any centre so far. Branch-free on plain arrays: vectorised.
+void AssignRow(int x0, int x1, float cl, float ca, float cb, float cx, float dy, float norm, float spatial_weight, int k,
+               const float* __restrict p0, const float* __restrict p1, const float* __restrict p2,
+               float* __restrict dist, float* __restrict dcol, int* __restrict label) {
+  const float dy2 = dy * dy;
+  for (int x = x0; x < x1; ++x) {
+    const float d0 = p0[x] - cl, d1 = p1[x] - ca, d2 = p2[x] - cb;
+    const float dc = d0 * d0 + d1 * d1 + d2 * d2;
+    const float dx = static_cast<float>(x) - cx;
+    const float d = dc / norm + (dx * dx + dy2) / spatial_weight;
+    dcol[x] = dc;
+    const float old = dist[x];
+    const bool closer = d < old;
+    dist[x] = closer ? d : old;
+    // An integer mask rather than a select on the float comparison, which GCC does not vectorise.
+    const int mask = -static_cast<int>(closer);
+    label[x] = (k & mask) | (label[x] & ~mask);
+  }
+}
+
+}  // namespace
 
 int SlicSuperpixels(const cv::Mat& lab, int step_px, int iterations, cv::Mat* labels) {
   PRISM_CHECK(lab.type() == CV_8UC3 && lab.cols >= 2 && lab.rows >= 2) << "SlicSuperpixels: CV_8UC3 of >= 2x2";
@@ -86,18 +111,7 @@ int SlicSuperpixels(const cv::Mat& lab, int step_px, int iterations, cv::Mat* la
         float* dist = &distance[base];
         float* dcol = &colour_distance[base];
         int* lab_row = &label[base];
-        const float dy = y - c.y;
-        // Branch-free so that the compiler vectorises it.
-        for (int x = x0; x < x1; ++x) {
-          const float d0 = p0[x] - c.c[0], d1 = p1[x] - c.c[1], d2 = p2[x] - c.c[2];
-          const float dc = d0 * d0 + d1 * d1 + d2 * d2;
-          const float dx = x - c.x;
-          const float d = dc / norm + (dx * dx + dy * dy) / spatial_weight;
-          dcol[x] = dc;
-          const bool closer = d < dist[x];
-          dist[x] = closer ? d : dist[x];
-          lab_row[x] = closer ? k : lab_row[x];
-        }
+        AssignRow(x0, x1, c.c[0], c.c[1], c.c[2], c.x, y - c.y, norm, spatial_weight, k, p0, p1, p2, dist, dcol, lab_row);
       }
     }
     std::fill(sum.begin(), sum.end(), 0.f);
