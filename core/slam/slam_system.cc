@@ -59,6 +59,8 @@ struct SlamSystem::Impl {
   ThreadPool* pool = nullptr;
   std::unique_ptr<Tracker> tracker;
   std::unique_ptr<Tracker> reloc_tracker;
+  // Tracks the initialisation frames on the first, rough depth: a looser residual limit.
+  std::unique_ptr<Tracker> init_tracker;
 
   struct Keyframe {
     int id = 0;
@@ -120,6 +122,10 @@ StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& r
   impl->tracker = std::make_unique<Tracker>(std::move(t));
   PRISM_ASSIGN_OR_RETURN(Tracker r, Tracker::Create(rig, options.tracker));
   impl->reloc_tracker = std::make_unique<Tracker>(std::move(r));
+  TrackerOptions init_options = options.tracker;
+  init_options.max_residual_rms *= options.init_residual_factor;
+  PRISM_ASSIGN_OR_RETURN(Tracker it, Tracker::Create(rig, init_options));
+  impl->init_tracker = std::make_unique<Tracker>(std::move(it));
   return std::unique_ptr<SlamSystem>(new SlamSystem(std::move(impl)));
 }
 
@@ -210,7 +216,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   }
   cv::Mat K = (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
   cv::Mat inlier_mask;
-  cv::Mat E = cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.0, inlier_mask);
+  cv::Mat E = cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.5 * cam.width / 512.0, inlier_mask);
   if (E.rows != 3 || E.cols != 3) {
     *why = "essential matrix estimation failed";
     return false;
@@ -221,7 +227,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   // Features on shading (terminators, shadow edges, highlights) move with the lights, not with the
   // surface, so only a part of them is consistent with one rigid motion: ask for enough RANSAC inliers,
   // nearly all in front of both cameras.
-  if (inliers < 60 || inliers < 0.15 * static_cast<double>(init_points.size()) || good < 0.9 * inliers) {
+  if (inliers < 30 || inliers < 0.15 * static_cast<double>(init_points.size()) || good < 0.9 * inliers) {
     *why = "relative pose ambiguous (" + std::to_string(good) + " of " + std::to_string(init_points.size()) +
            " features consistent, " + std::to_string(inliers) + " RANSAC inliers, parallax " +
            std::to_string(parallax) + " px)";
@@ -252,7 +258,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
     points.push_back(p);
     pixels.push_back(init_points0[i]);
   }
-  if (points.size() < 40) {
+  if (points.size() < 30) {
     *why = "too few triangulated points";
     return false;
   }
@@ -275,7 +281,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   }
   DensifyOptions dens;
   dens.sigma_px = std::max(2.0, cam.width / 100.0);
-  dens.levels = 3;
+  dens.levels = 6;
   const cv::Mat dense = DensifyInverseDepth(sparse, dens);
 
   const InitFrame& first = init_frames.front();
@@ -292,7 +298,8 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   std::vector<Rigid3d> poses(init_frames.size());
   const Rigid3d last_guess(Eigen::Quaterniond(R), t * scale);
   for (int pass = 0; pass < 2; ++pass) {
-    if (!tracker->SetKeyframe(first.rgb, depth->ToInverseDepthMap(1, 0.5)).ok()) {
+    Tracker* init = pass == 0 ? init_tracker.get() : tracker.get();
+    if (!init->SetKeyframe(first.rgb, depth->ToInverseDepthMap(1, 0.5)).ok()) {
       *why = "too few points to track on the first keyframe";
       return false;
     }
@@ -301,7 +308,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
       Rigid3d guess = i == 1 ? Rigid3d() : (prev * prev2.Inverse()) * prev;
       if (pass == 1) guess = poses[i];
       if (i + 1 == init_frames.size() && pass == 0) guess = last_guess;
-      StatusOr<TrackingResult> tr = tracker->Track(init_frames[i].rgb, guess);
+ StatusOr<TrackingResult> tr = init->Track(init_frames[i].rgb, guess);
       if (!tr.ok() || !tr->ok) {
         *why = "tracking the initialisation frames failed" + (tr.ok() ? ": " + tr->lost_reason : std::string());
         return false;

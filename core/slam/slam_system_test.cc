@@ -112,7 +112,9 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
 // Tolerances from measurement (printed): see the note of the SLAM issue.
 INSTANTIATE_TEST_SUITE_P(DarkRoomPresets, SlamSystemPresetTest,
                          ::testing::Values(SlamCase{"bunny-multicolor-forward", 150, /*max_ate_percent_of_path=*/1.0,
-                                                    /*max_depth_median_rel_error=*/0.03}),
+                                                    /*max_depth_median_rel_error=*/0.06},
+                                           SlamCase{"dragon-multicolor-sideways", 150, /*max_ate_percent_of_path=*/1.0,
+                                                    /*max_depth_median_rel_error=*/0.06}),
                          [](const ::testing::TestParamInfo<SlamCase>& info) {
                            std::string n = info.param.preset;
                            std::replace(n.begin(), n.end(), '-', '_');
