@@ -14,7 +14,7 @@ PACKAGES=(
   libjpeg-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libcgal-demo
-  python3 python3-numpy
+  python3 python3-numpy python3-dev pybind11-dev python3-yaml
 )
 
 SUDO=""

@@ -2,13 +2,12 @@
 // (deploy/k8s/README.md): a real prism-server, queried with prism-probe (the
 // tool the container's HEALTHCHECK uses), filled to capacity with a real client
 // session.
+#include <gtest/gtest.h>
 #include <unistd.h>
 
 #include <filesystem>
 #include <memory>
 #include <string>
-
-#include <gtest/gtest.h>
 
 #include "prism/client/client.h"
 #include "tests/server_process.h"
@@ -30,31 +29,27 @@ client::Rig SmallRig() {
   for (int l = 0; l < 3; ++l) {
     rig.lights[l].name = l == 0 ? "red" : l == 1 ? "green" : "blue";
     rig.lights[l].position_in_camera = {x[l], y[l], 0.0};
-    rig.lights[l].color = {l == 0 ? 1.0 : 0.0, l == 1 ? 1.0 : 0.0,
-                           l == 2 ? 1.0 : 0.0};
+    rig.lights[l].color = {l == 0 ? 1.0 : 0.0, l == 1 ? 1.0 : 0.0, l == 2 ? 1.0 : 0.0};
   }
   return rig;
 }
 
 class AllocateTest : public ::testing::Test {
-protected:
+ protected:
   void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("prism_allocate_test_" + std::to_string(getpid()));
+    dir_ = fs::temp_directory_path() / ("prism_allocate_test_" + std::to_string(getpid()));
     fs::remove_all(dir_);
     fs::create_directories(dir_);
   }
   void TearDown() override {
-    if (!HasFailure())
-      fs::remove_all(dir_);
+    if (!HasFailure()) fs::remove_all(dir_);
   }
   fs::path dir_;
 };
 
 TEST_F(AllocateTest, AdvertisesTheEndpointAndFreeCapacityThenRefusesWhenFull) {
   ServerProcess server((dir_ / "data").string(),
-                       {"--max-sessions", "1", "--advertise",
-                        "tcp://prism-0.prism-pods.default.svc:5555"},
+                       {"--max-sessions", "1", "--advertise", "tcp://prism-0.prism-pods.default.svc:5555"},
                        (dir_ / "server.log").string());
   ASSERT_TRUE(server.ok());
   const std::string probe = Bin("prism-probe") + " " + server.metrics();
@@ -65,18 +60,14 @@ TEST_F(AllocateTest, AdvertisesTheEndpointAndFreeCapacityThenRefusesWhenFull) {
 
   r = Execute(probe + "/allocate");
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  EXPECT_NE(
-      r.out.find("\"endpoint\": \"tcp://prism-0.prism-pods.default.svc:5555\""),
-      std::string::npos)
-      << r.out;
+  EXPECT_NE(r.out.find("\"endpoint\": \"tcp://prism-0.prism-pods.default.svc:5555\""), std::string::npos) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "free"), 1) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "sessions_capacity"), 1) << r.out;
 
   // One open session fills the server: /allocate says 503 with free 0, so a
   // caller asks another replica.
   std::unique_ptr<client::Session> session;
-  const client::Status open =
-      client::Session::Open(server.endpoint(), SmallRig(), {}, &session);
+  const client::Status open = client::Session::Open(server.endpoint(), SmallRig(), {}, &session);
   ASSERT_TRUE(open.ok()) << open.ToString();
   r = Execute(probe + "/allocate");
   EXPECT_EQ(r.exit_code, 1) << r.out;
@@ -94,26 +85,21 @@ TEST_F(AllocateTest, AdvertisesTheEndpointAndFreeCapacityThenRefusesWhenFull) {
   EXPECT_EQ(r.exit_code, 1) << r.out;
   EXPECT_EQ(server.Stop(), 0);
   // Nobody listens any more: prism-probe says so with exit code 2.
-  r = Execute(Bin("prism-probe") + " --timeout-ms 500 " + server.metrics() +
-              "/healthz");
+  r = Execute(Bin("prism-probe") + " --timeout-ms 500 " + server.metrics() + "/healthz");
   EXPECT_EQ(r.exit_code, 2) << r.out;
 }
 
 TEST_F(AllocateTest, ProbeRejectsBadArguments) {
   EXPECT_EQ(Execute(Bin("prism-probe") + " ftp://x/").exit_code, 2);
-  EXPECT_EQ(Execute(Bin("prism-probe") + " http://127.0.0.1/healthz").exit_code,
-            2);
-  EXPECT_EQ(Execute(Bin("prism-probe") + " --timeout-ms 0 http://127.0.0.1:1/")
-                .exit_code,
-            2);
+  EXPECT_EQ(Execute(Bin("prism-probe") + " http://127.0.0.1/healthz").exit_code, 2);
+  EXPECT_EQ(Execute(Bin("prism-probe") + " --timeout-ms 0 http://127.0.0.1:1/").exit_code, 2);
 }
 
 TEST(ServerOptionsTest, AdvertiseMustBeATcpEndpoint) {
-  const ProcessResult r = Execute(Bin("prism-server") +
-                                  " --data-dir /tmp --advertise prism-0:5555");
+  const ProcessResult r = Execute(Bin("prism-server") + " --data-dir /tmp --advertise prism-0:5555");
   EXPECT_EQ(r.exit_code, 2) << r.out;
   EXPECT_NE(r.out.find("advertise"), std::string::npos) << r.out;
 }
 
-} // namespace
-} // namespace prism
+}  // namespace
+}  // namespace prism

@@ -24,7 +24,7 @@ int Fail(const std::string &message) {
   return 2;
 }
 
-} // namespace
+}  // namespace
 
 int main(int argc, char **argv) {
   int timeout_ms = 3000;
@@ -32,58 +32,48 @@ int main(int argc, char **argv) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
-      std::cout
-          << "usage: prism-probe [--timeout-ms MS] http://HOST:PORT/PATH\n\n"
-             "GETs the URL (HTTP/1.0), prints the body; exit 0 on 2xx, 1 on "
-             "another status, 2 when\n"
-             "unreachable within the timeout (default 3000 ms). E.g. "
-             "prism-probe http://127.0.0.1:9100/healthz\n";
+      std::cout << "usage: prism-probe [--timeout-ms MS] http://HOST:PORT/PATH\n\n"
+                   "GETs the URL (HTTP/1.0), prints the body; exit 0 on 2xx, 1 on "
+                   "another status, 2 when\n"
+                   "unreachable within the timeout (default 3000 ms). E.g. "
+                   "prism-probe http://127.0.0.1:9100/healthz\n";
       return 0;
     }
     if (a == "--timeout-ms" && i + 1 < argc) {
       timeout_ms = std::atoi(argv[++i]);
-      if (timeout_ms <= 0)
-        return Fail("--timeout-ms must be > 0");
+      if (timeout_ms <= 0) return Fail("--timeout-ms must be > 0");
     } else if (url.empty() && a.rfind("--", 0) != 0) {
       url = a;
     } else {
       return Fail("unknown argument '" + a + "' (see --help)");
     }
   }
-  if (url.rfind("http://", 0) != 0)
-    return Fail("expected an http://HOST:PORT/PATH URL, got '" + url + "'");
+  if (url.rfind("http://", 0) != 0) return Fail("expected an http://HOST:PORT/PATH URL, got '" + url + "'");
   const std::string rest = url.substr(7);
   const size_t slash = rest.find('/');
-  const std::string authority = rest.substr(0, slash),
-                    path =
-                        slash == std::string::npos ? "/" : rest.substr(slash);
+  const std::string authority = rest.substr(0, slash), path = slash == std::string::npos ? "/" : rest.substr(slash);
   const size_t colon = authority.rfind(':');
   if (colon == std::string::npos || colon == 0 || colon + 1 == authority.size())
     return Fail("expected HOST:PORT in '" + url + "'");
-  const std::string host = authority.substr(0, colon),
-                    port = authority.substr(colon + 1);
+  const std::string host = authority.substr(0, colon), port = authority.substr(colon + 1);
 
   addrinfo hints{};
   hints.ai_family = AF_UNSPEC;
   hints.ai_socktype = SOCK_STREAM;
   addrinfo *addresses = nullptr;
-  if (const int e = getaddrinfo(host.c_str(), port.c_str(), &hints, &addresses);
-      e != 0)
+  if (const int e = getaddrinfo(host.c_str(), port.c_str(), &hints, &addresses); e != 0)
     return Fail("cannot resolve '" + host + "': " + gai_strerror(e));
-  const auto deadline =
-      std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
   auto remaining_ms = [&] {
-    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
-        deadline - std::chrono::steady_clock::now());
+    const auto left =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
     return static_cast<int>(std::max<long long>(0, left.count()));
   };
   int fd = -1;
   std::string last_error = "no address";
   for (addrinfo *a = addresses; a && fd < 0; a = a->ai_next) {
-    fd = ::socket(a->ai_family, a->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC,
-                  a->ai_protocol);
-    if (fd < 0)
-      continue;
+    fd = ::socket(a->ai_family, a->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC, a->ai_protocol);
+    if (fd < 0) continue;
     int err = 0;
     if (::connect(fd, a->ai_addr, a->ai_addrlen) != 0) {
       err = errno;
@@ -91,8 +81,7 @@ int main(int argc, char **argv) {
         pollfd p{fd, POLLOUT, 0};
         socklen_t len = sizeof(err);
         err = ETIMEDOUT;
-        if (::poll(&p, 1, remaining_ms()) == 1)
-          ::getsockopt(fd, SOL_SOCKET, SO_ERROR, &err, &len);
+        if (::poll(&p, 1, remaining_ms()) == 1) ::getsockopt(fd, SOL_SOCKET, SO_ERROR, &err, &len);
       }
     }
     if (err != 0) {
@@ -102,36 +91,28 @@ int main(int argc, char **argv) {
     }
   }
   freeaddrinfo(addresses);
-  if (fd < 0)
-    return Fail("cannot connect to " + authority + ": " + last_error);
+  if (fd < 0) return Fail("cannot connect to " + authority + ": " + last_error);
 
-  const std::string request =
-      "GET " + path + " HTTP/1.0\r\nHost: " + authority + "\r\n\r\n";
+  const std::string request = "GET " + path + " HTTP/1.0\r\nHost: " + authority + "\r\n\r\n";
   size_t sent = 0;
   std::string response;
   bool closed = false;
   while (!closed) {
-    pollfd p{fd, static_cast<short>(sent < request.size() ? POLLOUT : POLLIN),
-             0};
+    pollfd p{fd, static_cast<short>(sent < request.size() ? POLLOUT : POLLIN), 0};
     const int left = remaining_ms();
     if (left == 0 || ::poll(&p, 1, left) != 1) {
       ::close(fd);
-      return Fail("no answer from " + authority + " within " +
-                  std::to_string(timeout_ms) + " ms");
+      return Fail("no answer from " + authority + " within " + std::to_string(timeout_ms) + " ms");
     }
     if (sent < request.size()) {
-      const ssize_t n = ::send(fd, request.data() + sent, request.size() - sent,
-                               MSG_NOSIGNAL);
-      if (n < 0 && errno != EAGAIN)
-        break;
-      if (n > 0)
-        sent += static_cast<size_t>(n);
+      const ssize_t n = ::send(fd, request.data() + sent, request.size() - sent, MSG_NOSIGNAL);
+      if (n < 0 && errno != EAGAIN) break;
+      if (n > 0) sent += static_cast<size_t>(n);
       continue;
     }
     char buf[4096];
     const ssize_t n = ::recv(fd, buf, sizeof(buf), 0);
-    if (n < 0 && errno == EAGAIN)
-      continue;
+    if (n < 0 && errno == EAGAIN) continue;
     if (n <= 0)
       closed = true;
     else
@@ -139,16 +120,13 @@ int main(int argc, char **argv) {
   }
   ::close(fd);
   // "HTTP/1.x CODE reason\r\n...\r\n\r\nbody"
-  const size_t space = response.find(' '),
-               header_end = response.find("\r\n\r\n");
-  if (response.rfind("HTTP/", 0) != 0 || space == std::string::npos ||
-      header_end == std::string::npos)
+  const size_t space = response.find(' '), header_end = response.find("\r\n\r\n");
+  if (response.rfind("HTTP/", 0) != 0 || space == std::string::npos || header_end == std::string::npos)
     return Fail("not an HTTP response from " + authority);
   const int code = std::atoi(response.c_str() + space + 1);
   std::cout << response.substr(header_end + 4);
   if (code < 200 || code > 299) {
-    std::cerr << "prism-probe: " << url << " answered "
-              << response.substr(space + 1, response.find('\r') - space - 1)
+    std::cerr << "prism-probe: " << url << " answered " << response.substr(space + 1, response.find('\r') - space - 1)
               << "\n";
     return 1;
   }
