@@ -1,0 +1,367 @@
+// Python bindings of libprism_client (module prism_client._native; the package prism_client wraps it).
+// Frames go in as numpy (H, W, 3) uint8 RGB arrays; poses, map chunks and the running map come back as
+// numpy arrays. Failures raise prism_client.PrismError (code, message, retryable). The GIL is released
+// while the SDK waits on the network, so other Python threads run meanwhile.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <cstring>
+#include <deque>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "core/io/calibration_io.h"
+#include "core/io/image_io.h"
+#include "core/io/sequence.h"
+#include "prism/client/client.h"
+
+namespace py = pybind11;
+namespace pc = prism::client;
+
+namespace {
+
+py::object g_error_type;  // prism_client.PrismError, set by the package at import
+
+[[noreturn]] void Raise(const pc::Status& status) {
+  if (g_error_type) {
+    PyErr_SetObject(g_error_type.ptr(),
+                    py::make_tuple(pc::CodeName(status.code), status.message, status.retryable).ptr());
+    throw py::error_already_set();
+  }
+  throw std::runtime_error(status.ToString());
+}
+
+void Check(const pc::Status& status) {
+  if (!status.ok()) Raise(status);
+}
+
+// Points -> {"positions": (N, 3) float32, "normals": (N, 3) float32, "colors": (N, 3) uint8}.
+py::dict PointsToNumpy(const std::vector<pc::Point>& points) {
+  const py::ssize_t n = static_cast<py::ssize_t>(points.size());
+  py::array_t<float> positions({n, py::ssize_t{3}}), normals({n, py::ssize_t{3}});
+  py::array_t<uint8_t> colors({n, py::ssize_t{3}});
+  auto p = positions.mutable_unchecked<2>();
+  auto q = normals.mutable_unchecked<2>();
+  auto c = colors.mutable_unchecked<2>();
+  for (py::ssize_t i = 0; i < n; ++i)
+    for (py::ssize_t k = 0; k < 3; ++k) {
+      p(i, k) = points[i].position[k];
+      q(i, k) = points[i].normal[k];
+      c(i, k) = points[i].color[k];
+    }
+  py::dict d;
+  d["positions"] = positions;
+  d["normals"] = normals;
+  d["colors"] = colors;
+  return d;
+}
+
+const char* StateName(pc::TrackingState s) {
+  switch (s) {
+    case pc::TrackingState::kInitialising: return "initialising";
+    case pc::TrackingState::kTracking: return "tracking";
+    case pc::TrackingState::kLost: return "lost";
+    default: return "unknown";
+  }
+}
+
+py::dict PoseToDict(const pc::Pose& pose) {
+  py::dict d;
+  d["frame"] = pose.frame_sequence_number;
+  d["timestamp_ns"] = pose.timestamp_ns;
+  d["rotation_xyzw"] = py::make_tuple(pose.rotation_xyzw[0], pose.rotation_xyzw[1], pose.rotation_xyzw[2],
+                                      pose.rotation_xyzw[3]);
+  d["translation"] = py::make_tuple(pose.translation[0], pose.translation[1], pose.translation[2]);
+  d["state"] = StateName(pose.state);
+  d["is_keyframe"] = pose.is_keyframe;
+  d["metres_per_unit"] = pose.metres_per_unit;
+  return d;
+}
+
+py::dict SummaryToDict(const pc::Summary& s) {
+  py::dict d;
+  d["frames_received"] = s.frames_received;
+  d["frames_dropped"] = s.frames_dropped;
+  d["frames_rejected"] = s.frames_rejected;
+  d["keyframes"] = s.keyframes;
+  d["keyframes_dropped"] = s.keyframes_dropped;
+  d["keyframes_failed"] = s.keyframes_failed;
+  d["chunks_sent"] = s.chunks_sent;
+  d["map_points"] = s.map_points;
+  d["metres_per_unit"] = s.metres_per_unit;
+  d["reason"] = s.reason;
+  return d;
+}
+
+// Event -> (kind, payload): ("pose", dict), ("chunk", dict with keyframe_id, sequence_number, draco bytes
+// and the points as arrays), ("error", (code, message, retryable)), ("summary", dict).
+py::tuple EventToPython(const pc::Event& e) {
+  switch (e.kind) {
+    case pc::Event::Kind::kPose: return py::make_tuple("pose", PoseToDict(e.pose));
+    case pc::Event::Kind::kChunk: {
+      py::dict d = PointsToNumpy(e.chunk.points);
+      d["keyframe_id"] = e.chunk.keyframe_id;
+      d["sequence_number"] = e.chunk.sequence_number;
+      d["draco"] = py::bytes(reinterpret_cast<const char*>(e.chunk.draco.data()), e.chunk.draco.size());
+      return py::make_tuple("chunk", d);
+    }
+    case pc::Event::Kind::kError:
+      return py::make_tuple("error", py::make_tuple(pc::CodeName(e.error.code), e.error.message, e.error.retryable));
+    case pc::Event::Kind::kSummary: return py::make_tuple("summary", SummaryToDict(e.summary));
+  }
+  return py::make_tuple("unknown", py::none());
+}
+
+pc::Rig RigFromCalibration(const prism::RigCalibration& c) {
+  pc::Rig rig;
+  rig.camera.width = c.camera.width;
+  rig.camera.height = c.camera.height;
+  rig.camera.fx = c.camera.fx;
+  rig.camera.fy = c.camera.fy;
+  rig.camera.cx = c.camera.cx;
+  rig.camera.cy = c.camera.cy;
+  for (int k = 0; k < 5; ++k) rig.camera.distortion[k] = c.camera.distortion[k];
+  for (int l = 0; l < 3; ++l) {
+    const prism::Light& in = c.lights[l];
+    pc::Light& out = rig.lights[l];
+    out.name = in.name;
+    out.directional = in.type == prism::LightType::kDirectional;
+    for (int k = 0; k < 3; ++k) {
+      out.position_in_camera[k] = in.position_in_camera[k];
+      out.direction_in_camera[k] = in.direction_in_camera[k];
+      out.color[k] = in.color[k];
+    }
+    out.intensity = in.intensity;
+  }
+  for (int r = 0; r < 3; ++r)
+    for (int col = 0; col < 3; ++col) rig.crosstalk[3 * r + col] = c.crosstalk(r, col);
+  return rig;
+}
+
+pc::Codec ParseCodec(const std::string& name) {
+  if (name == "png") return pc::Codec::kPng;
+  if (name == "jpeg") return pc::Codec::kJpeg;
+  if (name == "raw") return pc::Codec::kRaw;
+  Raise({pc::Code::kInvalidArgument, "codec must be png, jpeg or raw, got '" + name + "'", false});
+}
+
+// A session plus the poses it has received (kept here so Python gets them as one array).
+class PySession {
+ public:
+  PySession(const std::string& endpoint, const pc::Rig& rig, const std::string& codec, int jpeg_quality, bool live,
+            int chunk_credits, int timeout_ms, const std::string& client_name) {
+    pc::SessionOptions options;
+    options.codec = ParseCodec(codec);
+    options.jpeg_quality = jpeg_quality;
+    options.live = live;
+    options.chunk_credits = chunk_credits;
+    options.timeout_ms = timeout_ms;
+    options.client_name = client_name;
+    pc::Status s;
+    {
+      py::gil_scoped_release release;
+      s = pc::Session::Open(endpoint, rig, options, &session_);
+    }
+    Check(s);
+    width_ = rig.camera.width;
+    height_ = rig.camera.height;
+  }
+
+  void PushFrame(py::array_t<uint8_t, py::array::c_style | py::array::forcecast> rgb, int64_t timestamp_ns) {
+    if (rgb.ndim() != 3 || rgb.shape(2) != 3)
+      Raise({pc::Code::kInvalidArgument, "frame must be an (H, W, 3) uint8 RGB array", false});
+    const int h = static_cast<int>(rgb.shape(0)), w = static_cast<int>(rgb.shape(1));
+    const uint8_t* data = rgb.data();
+    pc::Status s;
+    {
+      py::gil_scoped_release release;
+      s = Live()->PushFrame(timestamp_ns, data, w, h, w * 3);
+      Drain();
+    }
+    Check(s);
+  }
+
+  // Streams the colour frames of a sequence folder (TUM layout); returns the frames sent.
+  size_t StreamFolder(const std::string& dir, size_t max_frames) {
+    prism::StatusOr<prism::Sequence> seq = prism::LoadSequence(dir);
+    if (!seq.ok()) Raise({pc::Code::kInvalidArgument, seq.status().ToString(), false});
+    size_t sent = 0;
+    pc::Status s;
+    {
+      py::gil_scoped_release release;
+      for (size_t i = 0; i < seq->frames.size() && sent < max_frames; ++i) {
+        prism::StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
+        if (!rgb.ok()) {
+          s = {pc::Code::kInvalidArgument, rgb.status().ToString(), false};
+          break;
+        }
+        const cv::Mat& m = *rgb;
+        s = Live()->PushFrame(static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9 + 0.5), m.ptr<uint8_t>(), m.cols,
+                              m.rows, static_cast<int>(m.step[0]));
+        if (!s.ok()) break;
+        ++sent;
+        Drain();
+      }
+    }
+    Check(s);
+    return sent;
+  }
+
+  // Next event or None (waits up to timeout_ms). Events that arrived during stream_folder or close
+  // come first, in order; every pose is also kept for poses().
+  py::object Poll(int timeout_ms) {
+    pc::Event e;
+    bool got = false;
+    if (!pending_.empty()) {
+      e = std::move(pending_.front());
+      pending_.pop_front();
+      got = true;
+    } else {
+      {
+        py::gil_scoped_release release;
+        got = Live()->Poll(&e, timeout_ms);
+      }
+      if (got && e.kind == pc::Event::Kind::kPose) poses_.push_back(e.pose);
+    }
+    if (!got) return py::none();
+    return EventToPython(e);
+  }
+
+  py::dict Close(int timeout_ms) {
+    pc::Summary summary;
+    pc::Status s;
+    {
+      py::gil_scoped_release release;
+      s = Live()->Close(timeout_ms, &summary);
+      Drain();
+    }
+    Check(s);
+    summary_scale_ = summary.metres_per_unit;
+    return SummaryToDict(summary);
+  }
+
+  // (N, 8) float64: timestamp_s tx ty tz qx qy qz qw (world_from_camera, TUM order, metres once the
+  // server knows the scale), for the poses received so far (tracked ones only by default).
+  py::array_t<double> Poses(bool tracked_only) const {
+    std::vector<const pc::Pose*> rows;
+    for (const pc::Pose& p : poses_)
+      if (!tracked_only || p.state == pc::TrackingState::kTracking) rows.push_back(&p);
+    // One scale for the whole trajectory (as prism-client writes it): the session's final one from the
+    // Summary, else the latest a pose carried; SLAM units while the server has none.
+    double s = summary_scale_;
+    for (auto it = poses_.rbegin(); s <= 0 && it != poses_.rend(); ++it) s = it->metres_per_unit;
+    if (s <= 0) s = 1.0;
+    py::array_t<double> out({static_cast<py::ssize_t>(rows.size()), py::ssize_t{8}});
+    auto a = out.mutable_unchecked<2>();
+    for (size_t i = 0; i < rows.size(); ++i) {
+      const pc::Pose& p = *rows[i];
+      a(i, 0) = static_cast<double>(p.timestamp_ns) * 1e-9;
+      for (int k = 0; k < 3; ++k) a(i, 1 + k) = p.translation[k] * s;
+      for (int k = 0; k < 4; ++k) a(i, 4 + k) = p.rotation_xyzw[k];
+    }
+    return out;
+  }
+
+  py::dict Map() const { return PointsToNumpy(Live()->Map()); }
+  std::string id() const { return Live()->session_id(); }
+  int frame_credits() const { return Live()->frame_credits(); }
+  uint64_t bytes_sent() const { return Live()->bytes_sent(); }
+  std::pair<int, int> size() const { return {width_, height_}; }
+
+ private:
+  // Never null: the constructor raises when Open fails.
+  pc::Session* Live() const { return session_.get(); }
+  // Moves the events waiting now into pending_ (for Poll) and keeps the poses. Runs without the GIL:
+  // only C++ state.
+  void Drain() {
+    pc::Event e;
+    while (session_->Poll(&e, 0)) {
+      if (e.kind == pc::Event::Kind::kPose) poses_.push_back(e.pose);
+      pending_.push_back(std::move(e));
+    }
+  }
+
+  std::unique_ptr<pc::Session> session_;
+  std::vector<pc::Pose> poses_;
+  std::deque<pc::Event> pending_;  // received inside StreamFolder/Close, not yet polled
+  int width_ = 0, height_ = 0;
+  double summary_scale_ = 0;  // metres per SLAM unit from the Summary (0 before Close)
+};
+
+}  // namespace
+
+PYBIND11_MODULE(_native, m) {
+  m.doc() = "libprism_client bindings (use the prism_client package)";
+  m.def("_set_error_type", [](py::object type) { g_error_type = type; });
+
+  py::class_<pc::Camera>(m, "Camera")
+      .def(py::init<>())
+      .def_readwrite("width", &pc::Camera::width)
+      .def_readwrite("height", &pc::Camera::height)
+      .def_readwrite("fx", &pc::Camera::fx)
+      .def_readwrite("fy", &pc::Camera::fy)
+      .def_readwrite("cx", &pc::Camera::cx)
+      .def_readwrite("cy", &pc::Camera::cy)
+      .def_readwrite("distortion", &pc::Camera::distortion);
+  py::class_<pc::Light>(m, "Light")
+      .def(py::init<>())
+      .def_readwrite("name", &pc::Light::name)
+      .def_readwrite("directional", &pc::Light::directional)
+      .def_readwrite("position_in_camera", &pc::Light::position_in_camera)
+      .def_readwrite("direction_in_camera", &pc::Light::direction_in_camera)
+      .def_readwrite("color", &pc::Light::color)
+      .def_readwrite("intensity", &pc::Light::intensity);
+  py::class_<pc::Rig>(m, "Rig")
+      .def(py::init<>())
+      .def_readwrite("camera", &pc::Rig::camera)
+      .def_readwrite("lights", &pc::Rig::lights)
+      .def_readwrite("crosstalk", &pc::Rig::crosstalk);
+  m.def(
+      "load_rig",
+      [](const std::string& path) {
+        prism::StatusOr<prism::RigCalibration> c = prism::ReadCalibrationYaml(path);
+        if (!c.ok()) Raise({pc::Code::kInvalidArgument, c.status().ToString(), false});
+        return RigFromCalibration(*c);
+      },
+      py::arg("path"), "Reads a rig calibration (camera.yaml, OpenCV FileStorage) into a Rig.");
+  m.def(
+      "read_image",
+      [](const std::string& path) {
+        prism::StatusOr<cv::Mat> rgb = prism::ReadRgbImage(path);
+        if (!rgb.ok()) Raise({pc::Code::kInvalidArgument, rgb.status().ToString(), false});
+        const cv::Mat m = rgb->isContinuous() ? *rgb : rgb->clone();
+        py::array_t<uint8_t> out({static_cast<py::ssize_t>(m.rows), static_cast<py::ssize_t>(m.cols), py::ssize_t{3}});
+        std::memcpy(out.mutable_data(), m.data, m.total() * 3);
+        return out;
+      },
+      py::arg("path"), "Reads an 8-bit image file as an (H, W, 3) uint8 RGB array.");
+  m.def(
+      "decode_chunk",
+      [](py::bytes data) {
+        const std::string bytes = data;
+        std::vector<pc::Point> points;
+        Check(pc::DecodeChunk(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size(), &points));
+        return PointsToNumpy(points);
+      },
+      py::arg("data"), "Decodes a Draco map chunk (.drc bytes) into positions, normals and colours.");
+
+  py::class_<PySession>(m, "Session")
+      .def(py::init<const std::string&, const pc::Rig&, const std::string&, int, bool, int, int, const std::string&>(),
+           py::arg("endpoint"), py::arg("rig"), py::arg("codec") = "png", py::arg("jpeg_quality") = 95,
+           py::arg("live") = false, py::arg("chunk_credits") = 8, py::arg("timeout_ms") = 10000,
+           py::arg("client_name") = "prism_client.py")
+      .def("push_frame", &PySession::PushFrame, py::arg("rgb"), py::arg("timestamp_ns"))
+      .def("stream_folder", &PySession::StreamFolder, py::arg("sequence_dir"), py::arg("max_frames") = size_t(-1))
+      .def("poll", &PySession::Poll, py::arg("timeout_ms") = 0)
+      .def("close", &PySession::Close, py::arg("timeout_ms") = 300000)
+      .def("poses", &PySession::Poses, py::arg("tracked_only") = true)
+      .def("map", &PySession::Map)
+      .def_property_readonly("id", &PySession::id)
+      .def_property_readonly("frame_credits", &PySession::frame_credits)
+      .def_property_readonly("bytes_sent", &PySession::bytes_sent)
+      .def_property_readonly("size", &PySession::size);
+}

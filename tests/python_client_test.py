@@ -1,0 +1,170 @@
+#!/usr/bin/python3
+"""Scripted Python clients (prism_client bindings) against a real prism-server on 127.0.0.1.
+
+  python_client_test.py BUILD_DIR
+BUILD_DIR/bin has prism-server, prism-synth and prism-eval; BUILD_DIR/python has the prism_client package.
+"""
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import unittest
+
+import numpy as np
+
+BUILD_DIR = None
+prism_client = None
+
+
+def binary(name):
+    return os.path.join(BUILD_DIR, "bin", name)
+
+
+class Server:
+    """prism-server on tcp://127.0.0.1:* with its metrics listener on a free port; SIGTERM to stop."""
+
+    def __init__(self, data_dir, *flags):
+        self.log = open(os.path.join(data_dir + ".log"), "w")
+        self.process = subprocess.Popen([binary("prism-server"), "--bind", "tcp://127.0.0.1:*", "--data-dir", data_dir,
+                                         "--metrics", "127.0.0.1:0", *flags], stdout=subprocess.PIPE,
+                                        stderr=self.log, text=True)
+        line = json.loads(self.process.stdout.readline())
+        self.endpoint, self.metrics = line["endpoint"], line["metrics"]
+
+    def stop(self):
+        self.process.terminate()
+        code = self.process.wait(timeout=30)
+        self.process.stdout.close()
+        self.log.close()
+        return code
+
+
+class PythonClientTest(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.tmp = tempfile.mkdtemp(prefix="prism_python_client_test_")
+        cls.seq = os.path.join(cls.tmp, "seq")
+        cls.frames = 60
+        r = subprocess.run([binary("prism-synth"), "--preset", "bunny-multicolor-forward", "--frames", str(cls.frames),
+                            "--out", cls.seq], capture_output=True, text=True)
+        if r.returncode != 0 and "not found" in r.stdout + r.stderr:
+            raise unittest.SkipTest(r.stdout + r.stderr)
+        assert r.returncode == 0, r.stdout + r.stderr
+
+    @classmethod
+    def tearDownClass(cls):
+        shutil.rmtree(cls.tmp)
+
+    def setUp(self):
+        self.data = tempfile.mkdtemp(prefix="data_", dir=self.tmp)
+
+    def test_stream_folder_gives_poses_and_a_map_on_the_object(self):
+        server = Server(self.data, "--keyframe-queue", "16")
+        rig = prism_client.load_rig(os.path.join(self.seq, "camera.yaml"))
+        self.assertEqual((rig.camera.width, rig.camera.height), (512, 512))
+        with prism_client.Session(server.endpoint, rig) as session:
+            self.assertTrue(session.id)
+            self.assertEqual(session.stream_folder(self.seq), self.frames)
+            summary = session.close()
+            poses, cloud = session.poses(), session.map()
+            all_poses = session.poses(tracked_only=False)
+        self.assertEqual(server.stop(), 0)
+        self.assertEqual(summary["frames_received"], self.frames)
+        self.assertEqual(summary["reason"], "closed by client")
+        self.assertGreater(summary["metres_per_unit"], 0)
+        self.assertEqual(all_poses.shape, (self.frames, 8))
+        self.assertEqual(poses.shape[1], 8)
+        self.assertGreaterEqual(len(poses), self.frames // 2)
+        self.assertTrue(np.all(np.isfinite(poses)))
+        self.assertTrue(np.allclose(np.linalg.norm(poses[:, 4:8], axis=1), 1.0, atol=1e-6))
+        self.assertEqual(cloud["positions"].dtype, np.float32)
+        self.assertEqual(cloud["colors"].dtype, np.uint8)
+        n = len(cloud["positions"])
+        self.assertGreater(n, 1000)
+        self.assertEqual(cloud["normals"].shape, (n, 3))
+        norms = np.linalg.norm(cloud["normals"], axis=1)
+        self.assertLess(np.median(np.abs(norms - 1.0)), 1e-2)
+
+        # The map scored against the ground truth through the streamed trajectory (as prism-client's
+        # output is): write both with the Python helpers, then prism-eval.
+        out = os.path.join(self.tmp, "folder")
+        os.makedirs(out, exist_ok=True)
+        np.savetxt(os.path.join(out, "trajectory.txt"), poses, fmt="%.9f")
+        prism_client.write_ply(os.path.join(out, "map.ply"), cloud)
+        r = subprocess.run([binary("prism-eval"), "cloud", "--object-only", "--sequence", self.seq, "--cloud",
+                            os.path.join(out, "map.ply"), "--align-trajectory", os.path.join(out, "trajectory.txt")],
+                           capture_output=True, text=True)
+        self.assertEqual(r.returncode, 0, r.stdout + r.stderr)
+        result = json.loads(r.stdout)
+        print(f"python client: {len(poses)} tracked poses of {self.frames}, {n} map points, accuracy median "
+              f"{result['accuracy_median_m']:.4f} m, F-score {result['fscore']:.3f}", file=sys.stderr)
+        # The bars of roundtrip_test: a frame or scale mistake puts the map tens of centimetres away.
+        max_map_accuracy_median_m = 0.06
+        min_map_fscore = 0.05
+        self.assertLess(result["accuracy_median_m"], max_map_accuracy_median_m)
+        self.assertGreaterEqual(result["fscore"], min_map_fscore)
+
+    def test_numpy_frames_and_events(self):
+        server = Server(self.data)
+        rig = prism_client.load_rig(os.path.join(self.seq, "camera.yaml"))
+        rgb_index = [line.split() for line in open(os.path.join(self.seq, "rgb.txt")) if not line.startswith("#")]
+        frames = [(round(float(t) * 1e9), prism_client.read_image(os.path.join(self.seq, f))) for t, f in rgb_index]
+        self.assertEqual(frames[0][1].shape, (512, 512, 3))
+        self.assertEqual(frames[0][1].dtype, np.uint8)
+        kinds = {}
+        chunk = None
+        with prism_client.Session(server.endpoint, rig, codec="jpeg") as session:
+            # A generator of numpy frames, as from a camera.
+            self.assertEqual(session.stream((t, rgb) for t, rgb in frames[:20]), 20)
+            session.close()
+            while True:
+                event = session.poll(0)
+                if event is None:
+                    break
+                kinds[event[0]] = kinds.get(event[0], 0) + 1
+                if event[0] == "chunk" and chunk is None:
+                    chunk = event[1]
+            self.assertEqual(len(session.poses(tracked_only=False)), 20)
+            self.assertGreater(session.bytes_sent, 0)
+        self.assertEqual(server.stop(), 0)
+        self.assertEqual(kinds.get("summary"), 1, kinds)
+        self.assertNotIn("error", kinds)
+        if chunk is not None:
+            decoded = prism_client.decode_chunk(chunk["draco"])
+            np.testing.assert_array_equal(decoded["positions"], chunk["positions"])
+            np.testing.assert_array_equal(decoded["colors"], chunk["colors"])
+
+    def test_errors_raise_prism_error(self):
+        server = Server(self.data, "--max-sessions", "1")
+        rig = prism_client.load_rig(os.path.join(self.seq, "camera.yaml"))
+        self.assertEqual(prism_client.allocate(server.metrics)["free"], 1)
+        session = prism_client.Session(server.endpoint, rig)
+        with self.assertRaises(prism_client.PrismError) as full:
+            prism_client.Session(server.endpoint, rig, timeout_ms=5000)
+        self.assertEqual(full.exception.code, "RESOURCE_EXHAUSTED")
+        with self.assertRaises(prism_client.PrismError) as busy:
+            prism_client.allocate(server.metrics)
+        self.assertEqual(busy.exception.code, "UNAVAILABLE")
+        self.assertTrue(busy.exception.retryable)
+        with self.assertRaises(prism_client.PrismError) as shape:
+            session.push_frame(np.zeros((512, 512), np.uint8), 0)
+        self.assertEqual(shape.exception.code, "INVALID_ARGUMENT")
+        with self.assertRaises(prism_client.PrismError):
+            prism_client.decode_chunk(b"not a draco chunk")
+        with self.assertRaises(prism_client.PrismError):
+            prism_client.load_rig(os.path.join(self.tmp, "missing.yaml"))
+        with self.assertRaises(prism_client.PrismError):
+            prism_client.Session(server.endpoint, rig, codec="webp")
+        session.close()
+        self.assertEqual(server.stop(), 0)
+
+
+if __name__ == "__main__":
+    BUILD_DIR = sys.argv[1]
+    sys.path.insert(0, os.path.join(BUILD_DIR, "python"))
+    import prism_client  # noqa: E402
+
+    unittest.main(argv=sys.argv[:1], verbosity=2)
