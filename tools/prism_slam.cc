@@ -23,6 +23,7 @@ namespace {
 using namespace prism;
 
 constexpr char kUsage[] = R"(usage: prism-slam --sequence DIR --out DIR [options]
+       prism-slam --kitti DIR --out DIR [options]
 
 Semi-dense direct monocular SLAM on a sequence folder (rgb.txt + rgb/ + camera.yaml; see README).
 Writes to DIR:
@@ -35,6 +36,9 @@ Writes to DIR:
   summary.json     frames, keyframes, states, timing; with ground truth in the sequence also the ATE
                    (Sim(3)-aligned, also as % of the path) and the keyframe depth error (printed too)
 
+--kitti DIR reads a KITTI odometry folder instead: image_0/*.png (greyscale), calib.txt (P0, with or
+without the 'P0:' label), times.txt and, when present, poses.txt as ground truth.
+
 options:
   --max-frames N   process at most N frames
   --threads N      threads for the depth filter (default: all cores)
@@ -46,10 +50,53 @@ int Fail(const std::string& m) {
   return 1;
 }
 
+// A KITTI odometry folder as a Sequence (images are read as RGB by Sequence::ReadRgb).
+StatusOr<Sequence> LoadKitti(const std::string& dir) {
+  Sequence seq;
+  seq.root = dir;
+  std::ifstream calib(dir + "/calib.txt");
+  if (!calib) return NotFoundError("cannot open '" + dir + "/calib.txt'");
+  std::string line;
+  std::getline(calib, line);
+  if (line.rfind("P0:", 0) == 0) line = line.substr(3);
+  std::istringstream ls(line);
+  double p[12];
+  for (double& v : p)
+    if (!(ls >> v)) return InvalidArgumentError("'" + dir + "/calib.txt': the first line must hold 12 numbers (P0)");
+  std::ifstream times(dir + "/times.txt");
+  if (!times) return NotFoundError("cannot open '" + dir + "/times.txt'");
+  double t = 0;
+  for (int i = 0; times >> t; ++i) {
+    char name[32];
+    std::snprintf(name, sizeof(name), "image_0/%06d.png", i);
+    SequenceFrame f;
+    f.timestamp_s = t;
+    f.rgb_file = name;
+    seq.frames.push_back(f);
+  }
+  if (seq.frames.empty()) return InvalidArgumentError("'" + dir + "/times.txt' has no timestamps");
+  StatusOr<cv::Mat> first = seq.ReadRgb(0);
+  if (!first.ok()) return first.status();
+  seq.calibration.camera.width = first->cols;
+  seq.calibration.camera.height = first->rows;
+  seq.calibration.camera.fx = p[0];
+  seq.calibration.camera.cx = p[2];
+  seq.calibration.camera.fy = p[5];
+  seq.calibration.camera.cy = p[6];
+  PRISM_RETURN_IF_ERROR(seq.calibration.Check());
+  seq.has_calibration = true;
+  if (std::filesystem::exists(dir + "/poses.txt")) {
+    StatusOr<Trajectory> gt = ReadKittiTrajectory(dir + "/poses.txt", dir + "/times.txt");
+    if (!gt.ok()) return gt.status();
+    seq.groundtruth = std::move(gt).value();
+  }
+  return seq;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string sequence_dir, out_dir;
+  std::string sequence_dir, kitti_dir, out_dir;
   long max_frames = -1;
   int threads = 0;
   bool eval = true;
@@ -69,13 +116,15 @@ int main(int argc, char** argv) {
     const double num = std::strtod(v.c_str(), &end);
     const bool is_num = end && *end == '\0' && !v.empty();
     if (a == "--sequence") sequence_dir = v;
+    else if (a == "--kitti") kitti_dir = v;
     else if (a == "--out") out_dir = v;
     else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
     else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
   }
-  if (sequence_dir.empty() || out_dir.empty()) return Fail("--sequence and --out are required (see --help)");
-  StatusOr<Sequence> seq = LoadSequence(sequence_dir);
+  if (sequence_dir.empty() == kitti_dir.empty() || out_dir.empty())
+    return Fail("--out and one of --sequence or --kitti are required (see --help)");
+  StatusOr<Sequence> seq = kitti_dir.empty() ? LoadSequence(sequence_dir) : LoadKitti(kitti_dir);
   if (!seq.ok()) return Fail(seq.status().ToString());
   if (!seq->has_calibration) return Fail("sequence has no camera.yaml (the camera calibration is needed)");
   std::error_code ec;

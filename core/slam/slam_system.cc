@@ -298,7 +298,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   std::vector<Rigid3d> poses(init_frames.size());
   const Rigid3d last_guess(Eigen::Quaterniond(R), t * scale);
   for (int pass = 0; pass < 2; ++pass) {
-    Tracker* init = pass == 0 ? init_tracker.get() : tracker.get();
+    Tracker* init = init_tracker.get();
     if (!init->SetKeyframe(first.rgb, depth->ToInverseDepthMap(1, 0.5)).ok()) {
       *why = "too few points to track on the first keyframe";
       return false;

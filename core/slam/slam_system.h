@@ -56,7 +56,7 @@ struct SlamOptions {
   // triangulates; when that fails for init_max_frames frames it restarts from the current frame.
   double init_min_parallax_fraction = 0.03;
   int init_max_frames = 90;
-  // While the first depth is rough (first pass over the initialisation frames), the tracker's
+  // While the first depth is rough (tracking the buffered initialisation frames), the tracker's
   // max_residual_rms is multiplied by this, >= 1.
   double init_residual_factor = 2.0;
   // High-gradient pixels of a new keyframe that received no propagated depth are seeded at the mean
