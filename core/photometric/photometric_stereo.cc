@@ -18,7 +18,6 @@
 namespace prism {
 namespace {
 
-int stride_or_one(int s) { return s > 0 ? s : 1; }
 
 // One pixel used for fitting.
 struct FitPixel {
@@ -266,27 +265,52 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   const bool calibrated = options.mode == PhotometricMode::kCalibrated;
   if (calibrated) PRISM_RETURN_IF_ERROR(rig.Check());
 
+  const int w = rgb.cols, h = rgb.rows;
+  PhotometricResult result;
+  const bool plane_priors = options.prior_normals == PriorNormalSource::kPlaneFit;
+  // Two independent chains, run side by side when a pool is given: the depth prior (densified, and
+  // the prior normals), and the colour image (smoothed) with its superpixels.
+  auto depth_chain = [&](ThreadPool* chain_pool) {
+    result.dense_inverse_depth = DensifyInverseDepth(prior, options.densify);
+    // Dense prior normals: the fitting input in kDenseDepth mode; otherwise only an optional
+    // output. When they are computed, the dense prior used from here on (fit pixels' depth, the
+    // per-pixel S(p), the returned map) is the smoothed one they are differentiated from. Earlier
+    // versions did this through an aliasing side effect of PriorNormals; the results (depth scale,
+    // accuracy, fusion) were measured with it, so it is kept, now on purpose.
+    if (!plane_priors || options.output_prior_normals)
+      result.prior_normals =
+          PriorNormals(result.dense_inverse_depth, rig.camera, options.prior, chain_pool, &result.dense_inverse_depth);
+  };
   // Linear colour in [0, 1] (optionally smoothed), before demixing.
   cv::Mat color;
-  rgb.convertTo(color, CV_32FC3, 1.0 / 255.0);
-  if (options.image_smoothing_sigma_px > 0) {
-    const int ksize = static_cast<int>(std::ceil(3 * options.image_smoothing_sigma_px)) * 2 + 1;
-    cv::GaussianBlur(color, color, cv::Size(ksize, ksize), options.image_smoothing_sigma_px);
+  // Superpixels (SLIC) give spatially coherent clusters.
+  cv::Mat sp_labels;
+  int num_sp = 0;
+  auto colour_chain = [&]() {
+    rgb.convertTo(color, CV_32FC3, 1.0 / 255.0);
+    if (options.image_smoothing_sigma_px > 0) {
+      const int ksize = static_cast<int>(std::ceil(3 * options.image_smoothing_sigma_px)) * 2 + 1;
+      cv::GaussianBlur(color, color, cv::Size(ksize, ksize), options.image_smoothing_sigma_px);
+    }
+    if (options.superpixel_size_px > 0) {
+      // SLIC runs on an image downsampled by superpixel_downsample (~2 ms at 256x256); labels are
+      // upsampled by nearest neighbour.
+      const int f = options.superpixel_downsample;
+      cv::Mat small = rgb;
+      if (f > 1) cv::resize(rgb, small, cv::Size((w + f - 1) / f, (h + f - 1) / f), 0, 0, cv::INTER_AREA);
+      cv::Mat lab;
+      cv::cvtColor(small, lab, cv::COLOR_RGB2Lab);
+      num_sp = SlicSuperpixels(lab, std::max(2, options.superpixel_size_px / f), 5, &sp_labels);
+      if (f > 1) cv::resize(sp_labels, sp_labels, cv::Size(w, h), 0, 0, cv::INTER_NEAREST);
+    }
+  };
+  if (pool && pool->num_threads() > 1) {
+    pool->ParallelFor(0, 2, [&](std::ptrdiff_t chain) { chain == 0 ? depth_chain(nullptr) : colour_chain(); }, 1);
+  } else {
+    depth_chain(pool);
+    colour_chain();
   }
-
-  PhotometricResult result;
-  result.dense_inverse_depth = DensifyInverseDepth(prior, options.densify);
-  const bool plane_priors = options.prior_normals == PriorNormalSource::kPlaneFit;
-  // Dense prior normals: the fitting input in kDenseDepth mode; otherwise only an optional output.
-  // When the prior normals are computed, the dense prior used from here on (fit pixels' depth, the
-  // per-pixel S(p), the returned map) is the smoothed one they are differentiated from. Earlier
-  // versions did this through an aliasing side effect of PriorNormals; the results (depth scale,
-  // accuracy, fusion) were measured with it, so it is kept, now on purpose.
-  if (!plane_priors || options.output_prior_normals)
-    result.prior_normals =
-        PriorNormals(result.dense_inverse_depth, rig.camera, options.prior, pool, &result.dense_inverse_depth);
   const Eigen::Matrix3d demix = calibrated ? Eigen::Matrix3d(rig.crosstalk.inverse()) : Eigen::Matrix3d::Identity();
-  const int w = rgb.cols, h = rgb.rows;
 
   // Support: the local density of real (semi-dense) samples. Far from samples the densified depth
   // is an extrapolation and its normals are not a usable prior.
@@ -307,25 +331,44 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     int x, y;
     float q[3];
   };
-  std::vector<Candidate> candidates;
-  candidates.reserve(static_cast<size_t>(w) * h / (stride_or_one(options.fit_pixel_stride) * stride_or_one(options.fit_pixel_stride)));
+  // Row blocks (on the pool when given), concatenated in raster order.
   const int stride = options.fit_pixel_stride;
   const Eigen::Matrix3f demix_f = demix.cast<float>();
-  for (int y = 0; y < h; y += stride) {
-    const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
-    const cv::Vec3f* n0 = plane_priors ? nullptr : result.prior_normals.ptr<cv::Vec3f>(y);
-    const float* inv = result.dense_inverse_depth.ptr<float>(y);
-    const cv::Vec3f* col = color.ptr<cv::Vec3f>(y);
-    for (int x = 0; x < w; x += stride) {
-      if (!plane_priors && n0[x][2] == 0 && n0[x][0] == 0) continue;
-      if (!(inv[x] > 0)) continue;
-      const int mx = std::max({c[x][0], c[x][1], c[x][2]});
-      if (mx < options.min_level || mx >= options.saturation_level) continue;
-      if (!plane_priors && support.at<float>(y, x) < options.min_prior_support) continue;
-      const Eigen::Vector3f q = demix_f * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
-      if (q.minCoeff() < options.min_band_fraction * q.maxCoeff()) continue;
-      candidates.push_back({x, y, {q.x(), q.y(), q.z()}});
+  constexpr int kCandidateRows = 32;
+  const int candidate_blocks = (h + kCandidateRows - 1) / kCandidateRows;
+  std::vector<std::vector<Candidate>> block_candidates(candidate_blocks);
+  auto find_candidates = [&](std::ptrdiff_t block) {
+    std::vector<Candidate>& out = block_candidates[block];
+    const int y_end = std::min(h, static_cast<int>(block + 1) * kCandidateRows);
+    for (int y = static_cast<int>(block) * kCandidateRows; y < y_end; ++y) {
+      if (y % stride != 0) continue;
+      const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
+      const cv::Vec3f* n0 = plane_priors ? nullptr : result.prior_normals.ptr<cv::Vec3f>(y);
+      const float* inv = result.dense_inverse_depth.ptr<float>(y);
+      const cv::Vec3f* col = color.ptr<cv::Vec3f>(y);
+      for (int x = 0; x < w; x += stride) {
+        if (!plane_priors && n0[x][2] == 0 && n0[x][0] == 0) continue;
+        if (!(inv[x] > 0)) continue;
+        const int mx = std::max({c[x][0], c[x][1], c[x][2]});
+        if (mx < options.min_level || mx >= options.saturation_level) continue;
+        if (!plane_priors && support.at<float>(y, x) < options.min_prior_support) continue;
+        const Eigen::Vector3f q = demix_f * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
+        if (q.minCoeff() < options.min_band_fraction * q.maxCoeff()) continue;
+        out.push_back({x, y, {q.x(), q.y(), q.z()}});
+      }
     }
+  };
+  if (pool) {
+    pool->ParallelFor(0, candidate_blocks, find_candidates, 1);
+  } else {
+    for (int b = 0; b < candidate_blocks; ++b) find_candidates(b);
+  }
+  std::vector<Candidate> candidates;
+  {
+    size_t total = 0;
+    for (const auto& v : block_candidates) total += v.size();
+    candidates.reserve(total);
+    for (const auto& v : block_candidates) candidates.insert(candidates.end(), v.begin(), v.end());
   }
   auto make_fit_pixel = [&](const Candidate& cand) {
     FitPixel p;
@@ -484,21 +527,6 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     }
     if (!FitLightingMatrix(cs, ns, &global_m))
       return FailedPreconditionError("EstimateNormals: prior normals too uniform to fit the lighting");
-  }
-
-  // Superpixels (SLIC) give spatially coherent clusters.
-  cv::Mat sp_labels;
-  int num_sp = 0;
-  if (options.superpixel_size_px > 0) {
-    // SLIC runs on an image downsampled by superpixel_downsample (~1.5 ms at 256x256); labels are
-    // upsampled by nearest neighbour.
-    const int f = options.superpixel_downsample;
-    cv::Mat small = rgb;
-    if (f > 1) cv::resize(rgb, small, cv::Size((w + f - 1) / f, (h + f - 1) / f), 0, 0, cv::INTER_AREA);
-    cv::Mat lab;
-    cv::cvtColor(small, lab, cv::COLOR_RGB2Lab);
-    num_sp = SlicSuperpixels(lab, std::max(2, options.superpixel_size_px / f), 5, &sp_labels);
-    if (f > 1) cv::resize(sp_labels, sp_labels, cv::Size(w, h), 0, 0, cv::INTER_NEAREST);
   }
 
   auto cluster = [&](double min_sigma) {
@@ -698,19 +726,36 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   cv::Mat chroma_gradient;
   if (num_sp > 0) {
     cv::Mat chroma(h, w, CV_32FC2);
-    for (int y = 0; y < h; ++y)
+    chroma_gradient.create(h, w, CV_32F);
+    auto chroma_rows = [&](std::ptrdiff_t y) {
+      const cv::Vec3f* c = color.ptr<cv::Vec3f>(static_cast<int>(y));
+      cv::Vec2f* out = chroma.ptr<cv::Vec2f>(static_cast<int>(y));
       for (int x = 0; x < w; ++x) {
-        const cv::Vec3f c = color.at<cv::Vec3f>(y, x);
-        const float sum = std::max(1e-4f, c[0] + c[1] + c[2]);
-        chroma.at<cv::Vec2f>(y, x) = cv::Vec2f(c[0] / sum, c[1] / sum);
+        const float sum = std::max(1e-4f, c[x][0] + c[x][1] + c[x][2]);
+        out[x] = cv::Vec2f(c[x][0] / sum, c[x][1] / sum);
       }
-    chroma_gradient = cv::Mat(h, w, CV_32F, cv::Scalar(0));
-    for (int y = 1; y < h - 1; ++y)
+    };
+    auto gradient_rows = [&](std::ptrdiff_t row) {
+      const int y = static_cast<int>(row);
+      float* out = chroma_gradient.ptr<float>(y);
+      std::fill(out, out + w, 0.f);
+      if (y == 0 || y == h - 1) return;
+      const cv::Vec2f* up = chroma.ptr<cv::Vec2f>(y - 1);
+      const cv::Vec2f* mid = chroma.ptr<cv::Vec2f>(y);
+      const cv::Vec2f* down = chroma.ptr<cv::Vec2f>(y + 1);
       for (int x = 1; x < w - 1; ++x) {
-        const cv::Vec2f dx = 0.5f * (chroma.at<cv::Vec2f>(y, x + 1) - chroma.at<cv::Vec2f>(y, x - 1));
-        const cv::Vec2f dy = 0.5f * (chroma.at<cv::Vec2f>(y + 1, x) - chroma.at<cv::Vec2f>(y - 1, x));
-        chroma_gradient.at<float>(y, x) = std::sqrt(dx.dot(dx) + dy.dot(dy));
+        const cv::Vec2f dx = 0.5f * (mid[x + 1] - mid[x - 1]);
+        const cv::Vec2f dy = 0.5f * (down[x] - up[x]);
+        out[x] = std::sqrt(dx.dot(dx) + dy.dot(dy));
       }
+    };
+    if (pool) {
+      pool->ParallelFor(0, h, chroma_rows, 32);
+      pool->ParallelFor(0, h, gradient_rows, 32);
+    } else {
+      for (int y = 0; y < h; ++y) chroma_rows(y);
+      for (int y = 0; y < h; ++y) gradient_rows(y);
+    }
   }
   auto merge_by_edges = [&]() {
     const int k = static_cast<int>(centres.size());
@@ -718,20 +763,25 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     // Per cluster pair: gradient samples on boundaries between their superpixels (dark pixels,
     // whose chromaticity is noise, are skipped).
     std::vector<std::vector<float>> steps(static_cast<size_t>(k) * k);
-    for (int y = 1; y < h - 1; ++y)
+    for (int y = 1; y < h - 1; ++y) {
+      const int* sp_row = sp_labels.ptr<int>(y);
+      const int* sp_down = sp_labels.ptr<int>(y + 1);
+      const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
+      const float* g_row = chroma_gradient.ptr<float>(y);
+      const float* g_down = chroma_gradient.ptr<float>(y + 1);
       for (int x = 1; x < w - 1; ++x) {
-        const int sa = sp_labels.at<int>(y, x);
-        const int ca = sp_cluster[sa];
+        const int ca = sp_cluster[sp_row[x]];
         if (ca < 0) continue;
-        const cv::Vec3b c = rgb.at<cv::Vec3b>(y, x);
-        if (std::max({c[0], c[1], c[2]}) < options.min_level) continue;
-        for (const auto& [nx, ny] : {std::pair<int, int>{x + 1, y}, std::pair<int, int>{x, y + 1}}) {
-          const int cb = sp_cluster[sp_labels.at<int>(ny, nx)];
-          if (cb < 0 || cb == ca) continue;
-          const float g = std::max(chroma_gradient.at<float>(y, x), chroma_gradient.at<float>(ny, nx));
-          steps[static_cast<size_t>(std::min(ca, cb)) * k + std::max(ca, cb)].push_back(g);
-        }
+        // Only where a neighbour (right, below) is in another cluster.
+        const int cr = sp_cluster[sp_row[x + 1]], cd = sp_cluster[sp_down[x]];
+        if ((cr < 0 || cr == ca) && (cd < 0 || cd == ca)) continue;
+        if (std::max({c[x][0], c[x][1], c[x][2]}) < options.min_level) continue;
+        if (cr >= 0 && cr != ca)
+          steps[static_cast<size_t>(std::min(ca, cr)) * k + std::max(ca, cr)].push_back(std::max(g_row[x], g_row[x + 1]));
+        if (cd >= 0 && cd != ca)
+          steps[static_cast<size_t>(std::min(ca, cd)) * k + std::max(ca, cd)].push_back(std::max(g_row[x], g_down[x]));
       }
+    }
     std::vector<int> parent(k);
     std::iota(parent.begin(), parent.end(), 0);
     std::function<int(int)> find = [&](int i) { return parent[i] == i ? i : parent[i] = find(parent[i]); };
