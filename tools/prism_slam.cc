@@ -5,6 +5,7 @@
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+#include <map>
 #include <sstream>
 #include <string>
 
@@ -15,6 +16,7 @@
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
+#include "core/pipeline/dense_stage.h"
 #include "core/slam/slam_system.h"
 #include "core/util/thread_pool.h"
 
@@ -40,6 +42,10 @@ Writes to DIR:
 without the 'P0:' label), times.txt and, when present, poses.txt as ground truth.
 
 options:
+  --dense          also run the dense stage (photometric stereo, fusion, ICP map; core/pipeline) on
+                   every keyframe as it is finished and write map.ply and trajectory_metres.txt
+                   (metres, by the session depth scale the dense stage estimates from the shading)
+  --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --max-frames N   process at most N frames
   --threads N      threads for the depth filter (default: all cores)
   --no-eval        skip the evaluation against ground truth
@@ -100,6 +106,8 @@ int main(int argc, char** argv) {
   long max_frames = -1;
   int threads = 0;
   bool eval = true;
+  bool dense = false;
+  DenseStageOptions dense_options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
@@ -110,6 +118,10 @@ int main(int argc, char** argv) {
       eval = false;
       continue;
     }
+    if (a == "--dense") {
+      dense = true;
+      continue;
+    }
     if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
     const std::string v = argv[++i];
     char* end = nullptr;
@@ -118,6 +130,7 @@ int main(int argc, char** argv) {
     if (a == "--sequence") sequence_dir = v;
     else if (a == "--kitti") kitti_dir = v;
     else if (a == "--out") out_dir = v;
+    else if (a == "--position-weight" && is_num && num >= 0) dense_options.fusion.position_weight = num;
     else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
     else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
@@ -139,7 +152,32 @@ int main(int argc, char** argv) {
   const size_t n = max_frames > 0 ? std::min<size_t>(seq->frames.size(), static_cast<size_t>(max_frames))
                                   : seq->frames.size();
   std::vector<SlamKeyframe> keyframes;
-  double slam_seconds = 0;
+  double slam_seconds = 0, dense_seconds = 0;
+  std::unique_ptr<DenseStage> dense_stage;
+  int dense_failed = 0;
+  std::map<int, cv::Mat> fused_depth;  // keyframe id -> fused depth (SLAM units), for the evaluation
+  std::string dense_first_error;
+  if (dense) {
+    StatusOr<std::unique_ptr<DenseStage>> d = DenseStage::Create(seq->calibration, dense_options, &pool);
+    if (!d.ok()) return Fail(d.status().ToString());
+    dense_stage = std::move(d).value();
+  }
+  auto run_dense = [&](const SlamKeyframe& k) {
+    if (!dense_stage) return;
+    DenseKeyframe dk;
+    dk.id = static_cast<uint64_t>(k.id);
+    dk.rgb = k.rgb;
+    dk.world_from_keyframe = k.world_from_keyframe;
+    dk.depth = k.depth;
+    const auto t0 = std::chrono::steady_clock::now();
+    StatusOr<DenseKeyframeResult> r = dense_stage->Process(dk);
+    dense_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (r.ok() && eval) fused_depth[k.id] = r->depth;
+    if (!r.ok()) {
+      if (dense_failed++ == 0) dense_first_error = r.status().ToString();
+      std::cerr << "prism-slam: dense stage, keyframe " << k.id << ": " << r.status() << "\n";
+    }
+  };
   for (size_t i = 0; i < n; ++i) {
     StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
     if (!rgb.ok()) return Fail(rgb.status().ToString());
@@ -148,9 +186,23 @@ int main(int argc, char** argv) {
     slam_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (!r.ok()) return Fail("frame " + std::to_string(i) + ": " + r.status().ToString());
     if (r->state == SlamState::kLost) std::cerr << "prism-slam: frame " << i << ": " << r->message << "\n";
-    for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) keyframes.push_back(std::move(k));
+    for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) {
+      run_dense(k);
+      keyframes.push_back(std::move(k));
+    }
   }
-  for (SlamKeyframe& k : (*slam)->Finish()) keyframes.push_back(std::move(k));
+  for (SlamKeyframe& k : (*slam)->Finish()) {
+    run_dense(k);
+    keyframes.push_back(std::move(k));
+  }
+  if (dense_stage) {
+    StatusOr<MapChunk> rest = dense_stage->Flush();
+    if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
+    const PointCloud map = dense_stage->map().ToPointCloud();
+    if (Status s = WritePointCloudPly(out_dir + "/map.ply", map); !s.ok()) return Fail(s.ToString());
+  }
+  const double metres_per_unit =
+      dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
 
   // Outputs.
   const std::vector<SlamFrameResult> results = (*slam)->Trajectory();
@@ -164,6 +216,11 @@ int main(int argc, char** argv) {
     if (r.state == SlamState::kTracking) estimate.push_back({r.timestamp, r.world_from_camera});
   }
   if (Status s = WriteTumTrajectory(out_dir + "/trajectory.txt", estimate); !s.ok()) return Fail(s.ToString());
+  if (metres_per_unit > 0) {
+    Trajectory metric = estimate;
+    for (TimedPose& p : metric) p.world_from_camera.translation *= metres_per_unit;
+    if (Status s = WriteTumTrajectory(out_dir + "/trajectory_metres.txt", metric); !s.ok()) return Fail(s.ToString());
+  }
   std::ofstream kf_index(out_dir + "/keyframes/keyframes.txt");
   kf_index << "# id frame_id timestamp scale tx ty tz qx qy qz qw (world_from_keyframe, Sim(3))\n"
            << std::setprecision(17);
@@ -187,6 +244,13 @@ int main(int argc, char** argv) {
        << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
        << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"semidense_points\": " << cloud.size()
        << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n);
+  if (dense_stage) {
+    json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
+         << ",\n  \"dense_failed_keyframes\": " << dense_failed
+         << ",\n  \"metres_per_unit\": " << metres_per_unit
+         << ",\n  \"map_points\": " << dense_stage->map().ToPointCloud().size();
+    if (dense_failed) json << ",\n  \"dense_first_error\": \"" << dense_first_error << "\"";
+  }
 
   if (eval && !seq->groundtruth.empty() && estimate.size() >= 3) {
     TrajectoryEvalOptions eo;
@@ -199,8 +263,9 @@ int main(int argc, char** argv) {
       // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
       DepthErrorAccumulator acc;
       long claimed = 0;
-      std::ostringstream per_keyframe;
+      std::ostringstream per_keyframe, per_keyframe_fused;
       per_keyframe << std::setprecision(4);
+      per_keyframe_fused << std::setprecision(4);
       for (const SlamKeyframe& k : keyframes) {
         if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq->frames.size()) continue;
         if (seq->frames[static_cast<size_t>(k.frame_id)].depth_file.empty()) continue;
@@ -215,6 +280,15 @@ int main(int argc, char** argv) {
         (void)acc.Add(est, *gt);
         DepthEvalOptions per;
         StatusOr<DepthErrorStats> one = ComputeDepthError(est, *gt, cv::Mat(), per);
+        auto fused = fused_depth.find(k.id);
+        if (fused != fused_depth.end() && !fused->second.empty()) {
+          StatusOr<DepthErrorStats> f = ComputeDepthError(fused->second, *gt, cv::Mat(), per);
+          if (f.ok()) {
+            per_keyframe_fused << (per_keyframe_fused.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id
+                               << ", \"coverage\": " << f->coverage << ", \"median_rel_error_own_scale\": "
+                               << f->median_rel_error << "}";
+          }
+        }
         if (one.ok()) {
           per_keyframe << (per_keyframe.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id << ", \"points\": " << one->pixels
                        << ", \"scale\": " << one->scale << ", \"median_rel_error_own_scale\": " << one->median_rel_error
@@ -231,6 +305,7 @@ int main(int argc, char** argv) {
         StatusOr<DepthErrorStats> dsm = acc.Summarize(dm);
         if (dsm.ok()) json << ",\n  \"depth_median_rel_error_median_scaled\": " << dsm->median_rel_error;
         json << ",\n  \"keyframe_depth\": [" << per_keyframe.str() << "]";
+        if (!fused_depth.empty()) json << ",\n  \"keyframe_fused_depth\": [" << per_keyframe_fused.str() << "]";
       }
     } else {
       json << ",\n  \"ate_error\": \"" << ate.status().message() << "\"";
