@@ -9,10 +9,9 @@
 #include <cstring>
 #include <deque>
 #include <memory>
+#include <opencv2/core.hpp>
 #include <string>
 #include <vector>
-
-#include <opencv2/core.hpp>
 
 #include "core/io/calibration_io.h"
 #include "core/io/image_io.h"
@@ -62,10 +61,14 @@ py::dict PointsToNumpy(const std::vector<pc::Point>& points) {
 
 const char* StateName(pc::TrackingState s) {
   switch (s) {
-    case pc::TrackingState::kInitialising: return "initialising";
-    case pc::TrackingState::kTracking: return "tracking";
-    case pc::TrackingState::kLost: return "lost";
-    default: return "unknown";
+    case pc::TrackingState::kInitialising:
+      return "initialising";
+    case pc::TrackingState::kTracking:
+      return "tracking";
+    case pc::TrackingState::kLost:
+      return "lost";
+    default:
+      return "unknown";
   }
 }
 
@@ -73,8 +76,8 @@ py::dict PoseToDict(const pc::Pose& pose) {
   py::dict d;
   d["frame"] = pose.frame_sequence_number;
   d["timestamp_ns"] = pose.timestamp_ns;
-  d["rotation_xyzw"] = py::make_tuple(pose.rotation_xyzw[0], pose.rotation_xyzw[1], pose.rotation_xyzw[2],
-                                      pose.rotation_xyzw[3]);
+  d["rotation_xyzw"] =
+      py::make_tuple(pose.rotation_xyzw[0], pose.rotation_xyzw[1], pose.rotation_xyzw[2], pose.rotation_xyzw[3]);
   d["translation"] = py::make_tuple(pose.translation[0], pose.translation[1], pose.translation[2]);
   d["state"] = StateName(pose.state);
   d["is_keyframe"] = pose.is_keyframe;
@@ -101,7 +104,8 @@ py::dict SummaryToDict(const pc::Summary& s) {
 // and the points as arrays), ("error", (code, message, retryable)), ("summary", dict).
 py::tuple EventToPython(const pc::Event& e) {
   switch (e.kind) {
-    case pc::Event::Kind::kPose: return py::make_tuple("pose", PoseToDict(e.pose));
+    case pc::Event::Kind::kPose:
+      return py::make_tuple("pose", PoseToDict(e.pose));
     case pc::Event::Kind::kChunk: {
       py::dict d = PointsToNumpy(e.chunk.points);
       d["keyframe_id"] = e.chunk.keyframe_id;
@@ -111,7 +115,8 @@ py::tuple EventToPython(const pc::Event& e) {
     }
     case pc::Event::Kind::kError:
       return py::make_tuple("error", py::make_tuple(pc::CodeName(e.error.code), e.error.message, e.error.retryable));
-    case pc::Event::Kind::kSummary: return py::make_tuple("summary", SummaryToDict(e.summary));
+    case pc::Event::Kind::kSummary:
+      return py::make_tuple("summary", SummaryToDict(e.summary));
   }
   return py::make_tuple("unknown", py::none());
 }
