@@ -127,27 +127,40 @@ int Nearest(const std::vector<Eigen::Vector2d>& centres, const Eigen::Vector2d& 
 }
 
 
-// The per-pixel 3x3 solves of a row with three point lights, n ~ S^-1 b up to a positive factor
-// (adj(S) b sign(det S)), S rows I_l v_l / |v_l|^3 with v_l from the surface point ray * scale /
-// inverse_depth to light l. Plain float arrays and no branches, so that the compiler vectorises it.
-void SolveNearLightRow(int w, float ray_x0, float ray_dx, float ray_y, float scale, const float* lx, const float* ly,
-                       const float* lz, const float* li, const float* __restrict inverse_depth,
-                       const float* __restrict b0, const float* __restrict b1, const float* __restrict b2,
-                       float* __restrict n0, float* __restrict n1, float* __restrict n2) {
-  const float l0x = lx[0], l0y = ly[0], l0z = lz[0], i0 = li[0];
-  const float l1x = lx[1], l1y = ly[1], l1z = lz[1], i1 = li[1];
-  const float l2x = lx[2], l2y = ly[2], l2z = lz[2], i2 = li[2];
+// Row kernels of the per-pixel solve: plain float arrays, no branches, so that the compiler
+// vectorises them.
+
+// One row of S(p) for a point light: I v / |v|^3, v from the surface point ray * scale /
+// inverse_depth to the light.
+void PointLightRow(int w, float ray_x0, float ray_dx, float ray_y, float scale, float lx, float ly, float lz, float li,
+                   const float* __restrict inverse_depth, float* __restrict sx, float* __restrict sy,
+                   float* __restrict sz) {
   for (int x = 0; x < w; ++x) {
     const float depth = scale / inverse_depth[x];
-    const float px = (ray_x0 + ray_dx * static_cast<float>(x)) * depth, py = ray_y * depth, pz = depth;
-    const float ax = l0x - px, ay = l0y - py, az = l0z - pz;
-    const float bx = l1x - px, by = l1y - py, bz = l1z - pz;
-    const float cx = l2x - px, cy = l2y - py, cz = l2z - pz;
-    const float da = ax * ax + ay * ay + az * az, db = bx * bx + by * by + bz * bz, dc = cx * cx + cy * cy + cz * cz;
-    const float fa = i0 / (da * std::sqrt(da)), fb = i1 / (db * std::sqrt(db)), fc = i2 / (dc * std::sqrt(dc));
-    const float m00 = fa * ax, m01 = fa * ay, m02 = fa * az;
-    const float m10 = fb * bx, m11 = fb * by, m12 = fb * bz;
-    const float m20 = fc * cx, m21 = fc * cy, m22 = fc * cz;
+    const float vx = lx - (ray_x0 + ray_dx * static_cast<float>(x)) * depth, vy = ly - ray_y * depth, vz = lz - depth;
+    const float d2 = vx * vx + vy * vy + vz * vz;
+    const float f = li / (d2 * std::sqrt(d2));
+    sx[x] = f * vx;
+    sy[x] = f * vy;
+    sz[x] = f * vz;
+  }
+}
+
+// n ~ S^-1 b up to a positive factor: adj(S) b sign(det S). s[3 * l + j] = S(l, j) per pixel.
+void AdjugateSolveRow(int w, const float* const* s, const float* __restrict b0, const float* __restrict b1,
+                      const float* __restrict b2, float* __restrict n0, float* __restrict n1, float* __restrict n2) {
+  const float* __restrict s00 = s[0];
+  const float* __restrict s01 = s[1];
+  const float* __restrict s02 = s[2];
+  const float* __restrict s10 = s[3];
+  const float* __restrict s11 = s[4];
+  const float* __restrict s12 = s[5];
+  const float* __restrict s20 = s[6];
+  const float* __restrict s21 = s[7];
+  const float* __restrict s22 = s[8];
+  for (int x = 0; x < w; ++x) {
+    const float m00 = s00[x], m01 = s01[x], m02 = s02[x], m10 = s10[x], m11 = s11[x], m12 = s12[x], m20 = s20[x],
+                m21 = s21[x], m22 = s22[x];
     const float c00 = m11 * m22 - m12 * m21, c01 = m12 * m20 - m10 * m22, c02 = m10 * m21 - m11 * m20;
     const float c10 = m02 * m21 - m01 * m22, c11 = m00 * m22 - m02 * m20, c12 = m01 * m20 - m00 * m21;
     const float c20 = m01 * m12 - m02 * m11, c21 = m02 * m10 - m00 * m12, c22 = m00 * m11 - m01 * m10;
@@ -156,6 +169,94 @@ void SolveNearLightRow(int w, float ray_x0, float ray_dx, float ray_y, float sca
     n0[x] = sign * (c00 * b0[x] + c10 * b1[x] + c20 * b2[x]);
     n1[x] = sign * (c01 * b0[x] + c11 * b1[x] + c21 * b2[x]);
     n2[x] = sign * (c02 * b0[x] + c12 * b1[x] + c22 * b2[x]);
+  }
+}
+
+// Albedo chromaticity (r, g of rho / sum rho, rho = q / max(0, S n0)) of each pixel under its prior
+// normal, and the nearest of k centres to it; -1 where a band's predicted shading is <= 1e-4 or
+// an albedo is not positive (as for no prior normal, n0 = 0).
+void NearestChromaticityRow(int w, const float* const* s, const float* __restrict q0, const float* __restrict q1,
+                            const float* __restrict q2, const float* __restrict p0, const float* __restrict p1,
+                            const float* __restrict p2, int k, const float* centre_r, const float* centre_g,
+                            float* __restrict cr, float* __restrict cg, float* __restrict best,
+                            int* __restrict nearest) {
+  const float* __restrict s00 = s[0];
+  const float* __restrict s01 = s[1];
+  const float* __restrict s02 = s[2];
+  const float* __restrict s10 = s[3];
+  const float* __restrict s11 = s[4];
+  const float* __restrict s12 = s[5];
+  const float* __restrict s20 = s[6];
+  const float* __restrict s21 = s[7];
+  const float* __restrict s22 = s[8];
+  for (int x = 0; x < w; ++x) {
+    const float a0 = std::max(0.f, s00[x] * p0[x] + s01[x] * p1[x] + s02[x] * p2[x]);
+    const float a1 = std::max(0.f, s10[x] * p0[x] + s11[x] * p1[x] + s12[x] * p2[x]);
+    const float a2 = std::max(0.f, s20[x] * p0[x] + s21[x] * p1[x] + s22[x] * p2[x]);
+    const float lit = (a0 > 1e-4f ? 1.f : 0.f) * (a1 > 1e-4f ? 1.f : 0.f) * (a2 > 1e-4f ? 1.f : 0.f);
+    const float r0 = q0[x] / (lit > 0 ? a0 : 1.f), r1 = q1[x] / (lit > 0 ? a1 : 1.f), r2 = q2[x] / (lit > 0 ? a2 : 1.f);
+    const float positive = lit * (r0 > 0 ? 1.f : 0.f) * (r1 > 0 ? 1.f : 0.f) * (r2 > 0 ? 1.f : 0.f);
+    const float sum = r0 + r1 + r2;
+    cr[x] = r0 / (positive > 0 ? sum : 1.f);
+    cg[x] = r1 / (positive > 0 ? sum : 1.f);
+    best[x] = positive > 0 ? std::numeric_limits<float>::infinity() : -1.f;
+    nearest[x] = -1;
+  }
+  for (int m = 0; m < k; ++m) {
+    const float r = centre_r[m], g = centre_g[m];
+    for (int x = 0; x < w; ++x) {
+      const float dr = cr[x] - r, dg = cg[x] - g;
+      const float d = dr * dr + dg * dg;
+      const float old = best[x];
+      const bool closer = d < old;
+      best[x] = closer ? d : old;
+      const int mask = -static_cast<int>(closer);
+      nearest[x] = (m & mask) | (nearest[x] & ~mask);
+    }
+  }
+}
+
+// Normalises the solved normals n in place (zero where not solved or degenerate), flips them to
+// face the camera, and computes their confidence. flags: 1 = solved, 2 = unlabelled (added).
+void FinishRow(int w, float ray_x0, float ray_dx, float ray_y, bool calibrated, float saturation_level, float level_scale,
+               float cos_max_prior_deviation, const float* __restrict level, const float* __restrict flags,
+               const float* __restrict b0, const float* __restrict b1, const float* __restrict b2,
+               const float* __restrict p0, const float* __restrict p1, const float* __restrict p2,
+               float* __restrict n0, float* __restrict n1, float* __restrict n2, float* __restrict confidence) {
+  const float shadow_test = calibrated ? 1.f : 0.f;
+  for (int x = 0; x < w; ++x) {
+    const float f = flags[x];
+    const float solved = (f == 1.f ? 1.f : 0.f) + (f == 3.f ? 1.f : 0.f);
+    const float unlabelled = f >= 2.f ? 1.f : 0.f;
+    const float len2 = n0[x] * n0[x] + n1[x] * n1[x] + n2[x] * n2[x];
+    // A normal is kept when solved, finite and not degenerate (len2 < inf also rejects NaN).
+    const float keep = solved * (len2 > 0.f ? 1.f : 0.f) * (len2 < std::numeric_limits<float>::infinity() ? 1.f : 0.f);
+    const float inv_len = 1.f / std::sqrt(keep > 0 ? len2 : 1.f);
+    float nx = n0[x] * inv_len, ny = n1[x] * inv_len, nz = n2[x] * inv_len;
+    float quality = 1.f;
+    // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light solve
+    // unreliable: compare each band with the others, relative to its irradiance (S n = b).
+    const float bmin = std::min(std::min(b0[x], b1[x]), b2[x]), bmax = std::max(std::max(b0[x], b1[x]), b2[x]);
+    quality *= shadow_test * (bmin < 0.1f * bmax ? 1.f : 0.f) > 0 ? 0.2f : 1.f;
+    // Facing away: flip, and trust it less.
+    const float rx = ray_x0 + ray_dx * static_cast<float>(x);
+    const float away = nx * rx + ny * ray_y + nz;
+    const float flip = away > 0 ? -1.f : 1.f;
+    quality *= away > 0 ? 0.2f : 1.f;
+    nx *= flip;
+    ny *= flip;
+    nz *= flip;
+    quality *= level[x] >= saturation_level ? 0.2f : 1.f;
+    quality *= unlabelled > 0 ? 0.5f : 1.f;
+    quality *= std::min(1.f, level[x] * level_scale);
+    // Far from the (coarse) prior normal: likely a shadow or a mislabelled albedo, not detail.
+    const float prior2 = p0[x] * p0[x] + p1[x] * p1[x] + p2[x] * p2[x];
+    const float cosine = nx * p0[x] + ny * p1[x] + nz * p2[x];
+    quality *= (prior2 > 0 ? 1.f : 0.f) * (cosine < cos_max_prior_deviation ? 1.f : 0.f) > 0 ? 0.1f : 1.f;
+    n0[x] = keep > 0 ? nx : 0.f;
+    n1[x] = keep > 0 ? ny : 0.f;
+    n2[x] = keep > 0 ? nz : 0.f;
+    confidence[x] = keep > 0 ? std::min(1.f, std::max(0.f, quality)) : 0.f;
   }
 }
 
@@ -329,7 +430,6 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // ones used.
   struct Candidate {
     int x, y;
-    float q[3];
   };
   // Row blocks (on the pool when given), concatenated in raster order.
   const int stride = options.fit_pixel_stride;
@@ -354,7 +454,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         if (!plane_priors && support.at<float>(y, x) < options.min_prior_support) continue;
         const Eigen::Vector3f q = demix_f * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
         if (q.minCoeff() < options.min_band_fraction * q.maxCoeff()) continue;
-        out.push_back({x, y, {q.x(), q.y(), q.z()}});
+        out.push_back({x, y});
       }
     }
   };
@@ -723,40 +823,18 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // Chromaticity edges validate cluster splits: albedo boundaries are sharp steps of the image
   // chromaticity, while the errors of the prior normals (which can also split a cluster) vary
   // smoothly. Two clusters whose shared superpixel boundaries show no step are merged.
-  cv::Mat chroma_gradient;
-  if (num_sp > 0) {
-    cv::Mat chroma(h, w, CV_32FC2);
-    chroma_gradient.create(h, w, CV_32F);
-    auto chroma_rows = [&](std::ptrdiff_t y) {
-      const cv::Vec3f* c = color.ptr<cv::Vec3f>(static_cast<int>(y));
-      cv::Vec2f* out = chroma.ptr<cv::Vec2f>(static_cast<int>(y));
-      for (int x = 0; x < w; ++x) {
-        const float sum = std::max(1e-4f, c[x][0] + c[x][1] + c[x][2]);
-        out[x] = cv::Vec2f(c[x][0] / sum, c[x][1] / sum);
-      }
-    };
-    auto gradient_rows = [&](std::ptrdiff_t row) {
-      const int y = static_cast<int>(row);
-      float* out = chroma_gradient.ptr<float>(y);
-      std::fill(out, out + w, 0.f);
-      if (y == 0 || y == h - 1) return;
-      const cv::Vec2f* up = chroma.ptr<cv::Vec2f>(y - 1);
-      const cv::Vec2f* mid = chroma.ptr<cv::Vec2f>(y);
-      const cv::Vec2f* down = chroma.ptr<cv::Vec2f>(y + 1);
-      for (int x = 1; x < w - 1; ++x) {
-        const cv::Vec2f dx = 0.5f * (mid[x + 1] - mid[x - 1]);
-        const cv::Vec2f dy = 0.5f * (down[x] - up[x]);
-        out[x] = std::sqrt(dx.dot(dx) + dy.dot(dy));
-      }
-    };
-    if (pool) {
-      pool->ParallelFor(0, h, chroma_rows, 32);
-      pool->ParallelFor(0, h, gradient_rows, 32);
-    } else {
-      for (int y = 0; y < h; ++y) chroma_rows(y);
-      for (int y = 0; y < h; ++y) gradient_rows(y);
-    }
-  }
+  // Only needed on the boundaries between clusters: computed there, from the smoothed colour.
+  auto chroma_at = [&](int x, int y) {
+    const cv::Vec3f c = color.at<cv::Vec3f>(y, x);
+    const float sum = std::max(1e-4f, c[0] + c[1] + c[2]);
+    return cv::Vec2f(c[0] / sum, c[1] / sum);
+  };
+  auto chroma_gradient_at = [&](int x, int y) {
+    if (x <= 0 || y <= 0 || x >= w - 1 || y >= h - 1) return 0.f;
+    const cv::Vec2f dx = 0.5f * (chroma_at(x + 1, y) - chroma_at(x - 1, y));
+    const cv::Vec2f dy = 0.5f * (chroma_at(x, y + 1) - chroma_at(x, y - 1));
+    return std::sqrt(dx.dot(dx) + dy.dot(dy));
+  };
   auto merge_by_edges = [&]() {
     const int k = static_cast<int>(centres.size());
     if (num_sp == 0 || k < 2) return;
@@ -767,8 +845,6 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       const int* sp_row = sp_labels.ptr<int>(y);
       const int* sp_down = sp_labels.ptr<int>(y + 1);
       const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
-      const float* g_row = chroma_gradient.ptr<float>(y);
-      const float* g_down = chroma_gradient.ptr<float>(y + 1);
       for (int x = 1; x < w - 1; ++x) {
         const int ca = sp_cluster[sp_row[x]];
         if (ca < 0) continue;
@@ -776,10 +852,13 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         const int cr = sp_cluster[sp_row[x + 1]], cd = sp_cluster[sp_down[x]];
         if ((cr < 0 || cr == ca) && (cd < 0 || cd == ca)) continue;
         if (std::max({c[x][0], c[x][1], c[x][2]}) < options.min_level) continue;
+        const float g = chroma_gradient_at(x, y);
         if (cr >= 0 && cr != ca)
-          steps[static_cast<size_t>(std::min(ca, cr)) * k + std::max(ca, cr)].push_back(std::max(g_row[x], g_row[x + 1]));
+          steps[static_cast<size_t>(std::min(ca, cr)) * k + std::max(ca, cr)].push_back(
+              std::max(g, chroma_gradient_at(x + 1, y)));
         if (cd >= 0 && cd != ca)
-          steps[static_cast<size_t>(std::min(ca, cd)) * k + std::max(ca, cd)].push_back(std::max(g_row[x], g_down[x]));
+          steps[static_cast<size_t>(std::min(ca, cd)) * k + std::max(ca, cd)].push_back(
+              std::max(g, chroma_gradient_at(x, y + 1)));
       }
     }
     std::vector<int> parent(k);
@@ -944,11 +1023,6 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   const float min_level = static_cast<float>(options.min_level), saturation_level = static_cast<float>(options.saturation_level);
   const float level_scale = 1.f / static_cast<float>(3.0 * std::max(1.0, options.min_level));
   const float fscale = static_cast<float>(scale);
-  // Per row: (1) labels and the right-hand sides, scalar; (2) for kCalibrated the 3x3 solves, in
-  // float structure-of-arrays and branch-free so that the compiler vectorises them; (3) confidence.
-  // n = S^-1 b is only needed up to scale: n ~ adj(S) b sign(det S). And S n = b, so the shading
-  // test (each band's share of the light reaching the surface) is a test on b.
-  const bool all_point_lights = point_light[0] && point_light[1] && point_light[2];
   float lx[3], ly[3], lz[3], li[3];
   for (int l = 0; l < 3; ++l) {
     lx[l] = light_position[l].x();
@@ -956,18 +1030,39 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     lz[l] = light_position[l].z();
     li[l] = light_intensity[l];
   }
+  // Per row: (1) labels and the right-hand sides, scalar; (2) for kCalibrated the 3x3 solves, in
+  // float structure-of-arrays and branch-free so that the compiler vectorises them; (3) confidence.
+  // n = S^-1 b is only needed up to scale: n ~ adj(S) b sign(det S). And S n = b, so the shading
+  // test (each band's share of the light reaching the surface) is a test on b.
+  std::vector<float> centre_r(k), centre_g(k);
+  for (int m = 0; m < k; ++m) {
+    centre_r[m] = centres_f[m].x();
+    centre_g[m] = centres_f[m].y();
+  }
+  const Eigen::Matrix3f demix_q = demix_solve;
   struct RowBuffers {
-    std::vector<float> b[3], n[3], inverse_depth;
+    std::vector<float> q[3], p[3], s[9], b[3], n[3], inverse_depth, cr, cg, best, level, flags, conf;
+    std::vector<int> nearest;
     std::vector<uint8_t> solve;
   };
   auto solve_row = [&](std::ptrdiff_t row, RowBuffers& buf) {
     const int y = static_cast<int>(row);
     for (int i = 0; i < 3; ++i) {
-      buf.b[i].resize(w);
+      buf.q[i].resize(w);
+      buf.p[i].resize(w);
+      buf.b[i].assign(w, 0.f);
       buf.n[i].resize(w);
     }
+    for (auto& v : buf.s) v.resize(w);
+    buf.cr.resize(w);
+    buf.cg.resize(w);
+    buf.best.resize(w);
+    buf.nearest.resize(w);
+    buf.level.resize(w);
+    buf.flags.resize(w);
+    buf.conf.resize(w);
     buf.solve.assign(w, 0);
-    buf.inverse_depth.assign(w, 1.f);  // 1 where there is nothing to solve (keeps the kernel finite)
+    buf.inverse_depth.resize(w);
     const cv::Vec3b* c = rgb.ptr<cv::Vec3b>(y);
     const cv::Vec3f* col = color.ptr<cv::Vec3f>(y);
     const float* inv = result.dense_inverse_depth.ptr<float>(y);
@@ -978,60 +1073,55 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     float* conf = result.confidence.ptr<float>(y);
     const float ray_y = static_cast<float>((y - rig.camera.cy) / rig.camera.fy);
     const float inv_fx = static_cast<float>(1.0 / rig.camera.fx), cx = static_cast<float>(rig.camera.cx);
-    // S(p) rows E_l l_l^T for point lights (this runs on every pixel).
-    auto near_light_matrix = [&](float ray_x, float inverse_depth) {
-      const Eigen::Vector3f point = Eigen::Vector3f(ray_x, ray_y, 1.f) * (fscale / inverse_depth);
-      Eigen::Matrix3f sm;
-      for (int l = 0; l < 3; ++l) {
-        if (point_light[l]) {
-          const Eigen::Vector3f v = light_position[l] - point;
-          const float d2 = v.squaredNorm();
-          sm.row(l) = (light_intensity[l] / (d2 * std::sqrt(d2))) * v.transpose();
-        } else {
-          sm.row(l) = light_row[l].transpose();
-        }
-      }
-      return sm;
-    };
-    // (1)
+    // (0) Which pixels are solved, their demixed colour and prior normal as arrays.
+    bool any_unlabelled = false;
     for (int x = 0; x < w; ++x) {
       lab[x] = -1;
       out[x] = cv::Vec3f(0, 0, 0);
       conf[x] = 0;
       const int mx = std::max({c[x][0], c[x][1], c[x][2]});
-      if (mx < min_level) continue;
-      int label = sp_row ? sp_cluster[sp_row[x]] : -1;
-      const Eigen::Vector3f prior_normal = n0 ? Eigen::Vector3f(n0[x][0], n0[x][1], n0[x][2]) : Eigen::Vector3f::Zero();
-      const Eigen::Vector3f q = demix_solve * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
       const bool lit = !calibrated || inv[x] > 0;
-      if (label < 0 && lit && prior_normal.squaredNorm() > 0) {
-        // Superpixels without fit pixels (a third of the pixels on the synthetic scenes): the
-        // nearest centre to the pixel's own albedo chromaticity under its prior normal.
-        const Eigen::Vector3f pred = calibrated
-                                         ? Eigen::Vector3f((near_light_matrix((x - cx) * inv_fx, inv[x]) * prior_normal).cwiseMax(0.f))
-                                         : Eigen::Vector3f(global_m_f * prior_normal);
-        if ((pred.array() > 1e-4f).all()) {
-          const Eigen::Vector3f rho = q.cwiseQuotient(pred);
-          const float sum = rho.sum();
-          if (rho.allFinite() && rho.minCoeff() > 0) {
-            const float cr = rho.x() / sum, cg = rho.y() / sum;
-            float best = std::numeric_limits<float>::infinity();
-            for (int m = 0; m < k; ++m) {
-              const float dr = cr - centres_f[m].x(), dg = cg - centres_f[m].y();
-              const float d = dr * dr + dg * dg;
-              if (d < best) {
-                best = d;
-                label = m;
-              }
-            }
-          }
+      buf.solve[x] = mx >= min_level && lit;
+      buf.inverse_depth[x] = buf.solve[x] ? inv[x] : 1.f;  // 1 where nothing is solved: keeps kernels finite
+      const Eigen::Vector3f q = demix_q * Eigen::Vector3f(col[x][0], col[x][1], col[x][2]);
+      for (int i = 0; i < 3; ++i) {
+        buf.q[i][x] = q[i];
+        buf.p[i][x] = n0 ? n0[x][i] : 0.f;
+      }
+      if (mx >= min_level) {
+        lab[x] = sp_row ? sp_cluster[sp_row[x]] : -1;
+        any_unlabelled |= lab[x] < 0 && buf.solve[x];
+      }
+    }
+    // (1) S(p) rows: E_l l_l^T (point lights per pixel; directional lights constant), or for
+    // kUncalibrated the global M (for the chromaticity of unlabelled pixels).
+    float* s_rows[9];
+    for (int i = 0; i < 9; ++i) s_rows[i] = buf.s[i].data();
+    for (int l = 0; l < 3; ++l) {
+      if (calibrated && point_light[l]) {
+        PointLightRow(w, -cx * inv_fx, inv_fx, ray_y, fscale, lx[l], ly[l], lz[l], li[l], buf.inverse_depth.data(),
+                      s_rows[3 * l], s_rows[3 * l + 1], s_rows[3 * l + 2]);
+      } else {
+        for (int j = 0; j < 3; ++j) {
+          const float v = calibrated ? light_row[l][j] : global_m_f(l, j);
+          std::fill(s_rows[3 * l + j], s_rows[3 * l + j] + w, v);
         }
       }
-      lab[x] = label;
-      if (!lit) continue;
-      const int model = label >= 0 ? label : k;
-      buf.solve[x] = 1;
-      if (calibrated) buf.inverse_depth[x] = inv[x];
+    }
+    // (2) Pixels whose superpixel had no fit pixel (a third on the synthetic scenes) take the
+    // centre nearest to their own albedo chromaticity under their prior normal.
+    if (any_unlabelled && n0) {
+      NearestChromaticityRow(w, s_rows, buf.q[0].data(), buf.q[1].data(), buf.q[2].data(), buf.p[0].data(),
+                             buf.p[1].data(), buf.p[2].data(), k, centre_r.data(), centre_g.data(), buf.cr.data(),
+                             buf.cg.data(), buf.best.data(), buf.nearest.data());
+      for (int x = 0; x < w; ++x)
+        if (buf.solve[x] && lab[x] < 0) lab[x] = buf.nearest[x];
+    }
+    // (3) Right-hand sides and solves.
+    for (int x = 0; x < w; ++x) {
+      if (!buf.solve[x]) continue;
+      const int model = lab[x] >= 0 ? lab[x] : k;
+      const Eigen::Vector3f q(buf.q[0][x], buf.q[1][x], buf.q[2][x]);
       if (calibrated) {
         const Eigen::Vector3f b = q.cwiseProduct(inverse_albedo_f[model]);
         for (int i = 0; i < 3; ++i) buf.b[i][x] = b[i];
@@ -1040,49 +1130,20 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         for (int i = 0; i < 3; ++i) buf.n[i][x] = n[i];
       }
     }
-    // (2)
-    if (calibrated && all_point_lights) {
-      SolveNearLightRow(w, static_cast<float>(-cx * inv_fx), inv_fx, ray_y, fscale, lx, ly, lz, li, buf.inverse_depth.data(),
-                        buf.b[0].data(), buf.b[1].data(), buf.b[2].data(), buf.n[0].data(), buf.n[1].data(),
-                        buf.n[2].data());
-    } else if (calibrated) {
-      for (int x = 0; x < w; ++x) {
-        if (!buf.solve[x]) continue;
-        const Eigen::Vector3f n =
-            near_light_matrix((x - cx) * inv_fx, inv[x]).inverse() * Eigen::Vector3f(buf.b[0][x], buf.b[1][x], buf.b[2][x]);
-        for (int i = 0; i < 3; ++i) buf.n[i][x] = n[i];
-      }
-    }
-    // (3)
+    if (calibrated)
+      AdjugateSolveRow(w, s_rows, buf.b[0].data(), buf.b[1].data(), buf.b[2].data(), buf.n[0].data(), buf.n[1].data(),
+                       buf.n[2].data());
+    // (4) Unit normals facing the camera, and confidence.
     for (int x = 0; x < w; ++x) {
-      if (!buf.solve[x]) continue;
-      Eigen::Vector3f n(buf.n[0][x], buf.n[1][x], buf.n[2][x]);
-      const float len = n.norm();
-      if (!(len > 1e-30f) || !n.allFinite()) continue;
-      n /= len;
-      const int mx = std::max({c[x][0], c[x][1], c[x][2]});
-      float quality = 1.f;
-      // A light that contributes (almost) nothing (attached or cast shadow) makes the 3-light
-      // solve unreliable: compare each band with the others, relative to its irradiance.
-      if (calibrated) {
-        const float b0 = buf.b[0][x], b1 = buf.b[1][x], b2 = buf.b[2][x];
-        if (std::min({b0, b1, b2}) < 0.1f * std::max({b0, b1, b2})) quality *= 0.2f;
-      }
-      const Eigen::Vector3f ray((x - cx) * inv_fx, ray_y, 1.f);
-      if (n.dot(ray) > 0) {  // facing away: flip, and trust it less
-        n = -n;
-        quality *= 0.2f;
-      }
-      if (mx >= saturation_level) quality *= 0.2f;
-      if (lab[x] < 0) quality *= 0.5f;
-      quality *= std::min(1.f, mx * level_scale);
-      // Far from the (coarse) prior normal: likely a shadow or a mislabelled albedo, not detail.
-      if (n0) {
-        const Eigen::Vector3f prior_normal(n0[x][0], n0[x][1], n0[x][2]);
-        if (prior_normal.squaredNorm() > 0 && n.dot(prior_normal) < cos_max_prior_deviation) quality *= 0.1f;
-      }
-      out[x] = cv::Vec3f(n.x(), n.y(), n.z());
-      conf[x] = std::clamp(quality, 0.f, 1.f);
+      buf.level[x] = std::max({c[x][0], c[x][1], c[x][2]});
+      buf.flags[x] = (buf.solve[x] ? 1.f : 0.f) + (lab[x] < 0 ? 2.f : 0.f);
+    }
+    FinishRow(w, -cx * inv_fx, inv_fx, ray_y, calibrated, saturation_level, level_scale, cos_max_prior_deviation,
+              buf.level.data(), buf.flags.data(), buf.b[0].data(), buf.b[1].data(), buf.b[2].data(), buf.p[0].data(),
+              buf.p[1].data(), buf.p[2].data(), buf.n[0].data(), buf.n[1].data(), buf.n[2].data(), buf.conf.data());
+    for (int x = 0; x < w; ++x) {
+      out[x] = cv::Vec3f(buf.n[0][x], buf.n[1][x], buf.n[2][x]);
+      conf[x] = buf.conf[x];
     }
   };
   // Rows in blocks, each block with its own buffers.
