@@ -1,0 +1,254 @@
+// prism-bench-e2e: the networked system end to end on this machine, as JSON. Starts prism-server (next
+// to this binary) on a free port, renders a preset in memory, and streams it through libprism_client
+// once per codec, measuring what a device sees.
+#include <signal.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "prism/client/client.h"
+#include "core/synth/presets.h"
+#include "core/synth/renderer.h"
+#include "core/synth/trajectory.h"
+#include "core/util/thread_pool.h"
+
+extern char** environ;
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr char kUsage[] = R"(usage: prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw]
+
+Starts prism-server (from this binary's folder) on 127.0.0.1 with a free port (input policy upload,
+so no frame is dropped), renders the preset (default bunny-multicolor-forward, 150 frames, 512x512)
+in memory and streams it through libprism_client once per codec, as fast as the server's frame
+credits allow. Prints one JSON object:
+  per codec: frames_per_s (frames sent / time until the last pose), frame_to_pose_ms p50/p95 (frame
+  sent -> its pose received), keyframe_to_chunk_ms p50/p95 (the pose that finishes keyframe k, i.e.
+  the next keyframe's pose, -> keyframe k's chunk), uplink_bytes_per_frame, chunk_bits_per_point,
+  chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb.
+)";
+
+int Fail(const std::string& m) {
+  std::cerr << "prism-bench-e2e: " << m << "\n";
+  return 1;
+}
+
+double Percentile(std::vector<double> v, double q) {
+  if (v.empty()) return -1;
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, static_cast<size_t>(q * (v.size() - 1) + 0.5))];
+}
+
+double ProcStatusMb(pid_t pid, const std::string& key) {
+  std::ifstream f("/proc/" + std::to_string(pid) + "/status");
+  std::string line;
+  while (std::getline(f, line)) {
+    if (line.rfind(key + ":", 0) == 0) return std::atof(line.c_str() + key.size() + 1) / 1024.0;  // kB
+  }
+  return -1;
+}
+
+prism::client::Rig ToClientRig(const prism::RigCalibration& rig) {
+  prism::client::Rig r;
+  r.camera.width = rig.camera.width;
+  r.camera.height = rig.camera.height;
+  r.camera.fx = rig.camera.fx;
+  r.camera.fy = rig.camera.fy;
+  r.camera.cx = rig.camera.cx;
+  r.camera.cy = rig.camera.cy;
+  for (int i = 0; i < 3; ++i) {
+    const prism::Light& l = rig.lights[i];
+    r.lights[i].name = l.name;
+    r.lights[i].directional = l.type == prism::LightType::kDirectional;
+    for (int k = 0; k < 3; ++k) {
+      r.lights[i].position_in_camera[k] = l.position_in_camera[k];
+      r.lights[i].direction_in_camera[k] = l.direction_in_camera[k];
+      r.lights[i].color[k] = l.color[k];
+    }
+    r.lights[i].intensity = l.intensity;
+  }
+  for (int row = 0; row < 3; ++row)
+    for (int col = 0; col < 3; ++col) r.crosstalk[row * 3 + col] = rig.crosstalk(row, col);
+  return r;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string preset = "bunny-multicolor-forward", codecs = "png,jpeg,raw";
+  int frames = 150;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--help" || a == "-h") {
+      std::cout << kUsage;
+      return 0;
+    }
+    if (i + 1 >= argc) return Fail("missing value for '" + a + "' (see --help)");
+    const std::string v = argv[++i];
+    if (a == "--preset") preset = v;
+    else if (a == "--frames") frames = std::atoi(v.c_str());
+    else if (a == "--codecs") codecs = v;
+    else return Fail("unknown argument '" + a + "' (see --help)");
+  }
+  if (frames < 20) return Fail("--frames must be >= 20");
+
+  // Render.
+  prism::synth::PresetOptions po;
+  po.frames = frames;
+  prism::StatusOr<prism::synth::SynthSetup> setup = prism::synth::MakePreset(preset, po);
+  if (!setup.ok()) return Fail(setup.status().ToString());
+  const prism::Trajectory trajectory = prism::synth::MakeTrajectory(setup->trajectory);
+  std::vector<cv::Mat> images(frames);
+  {
+    prism::ThreadPool pool;
+    pool.ParallelFor(0, frames, [&](std::ptrdiff_t i) {
+      images[i] = prism::synth::RenderFrame(setup->scene, setup->rig, trajectory[i].world_from_camera, setup->render,
+                                            1000003ull + static_cast<uint64_t>(i))
+                      .rgb;
+    });
+  }
+
+  // Server.
+  const std::string dir = std::filesystem::path(argv[0]).parent_path().string();
+  const std::string server = (dir.empty() ? std::string(".") : dir) + "/prism-server";
+  const std::string tmp = (std::filesystem::temp_directory_path() / ("prism_bench_e2e_" + std::to_string(getpid()))).string();
+  std::filesystem::create_directories(tmp);
+  const std::string out_file = tmp + "/server.json", err_file = tmp + "/server.log";
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, 1, out_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  posix_spawn_file_actions_addopen(&actions, 2, err_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  const std::string data_dir = tmp + "/data";
+  std::vector<std::string> args = {server, "--bind", "tcp://127.0.0.1:*", "--data-dir", data_dir,
+                                   "--input-policy", "upload", "--keyframe-queue", "64", "--metrics", "off",
+                                   "--log-level", "warning"};
+  std::vector<char*> cargs;
+  for (std::string& s : args) cargs.push_back(s.data());
+  cargs.push_back(nullptr);
+  pid_t pid = 0;
+  if (posix_spawn(&pid, server.c_str(), &actions, nullptr, cargs.data(), environ) != 0)
+    return Fail("cannot start '" + server + "'");
+  std::string endpoint;
+  for (int i = 0; i < 200 && endpoint.empty(); ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    std::ifstream f(out_file);
+    std::string s((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+    const size_t a = s.find("\"endpoint\": \"");
+    if (a != std::string::npos) endpoint = s.substr(a + 13, s.find('"', a + 13) - (a + 13));
+  }
+  auto stop_server = [&]() {
+    kill(pid, SIGTERM);
+    int status = 0;
+    waitpid(pid, &status, 0);
+    std::filesystem::remove_all(tmp);
+  };
+  if (endpoint.empty()) {
+    stop_server();
+    return Fail("prism-server did not report its endpoint (see " + err_file + ")");
+  }
+
+  std::ostringstream json;
+  json.setf(std::ios::fixed);
+  json.precision(2);
+  json << "{\n  \"preset\": \"" << preset << "\",\n  \"frames\": " << frames << ",\n  \"size\": \""
+       << setup->rig.camera.width << "x" << setup->rig.camera.height << "\",\n  \"hardware_threads\": "
+       << std::thread::hardware_concurrency() << ",\n  \"server_rss_mb_idle\": " << ProcStatusMb(pid, "VmRSS")
+       << ",\n  \"codecs\": {";
+  const prism::client::Rig rig = ToClientRig(setup->rig);
+  std::stringstream codec_list(codecs);
+  std::string codec_name;
+  bool first = true;
+  while (std::getline(codec_list, codec_name, ',')) {
+    prism::client::SessionOptions so;
+    if (codec_name == "png") so.codec = prism::client::Codec::kPng;
+    else if (codec_name == "jpeg") so.codec = prism::client::Codec::kJpeg;
+    else if (codec_name == "raw") so.codec = prism::client::Codec::kRaw;
+    else {
+      stop_server();
+      return Fail("unknown codec '" + codec_name + "'");
+    }
+    so.timeout_ms = 60000;
+    std::unique_ptr<prism::client::Session> session;
+    prism::client::Status s = prism::client::Session::Open(endpoint, rig, so, &session);
+    if (!s.ok()) {
+      stop_server();
+      return Fail("open: " + s.ToString());
+    }
+    std::map<uint64_t, Clock::time_point> sent;      // frame sequence number -> send time
+    std::vector<double> frame_to_pose;
+    std::vector<Clock::time_point> keyframe_pose_time;  // arrival of each is_keyframe pose, in order
+    std::map<uint64_t, Clock::time_point> chunk_time;   // keyframe id -> first chunk arrival
+    uint64_t chunk_bytes = 0, chunk_points = 0, chunks = 0;
+    Clock::time_point last_pose;
+    auto handle = [&](const prism::client::Event& e) {
+      const auto now = Clock::now();
+      if (e.kind == prism::client::Event::Kind::kPose) {
+        auto it = sent.find(e.pose.frame_sequence_number);
+        if (it != sent.end()) frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
+        if (e.pose.is_keyframe) keyframe_pose_time.push_back(now);
+        last_pose = now;
+      } else if (e.kind == prism::client::Event::Kind::kChunk) {
+        ++chunks;
+        chunk_bytes += e.chunk.draco.size();
+        chunk_points += e.chunk.points.size();
+        chunk_time.emplace(e.chunk.keyframe_id, now);
+      }
+    };
+    session->SetEventCallback(handle);
+    const auto t0 = Clock::now();
+    for (int i = 0; i < frames; ++i) {
+      sent[static_cast<uint64_t>(i)] = Clock::now();
+      s = session->PushFrame(static_cast<int64_t>(trajectory[i].timestamp_s * 1e9), images[i].data, images[i].cols,
+                             images[i].rows, static_cast<int>(images[i].step));
+      if (!s.ok()) {
+        stop_server();
+        return Fail("push frame " + std::to_string(i) + ": " + s.ToString());
+      }
+    }
+    // The sequence numbers the SDK assigns are 0, 1, 2... in push order (checked by the pose count).
+    prism::client::Summary summary;
+    s = session->Close(600000, &summary);
+    if (!s.ok()) {
+      stop_server();
+      return Fail("close: " + s.ToString());
+    }
+    const double seconds = std::chrono::duration<double>(last_pose - t0).count();
+    std::vector<double> kf_to_chunk;
+    for (const auto& [kf, t] : chunk_time) {
+      // Keyframe kf is finished when keyframe kf + 1 is made (or at the end of the stream).
+      if (kf + 1 < keyframe_pose_time.size())
+        kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - keyframe_pose_time[kf + 1]).count());
+    }
+    json << (first ? "" : ",") << "\n    \"" << codec_name << "\": {\"frames_per_s\": " << frames / std::max(1e-9, seconds)
+         << ", \"poses\": " << frame_to_pose.size() << ", \"frame_to_pose_ms_p50\": " << Percentile(frame_to_pose, 0.5)
+         << ", \"frame_to_pose_ms_p95\": " << Percentile(frame_to_pose, 0.95)
+         << ", \"keyframe_to_chunk_ms_p50\": " << Percentile(kf_to_chunk, 0.5)
+         << ", \"keyframe_to_chunk_ms_p95\": " << Percentile(kf_to_chunk, 0.95)
+         << ", \"uplink_bytes_per_frame\": " << static_cast<double>(session->bytes_sent()) / frames
+         << ", \"chunks\": " << chunks << ", \"chunk_bits_per_point\": "
+         << (chunk_points ? 8.0 * chunk_bytes / chunk_points : -1) << ", \"keyframes\": " << summary.keyframes
+         << ", \"keyframes_dropped\": " << summary.keyframes_dropped
+         << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS") << "}";
+    first = false;
+  }
+  json << "\n  },\n  \"server_peak_rss_mb\": " << ProcStatusMb(pid, "VmHWM") << "\n}\n";
+  stop_server();
+  std::cout << json.str();
+  return 0;
+}
