@@ -71,14 +71,18 @@ cv::Mat DensifyInverseDepth(const InverseDepthMap& sparse, const DensifyOptions&
   cv::Mat certainty(d.size(), CV_32F, cv::Scalar(0));
   // Certainty = 1/variance, normalised so the median certainty is 1 (keeps the float sums tame).
   std::vector<float> cs;
-  for (int y = 0; y < d.rows; ++y)
+  for (int y = 0; y < d.rows; ++y) {
+    const float* var = sparse.variance.ptr<float>(y);
+    const float* inv = d.ptr<float>(y);
+    float* c = certainty.ptr<float>(y);
     for (int x = 0; x < d.cols; ++x) {
-      const float v = sparse.variance.at<float>(y, x), id = d.at<float>(y, x);
+      const float v = var[x], id = inv[x];
       if (id > 0 && v > 0 && std::isfinite(id) && std::isfinite(v)) {
-        certainty.at<float>(y, x) = 1.f / v;
+        c[x] = 1.f / v;
         cs.push_back(1.f / v);
       }
     }
+  }
   cv::Mat dense(d.size(), CV_32F, cv::Scalar(0));
   if (cs.empty()) return dense;
   std::nth_element(cs.begin(), cs.begin() + cs.size() / 2, cs.end());
@@ -87,6 +91,7 @@ cv::Mat DensifyInverseDepth(const InverseDepthMap& sparse, const DensifyOptions&
   // wider Gaussians at full resolution: the same filter up to resampling, at a fraction of the cost.
   cv::Mat num = certainty.mul(d), den = certainty;
   cv::Mat filled(d.size(), CV_8U, cv::Scalar(0));
+  std::vector<int> unfilled(d.rows, d.cols);  // per row
   const double sigma = options.sigma_px;
   const int ksize = static_cast<int>(std::ceil(3 * sigma)) * 2 + 1;
   for (int level = 0; level < options.levels; ++level) {
@@ -109,6 +114,7 @@ cv::Mat DensifyInverseDepth(const InverseDepthMap& sparse, const DensifyOptions&
         static_cast<float>(options.min_certainty / (2 * M_PI * sigma * sigma * std::pow(4.0, level)));
     bool all_filled = true;
     for (int y = 0; y < d.rows; ++y) {
+      if (unfilled[y] == 0) continue;  // rows filled at earlier levels
       const float* n = bn.ptr<float>(y);
       const float* w = bd.ptr<float>(y);
       float* out = dense.ptr<float>(y);
@@ -121,6 +127,7 @@ cv::Mat DensifyInverseDepth(const InverseDepthMap& sparse, const DensifyOptions&
         }
         out[x] = n[x] / w[x];
         f[x] = 1;
+        --unfilled[y];
       }
     }
     if (all_filled) break;

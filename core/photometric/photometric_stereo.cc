@@ -629,12 +629,30 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       return FailedPreconditionError("EstimateNormals: prior normals too uniform to fit the lighting");
   }
 
+  // The fit pixels are processed in fixed chunks (on the pool when given) whose sums are added in
+  // chunk order: the result does not depend on the number of threads.
+  constexpr size_t kFitChunk = 1024;
+  auto for_chunks = [&](size_t n, const std::function<void(size_t, size_t, size_t)>& fn) {
+    const size_t chunks = (n + kFitChunk - 1) / kFitChunk;
+    auto run = [&](std::ptrdiff_t c) {
+      const size_t begin = static_cast<size_t>(c) * kFitChunk;
+      fn(static_cast<size_t>(c), begin, std::min(n, begin + kFitChunk));
+    };
+    if (pool && chunks > 1) {
+      pool->ParallelFor(0, static_cast<std::ptrdiff_t>(chunks), run, 1);
+    } else {
+      for (size_t c = 0; c < chunks; ++c) run(static_cast<std::ptrdiff_t>(c));
+    }
+    return chunks;
+  };
   auto cluster = [&](double min_sigma) {
     std::vector<Eigen::Vector2d> samples;
     std::vector<float> weights;
     std::vector<Eigen::Vector2d> pixel_chroma(fit.size());
-    std::vector<bool> has(fit.size(), false);
-    for (size_t i = 0; i < fit.size(); ++i) has[i] = chroma_of(fit[i], &pixel_chroma[i]);
+    std::vector<uint8_t> has(fit.size(), 0);
+    for_chunks(fit.size(), [&](size_t, size_t begin, size_t end) {
+      for (size_t i = begin; i < end; ++i) has[i] = chroma_of(fit[i], &pixel_chroma[i]);
+    });
     if (num_sp > 0) {
       std::vector<Eigen::Vector2d> sum(num_sp, Eigen::Vector2d::Zero());
       std::vector<int> count(num_sp, 0);
@@ -688,22 +706,6 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   std::vector<Eigen::Matrix3d> apa;  // A_i^T (I - n0 n0^T) A_i
   std::vector<uint8_t> usable;  // not vector<bool>: written from several threads
   // Uses the first `num_pixels` fit pixels (they are shuffled) and `iterations` IRLS rounds.
-  // The fit pixels are processed in fixed chunks (on the pool when given) whose sums are added in
-  // chunk order: the result does not depend on the number of threads.
-  constexpr size_t kFitChunk = 1024;
-  auto for_chunks = [&](size_t n, const std::function<void(size_t, size_t, size_t)>& fn) {
-    const size_t chunks = (n + kFitChunk - 1) / kFitChunk;
-    auto run = [&](std::ptrdiff_t c) {
-      const size_t begin = static_cast<size_t>(c) * kFitChunk;
-      fn(static_cast<size_t>(c), begin, std::min(n, begin + kFitChunk));
-    };
-    if (pool && chunks > 1) {
-      pool->ParallelFor(0, static_cast<std::ptrdiff_t>(chunks), run, 1);
-    } else {
-      for (size_t c = 0; c < chunks; ++c) run(static_cast<std::ptrdiff_t>(c));
-    }
-    return chunks;
-  };
   struct ChunkSums {
     std::vector<Eigen::Matrix3d> h;
     std::vector<int> counts;
