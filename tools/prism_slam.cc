@@ -46,6 +46,7 @@ options:
                    every keyframe as it is finished and write map.ply and trajectory_metres.txt
                    (metres, by the session depth scale the dense stage estimates from the shading)
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
+  --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
   --threads N      threads for the depth filter (default: all cores)
   --no-eval        skip the evaluation against ground truth
@@ -131,6 +132,7 @@ int main(int argc, char** argv) {
     else if (a == "--kitti") kitti_dir = v;
     else if (a == "--out") out_dir = v;
     else if (a == "--position-weight" && is_num && num >= 0) dense_options.fusion.position_weight = num;
+    else if (a == "--min-brightness" && is_num && num >= 0 && num <= 255) dense_options.min_brightness = num;
     else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
     else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");

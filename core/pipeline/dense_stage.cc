@@ -26,6 +26,7 @@ Status DenseStageOptions::Check() const {
   if (!(max_edge_step >= 0)) return Violated("max_edge_step", max_edge_step, ">= 0");
   if (!(max_icp_correction_m >= 0)) return Violated("max_icp_correction_m", max_icp_correction_m, ">= 0");
   if (!(max_icp_correction_deg >= 0)) return Violated("max_icp_correction_deg", max_icp_correction_deg, ">= 0");
+  if (!(min_brightness >= 0 && min_brightness <= 255)) return Violated("min_brightness", min_brightness, "in [0, 255]");
   if (!(min_icp_inlier_fraction >= 0 && min_icp_inlier_fraction <= 1))
     return Violated("min_icp_inlier_fraction", min_icp_inlier_fraction, "in [0, 1]");
   return Status::Ok();
@@ -90,8 +91,14 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
 
   // The keyframe cloud in the metric world, registered to the map.
   t0 = std::chrono::steady_clock::now();
+  cv::Mat bright;
+  if (options_.min_brightness > 0) {
+    cv::Mat grey;
+    cv::transform(keyframe.rgb, grey, cv::Matx13f(1.0f / 3, 1.0f / 3, 1.0f / 3));
+    bright = grey >= options_.min_brightness;
+  }
   PRISM_ASSIGN_OR_RETURN(result.cloud, DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera,
-                                                    keyframe.world_from_keyframe, 1, cv::Mat(),
+                                                    keyframe.world_from_keyframe, 1, bright,
                                                     result.photometric.confidence));
   if (!options_.world_in_slam_units) {
     PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, &result));

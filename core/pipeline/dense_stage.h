@@ -40,6 +40,10 @@ struct DenseStageOptions {
   // Pixels whose fused depth differs from a neighbour's by more than this (relative) are removed from
   // the keyframe's depth and cloud (flying pixels along silhouettes), >= 0; 0 keeps every pixel.
   double max_edge_step = 0.03;
+  // Pixels darker than this (mean of the three channels, 8-bit levels) stay out of the keyframe cloud:
+  // in the dark room they are the far ground and background the lights barely reach, whose normals
+  // are noise, in [0, 255]; 0 keeps every pixel.
+  double min_brightness = 0.0;
   // Largest ICP correction applied, metres and degrees, >= 0. Larger ones, unconverged ones and ones
   // pairing fewer than min_icp_inlier_fraction of the points are reported but not applied (symmetric
   // geometry, such as a sphere on a plane, lets ICP slide).
