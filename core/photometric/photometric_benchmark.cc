@@ -30,7 +30,8 @@ Keyframe MakeKeyframe(const std::string& preset) {
   return {setup.rig, f.rgb, synth::SimulateSemiDenseDepth(f.depth, f.rgb, s)};
 }
 
-// threads = 0: no pool (one thread); else a pool of that many threads for the per-pixel solve.
+// threads = 0: no pool (one thread); else a pool of that many threads (EstimateNormals spreads its
+// stages and loops over it).
 void BM_EstimateNormals(benchmark::State& state, const std::string& preset, bool estimate_scale, int threads) {
   const Keyframe k = MakeKeyframe(preset);
   PhotometricOptions options;

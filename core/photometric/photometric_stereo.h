@@ -83,11 +83,13 @@ struct PhotometricOptions {
   // (degrees, in (0, 180]): the prior is coarse (~11 deg) but a shadowed or mislabelled pixel is
   // usually much further off.
   double max_prior_deviation_deg = 35.0;
-  // Fit candidates are taken every fit_pixel_stride pixels in x and y, in [1, 8]. 2 saves ~7 ms at
-  // 512x512 but costs accuracy on multi-coloured surfaces (3.96 -> 4.85 deg pooled in the tests).
+  // Fit candidates are taken every fit_pixel_stride pixels in x and y, in [1, 8]. 2 saves little
+  // since the plane fits run in raster order, and costs accuracy on multi-coloured surfaces (3.96 ->
+  // 4.85 deg pooled in the tests, measured before that change).
   int fit_pixel_stride = 1;
-  // kPlaneFit: also compute the dense prior normals (PriorNormals, ~7 ms at 512x512). They label
-  // pixels whose superpixel had no fit pixel, and are returned in PhotometricResult.
+  // kPlaneFit: also compute the dense prior normals (PriorNormals, ~2.5 ms at 512x512, beside the
+  // superpixels when there is a pool). They label pixels whose superpixel had no fit pixel, and are
+  // returned in PhotometricResult; the dense prior used and returned is then their smoothed one.
   bool output_prior_normals = true;
   // Minimum pixels with reliable priors for a cluster's own model; else the global model is used.
   int min_cluster_pixels = 200;
@@ -122,7 +124,9 @@ struct PhotometricResult {
 };
 
 // rgb: CV_8UC3 (RGB order). The prior must have the image's size. rig: camera and, in
-// kCalibrated mode, the lights and crosstalk. The per-pixel solve is spread over `pool` when given.
+// kCalibrated mode, the lights and crosstalk. With a `pool`, the depth-prior and colour/superpixel
+// stages run side by side and the per-pixel and per-fit-pixel loops are spread over it; the result
+// is the same bit for bit with or without it (fixed chunks, sums in a fixed order).
 StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior,
                                             const RigCalibration& rig, const PhotometricOptions& options,
                                             ThreadPool* pool = nullptr);

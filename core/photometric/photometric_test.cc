@@ -12,6 +12,7 @@
 #include "core/synth/renderer.h"
 #include "core/synth/semidense.h"
 #include "core/synth/trajectory.h"
+#include "core/util/thread_pool.h"
 
 namespace prism {
 namespace {
@@ -92,6 +93,35 @@ TEST(PhotometricStereoTest, MultiColouredSphereFromSemiDenseDepth) {
   const PooledResult r = RunOnPreset("sphere-multicolor-sideways", PhotometricOptions());
   // Pooled over these 8 keyframes the estimator reaches 4.0 deg (single keyframes 3.0 to 7.0).
   EXPECT_LT(r.error.median_deg, /*max_median_normal_error_deg=*/5.0);
+}
+
+// The pool only spreads the work: fixed chunks, sums added in a fixed order, so the result is the
+// same bit for bit with and without threads.
+TEST(PhotometricStereoTest, SameResultWithAndWithoutThreadPool) {
+  synth::PresetOptions o;
+  o.frames = 60;
+  const synth::SynthSetup setup = synth::MakePreset("sphere-multicolor-sideways", o).value();
+  const Trajectory t = synth::MakeTrajectory(setup.trajectory);
+  const synth::RenderedFrame frame = synth::RenderFrame(setup.scene, setup.rig, t[40].world_from_camera, setup.render, 7);
+  synth::SemiDenseOptions s;
+  s.scale = 0.37;
+  const InverseDepthMap prior = synth::SimulateSemiDenseDepth(frame.depth, frame.rgb, s);
+  for (bool estimate_scale : {false, true}) {
+    PhotometricOptions options;
+    options.estimate_depth_scale = estimate_scale;
+    options.depth_scale = 0.37;
+    auto serial = EstimateNormals(frame.rgb, prior, setup.rig, options);
+    ThreadPool pool(2);
+    auto threaded = EstimateNormals(frame.rgb, prior, setup.rig, options, &pool);
+    ASSERT_TRUE(serial.ok() && threaded.ok());
+    EXPECT_EQ(serial->depth_scale, threaded->depth_scale);
+    EXPECT_EQ(serial->num_clusters, threaded->num_clusters);
+    EXPECT_EQ(cv::norm(serial->normals, threaded->normals, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(serial->confidence, threaded->confidence, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(serial->labels, threaded->labels, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(serial->prior_normals, threaded->prior_normals, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(serial->dense_inverse_depth, threaded->dense_inverse_depth, cv::NORM_INF), 0.0);
+  }
 }
 
 TEST(PhotometricStereoTest, BadInputIsAnError) {
