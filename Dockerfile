@@ -24,12 +24,14 @@ RUN --mount=type=cache,target=/root/.cache/ccache,id=prism-ccache \
 
 FROM debian:bookworm AS runtime
 ENV DEBIAN_FRONTEND=noninteractive
-# Exactly the libraries the installed binaries and libprism_client link against (readelf -d NEEDED).
+# Exactly the libraries the installed binaries and libprism_client link against (readelf -d NEEDED),
+# and Python with numpy for the prism_client bindings (scripted clients in the image).
 RUN apt-get update -qq \
  && apt-get install -y -qq --no-install-recommends \
       libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-calib3d406 libopencv-video406 \
       libpcl-common1.13 libpcl-search1.13 libpcl-kdtree1.13 libpcl-octree1.13 \
       libprotobuf32 libzmq5 libdraco7 libjpeg62-turbo \
+      python3 python3-numpy \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --system --uid 10001 --user-group --create-home --home-dir /var/lib/prism --shell /usr/sbin/nologin prism \
  && mkdir -p /var/lib/prism/data && chown -R prism:prism /var/lib/prism
@@ -37,6 +39,7 @@ COPY --from=build /opt/prism /opt/prism
 RUN echo /opt/prism/lib > /etc/ld.so.conf.d/prism.conf && ldconfig
 ENV PATH=/opt/prism/bin:$PATH \
     PRISM_MESH_DIR=/opt/prism/share/prism/meshes \
+    PYTHONPATH=/opt/prism/lib/python3/dist-packages \
     PRISM_BIND=tcp://0.0.0.0:5555 \
     PRISM_METRICS=0.0.0.0:9100 \
     PRISM_DATA_DIR=/var/lib/prism/data
