@@ -383,26 +383,37 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     ++lost_count;
     Rigid3d reloc_pose;
     int reloc_kf = -1;
+    std::string reloc_failure;
     if (lost_count >= options.relocalise_after_lost_frames && Relocalise(rgb, &reloc_pose, &reloc_kf)) {
-      // Resume from the keyframe found: a new keyframe at this frame, seeded from its depth.
+      // Resume from the keyframe found: a new keyframe at this frame, seeded from its depth. The frame
+      // is recorded first (MakeKeyframe marks it), and taken back if the new keyframe is unusable.
       PRISM_ASSIGN_OR_RETURN(KeyframeDepth source,
                              KeyframeDepth::Create(keyframes[static_cast<size_t>(reloc_kf)].rgb, rig.camera, options.depth));
       source.Seed(keyframes[static_cast<size_t>(reloc_kf)].final_depth.inverse_depth, 0.05, 2);
-      FinishCurrent();
       rec.frame_from_keyframe = reloc_pose;
       rec.result.keyframe_id = reloc_kf;
       rec.result.state = SlamState::kTracking;
       rec.result.message = "relocalised against keyframe " + std::to_string(reloc_kf);
       rec.result.world_from_camera = WorldFromFrame(rec);
       frames.push_back(rec);
-      PRISM_RETURN_IF_ERROR(MakeKeyframe(frame_id, timestamp, rgb, reloc_kf, reloc_pose, source));
-      frames.back().result.new_keyframe = true;
-      lost_count = 0;
-      PRISM_LOG(INFO) << "slam: frame " << frame_id << " " << frames.back().result.message;
-      return frames.back().result;
+      const Status made = MakeKeyframe(frame_id, timestamp, rgb, reloc_kf, reloc_pose, source);
+      if (made.ok()) {
+        frames.back().result.new_keyframe = true;
+        lost_count = 0;
+        PRISM_LOG(INFO) << "slam: frame " << frame_id << " " << frames.back().result.message;
+        return frames.back().result;
+      }
+      frames.pop_back();
+      // The current keyframe stays; restore the tracker's copy of it (MakeKeyframe replaced it).
+      PRISM_RETURN_IF_ERROR(RefreshTracker());
+      reloc_failure = " (relocalised against keyframe " + std::to_string(reloc_kf) + " but " +
+                      std::string(made.message()) + ")";
+      rec = FrameRecord();
+      rec.result.frame_id = frame_id;
+      rec.result.timestamp = timestamp;
     }
     rec.result.state = SlamState::kLost;
-    rec.result.message = "tracking lost: " + tr.lost_reason;
+    rec.result.message = "tracking lost: " + tr.lost_reason + reloc_failure;
     // Keep the last good pose.
     for (auto it = frames.rbegin(); it != frames.rend(); ++it) {
       if (it->result.state == SlamState::kTracking) {
