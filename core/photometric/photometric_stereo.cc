@@ -588,15 +588,20 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     } else {
       for (int b = 0; b < num_blocks; ++b) fit_block(b);
     }
+    // The first max_fit_pixels accepted candidates in a random order of all candidates (the same
+    // subset and order as testing them one by one in that order). The subset matters more than one
+    // would think: other random subsets of the same size move the pooled multi-coloured sphere error
+    // between 3.6 and 4.0 deg.
+    std::vector<uint32_t> order(candidates.size());
+    std::iota(order.begin(), order.end(), 0u);
+    std::shuffle(order.begin(), order.end(), rng);
     std::vector<uint32_t> kept;
-    for (size_t i = 0; i < candidates.size(); ++i)
-      if (accepted[i]) kept.push_back(static_cast<uint32_t>(i));
-    // A random subset of max_fit_pixels, in random order (a partial Fisher-Yates shuffle).
-    const size_t num_kept = std::min(kept.size(), static_cast<size_t>(options.max_fit_pixels));
-    for (size_t i = 0; i < num_kept; ++i) {
-      std::uniform_int_distribution<size_t> pick(i, kept.size() - 1);
-      std::swap(kept[i], kept[pick(rng)]);
+    for (uint32_t i : order) {
+      if (!accepted[i]) continue;
+      kept.push_back(i);
+      if (static_cast<int>(kept.size()) >= options.max_fit_pixels) break;
     }
+    const size_t num_kept = std::min(kept.size(), static_cast<size_t>(options.max_fit_pixels));
     fit.reserve(num_kept);
     for (size_t j = 0; j < num_kept; ++j) {
       FitPixel p = make_fit_pixel(candidates[kept[j]]);
