@@ -6,6 +6,7 @@
 #include <string>
 
 #include "core/util/logging.h"
+#include "server/curve.h"
 #include "server/server.h"
 #include "server/server_options.h"
 
@@ -24,8 +25,29 @@ int Fail(const std::string& m) {
 
 }  // namespace
 
+// prism-server keygen [--out FILE]: a CURVE key pair. With --out, FILE (mode 0600) gets both keys and
+// the public key is printed; without, both are printed in the key-file format.
+int Keygen(int argc, char** argv) {
+  std::string out;
+  for (int i = 2; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--out" && i + 1 < argc) out = argv[++i];
+    else return Fail("keygen: unknown argument '" + a + "' (usage: prism-server keygen [--out FILE])");
+  }
+  prism::StatusOr<prism::server::CurveKeyPair> keys = prism::server::GenerateCurveKeyPair();
+  if (!keys.ok()) return Fail(keys.status().ToString());
+  if (out.empty()) {
+    std::cout << "public = " << keys->public_key << "\nsecret = " << keys->secret_key << "\n";
+    return 0;
+  }
+  if (prism::Status s = prism::server::WriteCurveKeyFile(out, *keys); !s.ok()) return Fail(s.ToString());
+  std::cout << keys->public_key << "\n";
+  return 0;
+}
+
 int main(int argc, char** argv) {
   using namespace prism::server;
+  if (argc >= 2 && std::string(argv[1]) == "keygen") return Keygen(argc, argv);
   ServerOptions options;
   // The config file first, then flags over it.
   for (int i = 1; i + 1 < argc; ++i)
@@ -35,7 +57,8 @@ int main(int argc, char** argv) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
-      std::cout << "usage: prism-server --bind ENDPOINT --data-dir DIR [--config FILE] [--KEY VALUE ...]\n\n"
+      std::cout << "usage: prism-server --bind ENDPOINT --data-dir DIR [--config FILE] [--KEY VALUE ...]\n"
+                   "       prism-server keygen [--out FILE]   (a CURVE key pair; FILE gets both, the public key is printed)\n\n"
                    "Serves reconstruction sessions over ZeroMQ (proto/prism/v1/session.proto). Options (flags\n"
                    "or 'key = value' lines in the config file):\n"
                 << ServerOptionsHelp()

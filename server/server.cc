@@ -1,4 +1,6 @@
 #include "server/server.h"
+#include "server/curve.h"
+#include "server/session_store.h"
 
 #include <arpa/inet.h>
 #include <fcntl.h>
@@ -17,6 +19,7 @@
 #include <map>
 #include <mutex>
 #include <random>
+#include <set>
 #include <sstream>
 #include <unordered_map>
 #include <vector>
@@ -141,6 +144,9 @@ std::string RandomHex(int bytes) {
 
 }  // namespace
 
+// Approximate bytes per voxel of a session's map (position, normal, colour, confidence, hash entry).
+constexpr double kMapBytesPerPoint = 96;
+
 struct Server::Impl {
   // Per session, transport thread only (except pipeline, which is thread-safe).
   struct Session {
@@ -149,7 +155,22 @@ struct Server::Impl {
     std::string client_name;
     std::unique_ptr<SessionPipeline> pipeline;
     int64_t chunk_credits = 0;
-    std::deque<std::pair<v1::Envelope, std::vector<uint8_t>>> pending_chunks;  // waiting for credits
+    // Chunks waiting for credits, in order. Persisted ones beyond the first
+    // options.max_pending_chunks_in_memory wait on disk only (read back when sent), so a client that
+    // grants no credits costs no memory.
+    struct PendingChunk {
+      uint64_t sequence = 0;
+      bool on_disk = false;  // envelope and bytes not loaded
+      v1::Envelope envelope;
+      std::vector<uint8_t> bytes;
+    };
+    std::deque<PendingChunk> pending_chunks;
+    size_t pending_in_memory = 0, pending_bytes_in_memory = 0;
+    // Frame-rate limit: a token bucket of frames (capacity = the frame queue), refilled at
+    // options.max_frame_rate_hz.
+    double rate_tokens = 0;
+    Clock::time_point rate_refilled;
+    bool memory_limit_hit = false;
     uint32_t frame_credits_to_grant = 0;
     Clock::time_point last_activity;
     bool closing = false;    // Close received, idle timeout or shutdown: no more frames
@@ -157,6 +178,14 @@ struct Server::Impl {
     std::string reason;      // why it ends
     PipelineStats stats;     // at kFinished
     uint64_t poses_sent = 0, chunks_sent = 0, frames_refused = 0;
+    std::string resume_token;
+    // Replay of an ended session (resume after it finished or after a server restart): no pipeline;
+    // its persisted chunks go out, then `replay_summary`.
+    bool replay = false;
+    v1::SessionSummary replay_summary;
+    std::vector<uint64_t> chunk_sequences;  // persisted, ascending
+    PoseLog pose_log;
+    uint64_t next_frame_sequence = 0;  // 1 + the highest frame sequence number received
   };
   struct Outgoing {
     std::string session_id;
@@ -164,7 +193,11 @@ struct Server::Impl {
   };
 
   ServerOptions options;
+  SessionStore store{""};
   zmq::context_t context{1};
+  // ZAP handler (CURVE only), created before the ROUTER binds so no handshake goes unchecked.
+  std::unique_ptr<zmq::socket_t> zap;
+  std::set<std::string> allowed_clients;
   zmq::socket_t router{context, zmq::socket_type::router};
   std::string endpoint, metrics_endpoint;
   int metrics_fd = -1;
@@ -268,9 +301,13 @@ struct Server::Impl {
     metrics.Set("prism_sessions_active", static_cast<double>(sessions.size()));
     metrics.Set("prism_sessions_capacity", options.max_sessions);
     metrics.Set("prism_dense_jobs_pending", static_cast<double>(workers->pending_jobs()));
-    size_t pending_chunks = 0;
-    for (const auto& [id, s] : sessions) pending_chunks += s->pending_chunks.size();
+    size_t pending_chunks = 0, in_memory = 0;
+    for (const auto& [id, s] : sessions) {
+      pending_chunks += s->pending_chunks.size();
+      in_memory += s->pending_bytes_in_memory;
+    }
     metrics.Set("prism_chunks_waiting_for_credit", static_cast<double>(pending_chunks));
+    metrics.Set("prism_chunk_bytes_waiting_in_memory", static_cast<double>(in_memory));
   }
 
   // Sends [peer][envelope][payload?] without blocking. false when the peer is gone (ROUTER_MANDATORY:
@@ -408,11 +445,138 @@ struct Server::Impl {
     return it->second.get();
   }
 
+  // Re-attaches a client to a running session, or replays an ended one from the data dir.
+  void ResumeSession(const std::string& peer, const v1::OpenSession& open) {
+    const std::string& id = open.resume_session_id();
+    if (!IsValidSessionId(id)) {
+      metrics.Add("prism_resumes_rejected_total{reason=\"invalid\"}");
+      return SendError(peer, InvalidArgumentError("malformed resume_session_id '" + id.substr(0, 64) + "'"), "",
+                       false, false);
+    }
+    auto token_ok = [&](const std::string& token) {
+      // Constant time in the token length: no early exit on the first differing byte.
+      if (token.size() != open.resume_token().size() || token.empty()) return false;
+      unsigned diff = 0;
+      for (size_t i = 0; i < token.size(); ++i) diff |= static_cast<unsigned>(token[i] ^ open.resume_token()[i]);
+      return diff == 0;
+    };
+    Session* s = nullptr;
+    auto it = sessions.find(id);
+    if (it != sessions.end()) {
+      s = it->second.get();
+      if (!token_ok(s->resume_token)) {
+        metrics.Add("prism_resumes_rejected_total{reason=\"token\"}");
+        return SendError(peer, Status(StatusCode::kUnauthenticated, "resume token does not match session '" + id + "'"), id, false,
+                         false);
+      }
+    } else {
+      StatusOr<StoredSession> stored = store.Load(id);
+      if (!stored.ok()) {
+        metrics.Add("prism_resumes_rejected_total{reason=\"unknown\"}");
+        return SendError(peer, stored.status(), id, false, true);
+      }
+      if (!token_ok(stored->resume_token)) {
+        metrics.Add("prism_resumes_rejected_total{reason=\"token\"}");
+        return SendError(peer, Status(StatusCode::kUnauthenticated, "resume token does not match session '" + id + "'"), id, false,
+                         false);
+      }
+      if (static_cast<int>(sessions.size()) >= options.max_sessions)
+        return SendError(peer, ResourceExhaustedError("server at capacity: " + std::to_string(sessions.size()) +
+                                                      " sessions; retry the resume later"),
+                         id, true, false);
+      if (!stored->has_summary) {
+        // Interrupted by a server stop: finish it from what was persisted.
+        StatusOr<size_t> points = store.RebuildMap(id, stored->voxel_m);
+        v1::SessionSummary& sum = stored->summary;
+        sum.set_session_id(id);
+        sum.set_chunks_sent(stored->chunk_sequences.size());
+        sum.set_map_points(points.ok() ? *points : 0);
+        sum.set_reason("interrupted: the server stopped before the session finished; " +
+                       std::to_string(stored->chunk_sequences.size()) + " persisted chunks");
+        if (Status w = store.WriteSummary(id, sum); !w.ok()) {
+          PRISM_LOG(WARNING) << "event=persist_failed session=" << id << " error=\"" << w << "\"";
+        }
+        PRISM_LOG(INFO) << "event=session_recovered session=" << id << " chunks=" << stored->chunk_sequences.size()
+                        << " map_points=" << sum.map_points();
+      }
+      auto session = std::make_unique<Session>();
+      session->id = id;
+      session->resume_token = stored->resume_token;
+      session->client_name = stored->client_name;
+      session->replay = true;
+      session->closing = true;
+      session->finished = true;
+      session->replay_summary = stored->summary;
+      session->reason = stored->summary.reason();
+      session->chunk_sequences = stored->chunk_sequences;
+      s = session.get();
+      sessions[id] = std::move(session);
+    }
+    s->peer = peer;
+    s->last_activity = Clock::now();
+    s->chunk_credits = open.initial_chunk_credits() > 0 ? open.initial_chunk_credits() : options.default_chunk_credits;
+    s->frame_credits_to_grant = 0;
+    // Every persisted chunk from resume_next_chunk on goes out again, in order (the pending ones are
+    // among them: chunks are persisted before they are queued).
+    // Chunks that failed to persist stay as they are (in memory); the rest are re-read from disk.
+    std::deque<Session::PendingChunk> unpersisted;
+    for (Session::PendingChunk& c : s->pending_chunks)
+      if (!c.on_disk && !std::binary_search(s->chunk_sequences.begin(), s->chunk_sequences.end(), c.sequence))
+        unpersisted.push_back(std::move(c));
+    s->pending_chunks.clear();
+    s->pending_in_memory = s->pending_bytes_in_memory = 0;
+    for (uint64_t seq : s->chunk_sequences) {
+      if (seq < open.resume_next_chunk()) continue;
+      Session::PendingChunk c;
+      c.sequence = seq;
+      c.on_disk = true;
+      s->pending_chunks.push_back(std::move(c));
+    }
+    for (Session::PendingChunk& c : unpersisted) QueueChunk(s, std::move(c));
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::SessionOpened* o = env.mutable_session_opened();
+    FillSessionOpened(s, o);
+    o->set_resumed(true);
+    o->set_read_only(s->replay);
+    o->set_next_frame_sequence(s->next_frame_sequence);
+    o->set_initial_frame_credits(
+        s->replay || s->closing ? 0u
+                                : static_cast<uint32_t>(std::max<int64_t>(
+                                      0, static_cast<int64_t>(options.pipeline.frame_queue_capacity) -
+                                             static_cast<int64_t>(s->pipeline->queued_frames()))));
+    metrics.Add("prism_sessions_resumed_total");
+    PRISM_LOG(INFO) << "event=session_resumed session=" << id << " read_only=" << s->replay
+                    << " chunks_to_resend=" << s->pending_chunks.size() << " next_pose=" << open.resume_next_pose();
+    Send(peer, env);
+    for (v1::PoseUpdate& p : store.ReadPoses(id, open.resume_next_pose())) {
+      v1::Envelope pe;
+      pe.set_protocol_version(v1::PROTOCOL_VERSION_1);
+      *pe.mutable_pose_update() = std::move(p);
+      Send(peer, pe);
+    }
+    FlushChunks(s);
+  }
+
+  void FillSessionOpened(const Session* s, v1::SessionOpened* o) const {
+    const SessionPipelineOptions& po = options.pipeline;
+    o->set_session_id(s->id);
+    o->set_resume_token(s->resume_token);
+    o->set_initial_frame_credits(static_cast<uint32_t>(po.frame_queue_capacity));
+    o->set_max_frame_bytes(options.max_frame_bytes);
+    o->set_map_voxel_m(po.dense.map.voxel_m);
+    o->set_map_grid_subdivisions(static_cast<uint32_t>(po.chunk.subdivisions));
+    o->set_map_quantisation_m(po.dense.map.voxel_m / po.chunk.subdivisions);
+    o->set_idle_timeout_ms(static_cast<uint32_t>(options.idle_timeout_ms));
+    o->set_max_message_bytes(static_cast<uint64_t>(options.max_message_bytes));
+  }
+
   void OpenSession(const std::string& peer, const v1::OpenSession& open) {
     if (open.protocol_version() != v1::PROTOCOL_VERSION_1) return SendVersionMismatch(peer, open.protocol_version());
     if (draining) {
       return SendError(peer, UnavailableError("server is shutting down"), "", true, false);
     }
+    if (!open.resume_session_id().empty()) return ResumeSession(peer, open);
     if (static_cast<int>(sessions.size()) >= options.max_sessions) {
       metrics.Add("prism_sessions_rejected_total{reason=\"capacity\"}");
       return SendError(peer,
@@ -435,7 +599,20 @@ struct Server::Impl {
     session->client_name = open.client_name();
     session->chunk_credits = open.initial_chunk_credits() > 0 ? open.initial_chunk_credits() : options.default_chunk_credits;
     session->last_activity = Clock::now();
+    session->rate_refilled = session->last_activity;
+    session->rate_tokens = 2.0 * po.frame_queue_capacity;
+    session->resume_token = RandomHex(16);
     const std::string id = session->id;
+    StoredSession stored;
+    stored.id = id;
+    stored.resume_token = session->resume_token;
+    stored.client_name = open.client_name();
+    stored.voxel_m = po.dense.map.voxel_m;
+    if (Status c = store.Create(stored); !c.ok()) {
+      metrics.Add("prism_sessions_rejected_total{reason=\"storage\"}");
+      return SendError(peer, c, "", true, false);
+    }
+    if (Status c = session->pose_log.Open(store.Dir(id)); !c.ok()) return SendError(peer, c, "", true, false);
     StatusOr<std::unique_ptr<SessionPipeline>> pipeline =
         SessionPipeline::Create(*rig, po, workers.get(), [this, id](PipelineEvent&& e) {
           {
@@ -452,15 +629,9 @@ struct Server::Impl {
     v1::Envelope env;
     env.set_protocol_version(v1::PROTOCOL_VERSION_1);
     v1::SessionOpened* o = env.mutable_session_opened();
-    o->set_session_id(id);
-    o->set_initial_frame_credits(static_cast<uint32_t>(po.frame_queue_capacity));
-    o->set_max_frame_bytes(options.max_frame_bytes);
-    o->set_map_voxel_m(po.dense.map.voxel_m);
-    o->set_map_grid_subdivisions(static_cast<uint32_t>(po.chunk.subdivisions));
-    o->set_map_quantisation_m(po.dense.map.voxel_m / po.chunk.subdivisions);
-    o->set_idle_timeout_ms(static_cast<uint32_t>(options.idle_timeout_ms));
+    FillSessionOpened(session.get(), o);
     o->set_input_policy(po.input_policy == OverflowPolicy::kReject ? v1::INPUT_POLICY_UPLOAD : v1::INPUT_POLICY_LIVE);
-    o->set_max_message_bytes(static_cast<uint64_t>(options.max_message_bytes));
+    o->set_max_frame_rate_hz(options.max_frame_rate_hz);
     sessions[id] = std::move(session);
     metrics.Add("prism_sessions_opened_total");
     PRISM_LOG(INFO) << "event=session_opened session=" << id << " client=\"" << open.client_name() << "\" size="
@@ -480,7 +651,24 @@ struct Server::Impl {
       SendError(peer, Status(st.code(), "frame " + std::to_string(seq) + ": " + st.message()), s->id, retryable,
                 false, &seq);
     };
+    if (s->replay) return refuse(FailedPreconditionError("the session has ended (" + s->reason + "); it takes no frames"), false);
     if (s->closing) return refuse(FailedPreconditionError("the session is closing; no frames after Close"), false);
+    s->next_frame_sequence = std::max(s->next_frame_sequence, seq + 1);
+    if (options.max_frame_rate_hz > 0) {
+      const auto now = Clock::now();
+      // Twice the burst a client pacing itself uses (the frame queue), so network jitter never trips it.
+      const double burst = 2.0 * options.pipeline.frame_queue_capacity;
+      s->rate_tokens = std::min(
+          burst, s->rate_tokens + std::chrono::duration<double>(now - s->rate_refilled).count() * options.max_frame_rate_hz);
+      s->rate_refilled = now;
+      if (s->rate_tokens < 1.0) {
+        metrics.Add("prism_frames_dropped_total{reason=\"rate\"}");
+        return refuse(ResourceExhaustedError("over the session frame-rate limit of " +
+                                             std::to_string(options.max_frame_rate_hz) + " Hz (max-frame-rate-hz)"),
+                      true);
+      }
+      s->rate_tokens -= 1.0;
+    }
     if (!payload || payload->size() == 0) return refuse(InvalidArgumentError("frame without image payload part"), false);
     if (payload->size() > options.max_frame_bytes)
       return refuse(InvalidArgumentError("frame payload of " + std::to_string(payload->size()) + " bytes exceeds " +
@@ -505,14 +693,42 @@ struct Server::Impl {
     }
   }
 
+  void QueueChunk(Session* s, Session::PendingChunk&& c) {
+    const bool persisted = std::binary_search(s->chunk_sequences.begin(), s->chunk_sequences.end(), c.sequence);
+    if (persisted && s->pending_in_memory >= static_cast<size_t>(options.max_pending_chunks_in_memory)) {
+      c.on_disk = true;
+      c.envelope.Clear();
+      std::vector<uint8_t>().swap(c.bytes);
+    } else {
+      ++s->pending_in_memory;
+      s->pending_bytes_in_memory += c.bytes.size();
+    }
+    s->pending_chunks.push_back(std::move(c));
+  }
+
   void FlushChunks(Session* s) {
     while (s->chunk_credits > 0 && !s->pending_chunks.empty()) {
-      auto& [env, bytes] = s->pending_chunks.front();
-      if (!Send(s->peer, env, &bytes)) break;  // retried on the next loop
+      Session::PendingChunk& c = s->pending_chunks.front();
+      if (c.on_disk) {
+        c.envelope.set_protocol_version(v1::PROTOCOL_VERSION_1);
+        if (Status r = store.ReadChunk(s->id, c.sequence, c.envelope.mutable_map_chunk(), &c.bytes); !r.ok()) {
+          PRISM_LOG(WARNING) << "event=chunk_unreadable session=" << s->id << " error=\"" << r << "\"";
+          metrics.Add("prism_persist_failures_total");
+          s->pending_chunks.pop_front();
+          continue;
+        }
+        c.envelope.mutable_map_chunk()->set_session_id(s->id);
+        c.on_disk = false;
+        ++s->pending_in_memory;
+        s->pending_bytes_in_memory += c.bytes.size();
+      }
+      if (!Send(s->peer, c.envelope, &c.bytes)) break;  // retried on the next loop
       --s->chunk_credits;
       ++s->chunks_sent;
       metrics.Add("prism_chunks_sent_total");
-      metrics.Add("prism_chunk_bytes_total", static_cast<double>(bytes.size()));
+      metrics.Add("prism_chunk_bytes_total", static_cast<double>(c.bytes.size()));
+      --s->pending_in_memory;
+      s->pending_bytes_in_memory -= c.bytes.size();
       s->pending_chunks.pop_front();
     }
   }
@@ -538,6 +754,7 @@ struct Server::Impl {
         p->set_is_keyframe(e.slam.new_keyframe);
         p->set_keyframe_id(e.slam.keyframe_id);
         p->set_metres_per_unit(e.metres_per_unit);
+        s->pose_log.Append(*p);
         if (Send(s->peer, env)) {
           ++s->poses_sent;
           metrics.Add("prism_poses_sent_total");
@@ -554,8 +771,36 @@ struct Server::Impl {
         c->set_payload_bytes(e.draco.size());
         c->set_map_points(e.map_points);
         metrics.Add("prism_keyframes_merged_total");
-        s->pending_chunks.emplace_back(std::move(env), std::move(e.draco));
+        // Persisted before it is queued: a chunk the client may have seen is always on disk.
+        if (Status w = store.WriteChunk(s->id, *c, e.draco); !w.ok()) {
+          metrics.Add("prism_persist_failures_total");
+          PRISM_LOG(WARNING) << "event=persist_failed session=" << s->id << " error=\"" << w << "\"";
+        } else {
+          s->chunk_sequences.push_back(e.chunk_sequence);
+        }
+        Session::PendingChunk pc;
+        pc.sequence = e.chunk_sequence;
+        pc.envelope = std::move(env);
+        pc.bytes = std::move(e.draco);
+        QueueChunk(s, std::move(pc));
         FlushChunks(s);
+        // Memory per session: the map (voxels) and the chunks held for the client.
+        const double session_mb = (static_cast<double>(e.map_points) * kMapBytesPerPoint +
+                                   static_cast<double>(s->pending_bytes_in_memory)) / (1 << 20);
+        if (!s->memory_limit_hit && !s->closing && session_mb > options.max_session_memory_mb) {
+          s->memory_limit_hit = true;
+          s->closing = true;
+          s->reason = "memory limit";
+          s->pipeline->Finish();
+          metrics.Add("prism_sessions_limited_total{limit=\"memory\"}");
+          SendError(s->peer,
+                    ResourceExhaustedError("session memory ~" + std::to_string(static_cast<int>(session_mb)) +
+                                           " MiB exceeds max-session-memory-mb = " +
+                                           std::to_string(options.max_session_memory_mb) +
+                                           "; the session is finished with the map so far (raise the limit or use a "
+                                           "coarser voxel-m)"),
+                    s->id, false, false);
+        }
         return;
       }
       case PipelineEvent::Kind::kError: {
@@ -578,9 +823,15 @@ struct Server::Impl {
   }
 
   void PersistAndSummarise(Session* s) {
-    const PipelineStats& st = s->stats;
     v1::Envelope env;
     env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    if (s->replay) {
+      *env.mutable_session_summary() = s->replay_summary;
+      Send(s->peer, env);
+      PRISM_LOG(INFO) << "event=session_replayed session=" << s->id << " chunks=" << s->chunks_sent;
+      return;
+    }
+    const PipelineStats& st = s->stats;
     v1::SessionSummary* sum = env.mutable_session_summary();
     sum->set_session_id(s->id);
     sum->set_frames_received(st.frames_received);
@@ -594,7 +845,7 @@ struct Server::Impl {
     sum->set_metres_per_unit(st.metres_per_unit);
     sum->set_reason(s->reason);
     // Persist: the merged map and the summary.
-    const std::string dir = options.data_dir + "/sessions/" + s->id;
+    const std::string dir = store.Dir(s->id);
     std::error_code ec;
     std::filesystem::create_directories(dir, ec);
     if (st.map_points > 0) {
@@ -603,7 +854,9 @@ struct Server::Impl {
         PRISM_LOG(WARNING) << "event=persist_failed session=" << s->id << " error=\"" << w << "\"";
       }
     }
-    std::ofstream(dir + "/summary.txt") << sum->DebugString();
+    if (Status w = store.WriteSummary(s->id, *sum); !w.ok()) {
+      PRISM_LOG(WARNING) << "event=persist_failed session=" << s->id << " error=\"" << w << "\"";
+    }
     Send(s->peer, env);
     metrics.Add("prism_sessions_closed_total");
     metrics.Add("prism_keyframes_dropped_total", static_cast<double>(st.keyframes_dropped));
@@ -669,7 +922,10 @@ struct Server::Impl {
       items.clear();
       items.push_back({router.handle(), 0, ZMQ_POLLIN, 0});
       items.push_back({nullptr, wake_fd, ZMQ_POLLIN, 0});
+      const size_t metrics_item = items.size();
       if (metrics_fd >= 0) items.push_back({nullptr, metrics_fd, ZMQ_POLLIN, 0});
+      const size_t zap_item = items.size();
+      if (zap) items.push_back({zap->handle(), 0, ZMQ_POLLIN, 0});
       try {
         zmq::poll(items.data(), items.size(), std::chrono::milliseconds(50));
       } catch (const zmq::error_t& e) {
@@ -716,7 +972,23 @@ struct Server::Impl {
         events.swap(outbox);
       }
       for (Outgoing& o : events) HandleEvent(o);
-      if (metrics_fd >= 0 && (items[2].revents & ZMQ_POLLIN)) ServeHttp();
+      if (metrics_fd >= 0 && (items[metrics_item].revents & ZMQ_POLLIN)) ServeHttp();
+      if (zap && (items[zap_item].revents & ZMQ_POLLIN)) {
+        std::string key;
+        for (int n = 0; n < 64; ++n) {
+          try {
+            const bool admitted = HandleZapRequest(*zap, allowed_clients, &key);
+            if (key.empty() && !admitted) break;  // nothing pending (or a non-CURVE request, refused)
+            metrics.Add(admitted ? "prism_auth_accepted_total" : "prism_auth_refused_total");
+            if (!admitted) {
+              PRISM_LOG(WARNING) << "event=auth_refused client_key=" << key;
+            }
+          } catch (const zmq::error_t& e) {
+            PRISM_LOG(WARNING) << "event=zap_failed error=\"" << e.what() << "\"";
+            break;
+          }
+        }
+      }
       Housekeeping();
     }
     PRISM_LOG(INFO) << "event=server_stopped";
@@ -731,6 +1003,7 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   PRISM_RETURN_IF_ERROR(options.Check());
   auto impl = std::make_unique<Impl>();
   impl->options = options;
+  impl->store = SessionStore(options.data_dir);
   std::error_code ec;
   std::filesystem::create_directories(options.data_dir + "/sessions", ec);
   if (ec) return UnavailableError("cannot create data dir '" + options.data_dir + "': " + ec.message());
@@ -738,6 +1011,19 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   if (impl->wake_fd < 0) return InternalError("eventfd failed");
   try {
     zmq::socket_t& r = impl->router;
+    if (!options.curve_keys.empty()) {
+      if (!zmq_has("curve")) return UnavailableError("curve_keys is set but this libzmq was built without CURVE");
+      PRISM_ASSIGN_OR_RETURN(CurveKeyPair keys, ReadCurveKeyFile(options.curve_keys));
+      PRISM_ASSIGN_OR_RETURN(impl->allowed_clients, ReadAllowList(options.allowed_clients));
+      impl->zap = std::make_unique<zmq::socket_t>(impl->context, zmq::socket_type::rep);
+      impl->zap->set(zmq::sockopt::linger, 0);
+      impl->zap->bind("inproc://zeromq.zap.01");
+      r.set(zmq::sockopt::curve_server, 1);
+      r.set(zmq::sockopt::curve_secretkey, keys.secret_key);
+      r.set(zmq::sockopt::zap_domain, std::string("prism"));
+      PRISM_LOG(INFO) << "event=curve_enabled server_key=" << keys.public_key
+                      << " allowed_clients=" << impl->allowed_clients.size();
+    }
     r.set(zmq::sockopt::router_mandatory, 1);
     r.set(zmq::sockopt::linger, 0);
     r.set(zmq::sockopt::maxmsgsize, options.max_message_bytes);
@@ -748,6 +1034,11 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
     r.set(zmq::sockopt::rcvhwm, options.send_hwm);
     r.bind(options.bind);
     impl->endpoint = r.get(zmq::sockopt::last_endpoint);
+    if (options.curve_keys.empty() && !IsLoopbackEndpoint(impl->endpoint)) {
+      PRISM_LOG(WARNING) << "event=unencrypted_listener endpoint=" << impl->endpoint
+                         << " message=\"plain TCP on a non-loopback address: anyone who can reach it may open "
+                            "sessions and read the traffic; use --curve-keys and --allowed-clients\"";
+    }
   } catch (const zmq::error_t& e) {
     return UnavailableError("cannot bind " + options.bind + ": " + e.what());
   }
@@ -760,6 +1051,19 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
 const std::string& Server::endpoint() const { return impl_->endpoint; }
 const std::string& Server::metrics_endpoint() const { return impl_->metrics_endpoint; }
 Status Server::Run() { return impl_->Run(); }
+void Server::HandleMessageForFuzzing(const std::vector<std::string>& parts) {
+  std::vector<zmq::message_t> messages;
+  for (const std::string& p : parts) messages.emplace_back(p.data(), p.size());
+  if (messages.empty()) return;
+  impl_->HandleMessage(messages);  // Run catches what escapes; a fuzzer must see it
+  std::deque<Impl::Outgoing> events;
+  {
+    std::lock_guard<std::mutex> lock(impl_->outbox_mutex);
+    events.swap(impl_->outbox);
+  }
+  for (Impl::Outgoing& o : events) impl_->HandleEvent(o);
+}
+
 void Server::RequestStop() {
   impl_->stop_requested = true;
   impl_->Wake();

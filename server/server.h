@@ -6,6 +6,7 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "core/util/status.h"
 #include "server/server_options.h"
@@ -28,6 +29,12 @@ class Server {
   Status Run();
   // Async-signal-safe: may be called from a signal handler or any thread.
   void RequestStop();
+
+  // For the fuzz targets: handles one multipart message [routing id][Envelope][payload?] exactly as Run
+  // does (validation, handlers, then the pipelines' pending events), on the calling thread; Run must
+  // not be running. Replies go to the ROUTER, which drops those for unknown routing ids. Exceptions
+  // (broken invariants, which Run would log and survive) propagate, so the fuzzer reports them.
+  void HandleMessageForFuzzing(const std::vector<std::string>& parts);
 
  private:
   struct Impl;

@@ -25,7 +25,7 @@ std::string Trim(const std::string& s) {
 
 const char* ServerOptionsHelp() {
   return R"(  bind ENDPOINT           ZeroMQ endpoint (default tcp://127.0.0.1:5555; tcp://127.0.0.1:* = free port)
-  data-dir DIR            where sessions persist map.ply and summary.json (required)
+  data-dir DIR            where sessions persist poses, chunks, map.ply and summary (required)
   metrics HOST:PORT|off   HTTP /metrics (Prometheus text), /healthz and /allocate (default 127.0.0.1:0 = free port)
   advertise ENDPOINT      endpoint GET /allocate hands to clients (default: the bound one)
   max-sessions N          concurrent sessions before RESOURCE_EXHAUSTED (default 4)
@@ -37,12 +37,17 @@ const char* ServerOptionsHelp() {
   heartbeat-ivl-ms MS     ZMTP heartbeat interval (default 1000)
   heartbeat-timeout-ms MS ZMTP heartbeat timeout (default 5000)
   send-hwm N              ZMQ_SNDHWM (default 1000)
+  max-frame-rate-hz HZ    average frames/s per session, bursts up to frame-queue (default 120; 0 = off)
+  max-session-memory-mb M a session's map + held chunks beyond this ends it with an error (default 1024)
+  max-pending-chunks-in-memory N  chunks held in memory per session for a slow client; more wait on disk (default 16)
   chunk-credits N         map chunks in flight when the client grants none (default 8)
   frame-queue N           frames queued per session (default 8; also the initial frame credits)
   input-policy live|upload  full frame queue: drop the oldest (live) or reject (upload) (default live)
   keyframe-queue N        finished keyframes queued per session for the dense stage (default 4)
   voxel-m M               map voxel edge, metres (default 0.002)
   shutdown-deadline-ms MS on SIGTERM, time to finish queued work before stopping (default 10000)
+  curve-keys FILE         CURVE: this server's key pair (from `prism-server keygen`); default off = plain TCP
+  allowed-clients FILE    CURVE: client public keys admitted, one per line (required with curve-keys)
 )";
 }
 
@@ -66,8 +71,18 @@ Status ServerOptions::Check() const {
   if (heartbeat_ivl_ms < 10 || heartbeat_timeout_ms < heartbeat_ivl_ms)
     return bad("heartbeat_timeout_ms", std::to_string(heartbeat_timeout_ms), ">= heartbeat_ivl_ms >= 10");
   if (send_hwm < 1) return bad("send_hwm", std::to_string(send_hwm), ">= 1");
+  if (max_frame_rate_hz < 0 || max_frame_rate_hz > 1000)
+    return bad("max_frame_rate_hz", std::to_string(max_frame_rate_hz), "in [0, 1000] (0 = no limit)");
+  if (max_session_memory_mb < 16 || max_session_memory_mb > 65536)
+    return bad("max_session_memory_mb", std::to_string(max_session_memory_mb), "in [16, 65536]");
+  if (max_pending_chunks_in_memory < 1 || max_pending_chunks_in_memory > 4096)
+    return bad("max_pending_chunks_in_memory", std::to_string(max_pending_chunks_in_memory), "in [1, 4096]");
   if (default_chunk_credits < 1) return bad("default_chunk_credits", std::to_string(default_chunk_credits), ">= 1");
   if (shutdown_deadline_ms < 0) return bad("shutdown_deadline_ms", std::to_string(shutdown_deadline_ms), ">= 0");
+  if (!curve_keys.empty() && allowed_clients.empty())
+    return bad("allowed_clients", "''", "a file of client public keys when curve_keys is set");
+  if (curve_keys.empty() && !allowed_clients.empty())
+    return bad("curve_keys", "''", "a key file when allowed_clients is set");
   return pipeline.Check();
 }
 
@@ -92,10 +107,15 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   else if (key == "heartbeat-ivl-ms") { if (!is_int) return bad(); o->heartbeat_ivl_ms = static_cast<int>(i); }
   else if (key == "heartbeat-timeout-ms") { if (!is_int) return bad(); o->heartbeat_timeout_ms = static_cast<int>(i); }
   else if (key == "send-hwm") { if (!is_int) return bad(); o->send_hwm = static_cast<int>(i); }
+  else if (key == "max-frame-rate-hz") { if (!is_double) return bad(); o->max_frame_rate_hz = d; }
+  else if (key == "max-session-memory-mb") { if (!is_int) return bad(); o->max_session_memory_mb = static_cast<int>(i); }
+  else if (key == "max-pending-chunks-in-memory") { if (!is_int) return bad(); o->max_pending_chunks_in_memory = static_cast<int>(i); }
   else if (key == "chunk-credits") { if (!is_int) return bad(); o->default_chunk_credits = static_cast<int>(i); }
   else if (key == "frame-queue") { if (!is_int) return bad(); o->pipeline.frame_queue_capacity = static_cast<int>(i); }
   else if (key == "keyframe-queue") { if (!is_int) return bad(); o->pipeline.keyframe_queue_capacity = static_cast<int>(i); }
   else if (key == "voxel-m") { if (!is_double) return bad(); o->pipeline.dense.map.voxel_m = d; }
+  else if (key == "curve-keys") o->curve_keys = value;
+  else if (key == "allowed-clients") o->allowed_clients = value;
   else if (key == "shutdown-deadline-ms") { if (!is_int) return bad(); o->shutdown_deadline_ms = static_cast<int>(i); }
   else if (key == "input-policy") {
     if (value == "live") o->pipeline.input_policy = OverflowPolicy::kDropOldest;

@@ -13,7 +13,8 @@ namespace prism::server {
 struct ServerOptions {
   // ZeroMQ endpoint of the ROUTER socket; "tcp://127.0.0.1:*" picks a free port (printed at start).
   std::string bind = "tcp://127.0.0.1:5555";
-  // Sessions persist their map and summary under data_dir/sessions/<id>/ when they end. Required.
+  // Sessions persist their poses and map chunks as produced, and their merged map and summary when they
+  // end, under data_dir/sessions/<id>/ (server/session_store.h); resumes read them back. Required.
   std::string data_dir;
   // HTTP metrics (/metrics, Prometheus text) and health (/healthz): "HOST:PORT" (port 0 = any free
   // port) or "off".
@@ -39,10 +40,24 @@ struct ServerOptions {
   // Outgoing messages queued per peer before sends fail (ZMQ_SNDHWM), >= 1. Failed sends of map chunks
   // are retried; poses and credits are dropped and counted.
   int send_hwm = 1000;
+  // Frames per second one session may send on average, bursts up to twice the frame queue (0 = no limit),
+  // in [0, 1000]; faster frames are refused with RESOURCE_EXHAUSTED (retryable) and counted.
+  double max_frame_rate_hz = 120;
+  // A session whose map and held chunks exceed this (MiB, estimated) is finished with an Error
+  // (RESOURCE_EXHAUSTED) and its map so far, in [16, 65536].
+  int max_session_memory_mb = 1024;
+  // Map chunks waiting for credit kept in memory per session; later ones wait on disk only, in [1, 4096].
+  int max_pending_chunks_in_memory = 16;
   // Map chunks a session may send before the client grants more, when OpenSession gives none.
   int default_chunk_credits = 8;
   // On SIGTERM: sessions finish what is queued for at most this long, then stop; ms >= 0.
   int shutdown_deadline_ms = 10000;
+  // CURVE: a key file ("public = Z85" and "secret = Z85" lines, `prism-server keygen`); empty = plain
+  // TCP (a warning is logged when that listens on a non-loopback address).
+  std::string curve_keys;
+  // CURVE: the client public keys admitted (one Z85 key per line, '#' comments); required with
+  // curve_keys. Other keys are refused in the handshake (the client sees an authentication error).
+  std::string allowed_clients;
   // The per-session pipeline (SLAM, dense stage, queues, chunk coding).
   SessionPipelineOptions pipeline;
 

@@ -54,6 +54,27 @@ class ServerProcess {
   const std::string& metrics() const { return metrics_; }
   pid_t pid() const { return pid_; }
 
+  // SIGKILL (a crash): nothing is flushed or drained. Returns once the process is gone.
+  void Kill() {
+    if (pid_ <= 0) return;
+    kill(pid_, SIGKILL);
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    pid_ = -1;
+  }
+  // Resident set size in KiB from /proc (0 when not running).
+  long RssKib() const {
+    if (pid_ <= 0) return 0;
+    FILE* f = fopen(("/proc/" + std::to_string(pid_) + "/status").c_str(), "r");
+    if (!f) return 0;
+    char line[256];
+    long kib = 0;
+    while (fgets(line, sizeof(line), f))
+      if (sscanf(line, "VmRSS: %ld kB", &kib) == 1) break;
+    fclose(f);
+    return kib;
+  }
+
   // SIGTERM, then waits up to timeout; returns the exit code (-1 when it had to be killed).
   int Stop(int timeout_ms = 20000) {
     if (pid_ <= 0) return exit_code_;

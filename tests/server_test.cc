@@ -11,6 +11,7 @@
 #include <optional>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -367,6 +368,102 @@ TEST_F(ServerTest, IdleSessionsAreReapedAndSigtermPersistsOpenSessions) {
   ASSERT_TRUE(last.has_value());
   EXPECT_EQ(last->session_summary().reason(), "server shutdown");
   EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / *id / "summary.txt"));
+}
+
+// Resume: a second connection re-attaches with the id and token (a wrong token, an unknown or malformed
+// id are refused with readable errors); after the session ended, and after the server was SIGKILLed
+// and restarted on the same data dir, a resume replays the persisted session read-only with its
+// summary ("interrupted" for the one that was running at the kill).
+TEST_F(ServerTest, ResumeReattachesAndReplaysPersistedSessionsAfterAKill) {
+  auto server = Start();
+  ASSERT_TRUE(server->ok());
+  RawClient first(server->endpoint());
+  v1::Envelope opened;
+  std::optional<std::string> id = first.Open(&opened);
+  ASSERT_TRUE(id.has_value());
+  const std::string token = opened.session_opened().resume_token();
+  ASSERT_GE(token.size(), 16u);
+  EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / *id / "session.txt"));
+  auto resume = [](const std::string& session, const std::string& tok) {
+    v1::Envelope env = RawClient::OpenEnvelope();
+    env.mutable_open_session()->clear_calibration();
+    env.mutable_open_session()->set_resume_session_id(session);
+    env.mutable_open_session()->set_resume_token(tok);
+    return env;
+  };
+  {
+    RawClient thief(server->endpoint());
+    thief.Send(resume(*id, token + "x"));
+    std::optional<v1::Envelope> e = thief.Await(v1::Envelope::kError, 5000);
+    ASSERT_TRUE(e.has_value());
+    EXPECT_EQ(e->error().code(), v1::ERROR_CODE_UNAUTHENTICATED) << e->error().message();
+    thief.Send(resume("s999-000000000000", token));
+    e = thief.Await(v1::Envelope::kError, 5000);
+    ASSERT_TRUE(e.has_value());
+    EXPECT_EQ(e->error().code(), v1::ERROR_CODE_NOT_FOUND) << e->error().message();
+    thief.Send(resume("../../etc", token));
+    e = thief.Await(v1::Envelope::kError, 5000);
+    ASSERT_TRUE(e.has_value());
+    EXPECT_EQ(e->error().code(), v1::ERROR_CODE_INVALID_ARGUMENT) << e->error().message();
+  }
+  RawClient second(server->endpoint());
+  second.Send(resume(*id, token));
+  std::optional<v1::Envelope> r = second.AwaitAny({v1::Envelope::kSessionOpened, v1::Envelope::kError});
+  ASSERT_TRUE(r.has_value());
+  ASSERT_TRUE(r->has_session_opened()) << r->DebugString();
+  EXPECT_TRUE(r->session_opened().resumed());
+  EXPECT_FALSE(r->session_opened().read_only());
+  EXPECT_EQ(r->session_opened().session_id(), *id);
+  // The old connection no longer owns the session.
+  const std::string png = Png(kWidth, kHeight);
+  first.Send(RawClient::FrameEnvelope(*id, 0, v1::FRAME_CODEC_PNG), &png);
+  std::optional<v1::Envelope> e = first.Await(v1::Envelope::kError, 5000);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_EQ(e->error().code(), v1::ERROR_CODE_NOT_FOUND);
+  // Frames on the new connection are tracked (a pose comes back).
+  second.Send(RawClient::FrameEnvelope(*id, 0, v1::FRAME_CODEC_PNG), &png);
+  ASSERT_TRUE(second.Await(v1::Envelope::kPoseUpdate, 10000).has_value());
+  v1::Envelope close;
+  close.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  close.mutable_close()->set_session_id(*id);
+  second.Send(close);
+  std::optional<v1::Envelope> summary = second.Await(v1::Envelope::kSessionSummary, 10000);
+  ASSERT_TRUE(summary.has_value());
+  EXPECT_EQ(summary->session_summary().reason(), "closed by client");
+
+  // A second session is left running when the server is killed.
+  RawClient running(server->endpoint());
+  v1::Envelope running_opened;
+  std::optional<std::string> running_id = running.Open(&running_opened);
+  ASSERT_TRUE(running_id.has_value());
+  running.Send(RawClient::FrameEnvelope(*running_id, 0, v1::FRAME_CODEC_PNG), &png);
+  ASSERT_TRUE(running.Await(v1::Envelope::kPoseUpdate, 10000).has_value());
+  const std::string endpoint = server->endpoint();
+  server->Kill();
+  server = Start({"--bind", endpoint});
+  ASSERT_TRUE(server->ok());
+  for (const auto& [session, tok, reason] :
+       {std::make_tuple(*id, token, std::string("closed by client")),
+        std::make_tuple(*running_id, running_opened.session_opened().resume_token(), std::string("interrupted"))}) {
+    RawClient later(server->endpoint());
+    later.Send(resume(session, tok));
+    r = later.AwaitAny({v1::Envelope::kSessionOpened, v1::Envelope::kError});
+    ASSERT_TRUE(r.has_value());
+    ASSERT_TRUE(r->has_session_opened()) << r->DebugString();
+    EXPECT_TRUE(r->session_opened().read_only());
+    std::optional<v1::Envelope> pose = later.Await(v1::Envelope::kPoseUpdate, 5000);  // the persisted pose
+    ASSERT_TRUE(pose.has_value());
+    EXPECT_EQ(pose->pose_update().frame_sequence_number(), 0u);
+    summary = later.Await(v1::Envelope::kSessionSummary, 5000);
+    ASSERT_TRUE(summary.has_value());
+    EXPECT_EQ(summary->session_summary().reason().rfind(reason, 0), 0u) << summary->session_summary().reason();
+    // A read-only session takes no frames.
+    later.Send(RawClient::FrameEnvelope(session, 1, v1::FRAME_CODEC_PNG), &png);
+    e = later.Await(v1::Envelope::kError, 5000);
+    ASSERT_TRUE(e.has_value());
+  }
+  EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / *running_id / "summary.pb"));
+  EXPECT_EQ(server->Stop(), 0);
 }
 
 }  // namespace

@@ -1,5 +1,6 @@
 // prism-client: streams a sequence to prism-server and writes what comes back.
 //   prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [--realtime] [--codec png|jpeg|raw]
+//   prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -17,12 +18,17 @@
 namespace {
 
 constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [options]
+       prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR [options]
 
 Streams the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth output) to
 prism-server and writes to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera,
 metres once the server has estimated the scale; tracked frames only, as prism-slam), map.ply (the running map: positions, normals,
 colours), chunks/<sequence>.drc (the Draco map chunks as received; Debian's draco_decoder reads
-them) and summary.json (also printed). Progress goes to stderr.
+them) and summary.json (also printed). Progress goes to stderr. DIR/session.json (written as soon as
+the session is open) holds the session id and resume token: if the connection drops the client resumes
+by itself (every missed chunk is resent); `fetch` gets the persisted results of an ended or interrupted
+session later, into the same files. Exit 0 = finished, 3 = the session was interrupted on the server
+(its persisted results are written), 1 = failure.
 
 options:
   --realtime            send at the sequence's frame rate as a live camera: the server drops the oldest
@@ -32,6 +38,9 @@ options:
   --max-frames N        stop after N frames
   --timeout-ms MS       wait for the server this long (open, credits; default 20000)
   --close-timeout-ms MS wait this long for the last keyframes after the stream (default 300000)
+  --reconnect-timeout-ms MS  keep trying to resume a lost connection this long (default 60000; 0 = off)
+  --server-key KEY      the server's CURVE public key (Z85); enables CURVE
+  --client-keys FILE    this client's CURVE key pair (a file from `prism-server keygen`)
   --help                this text
 )";
 
@@ -48,8 +57,9 @@ int main(int argc, char** argv) {
     std::cout << kUsage;
     return 0;
   }
-  if (argc < 2 || std::string(argv[1]) != "stream") return Fail("expected the 'stream' command (see --help)");
-  std::string server, sequence_dir, out_dir;
+  const std::string command = argc >= 2 ? argv[1] : "";
+  if (command != "stream" && command != "fetch") return Fail("expected the 'stream' or 'fetch' command (see --help)");
+  std::string server, sequence_dir, out_dir, fetch_id, fetch_token, client_keys;
   bool realtime = false;
   pc::SessionOptions options;
   options.timeout_ms = 20000;
@@ -79,19 +89,57 @@ int main(int argc, char** argv) {
     else if (a == "--max-frames" && is_int && n >= 1) max_frames = static_cast<int>(n);
     else if (a == "--timeout-ms" && is_int && n >= 1) options.timeout_ms = static_cast<int>(n);
     else if (a == "--close-timeout-ms" && is_int && n >= 1) close_timeout_ms = static_cast<int>(n);
+    else if (a == "--reconnect-timeout-ms" && is_int && n >= 0) options.reconnect_timeout_ms = static_cast<int>(n);
+    else if (a == "--session") fetch_id = v;
+    else if (a == "--token") fetch_token = v;
+    else if (a == "--server-key") options.server_public_key = v;
+    else if (a == "--client-keys") client_keys = v;
     else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
   }
-  if (server.empty() || sequence_dir.empty() || out_dir.empty())
+  if (!client_keys.empty()) {
+    // "public = KEY" and "secret = KEY" lines (prism-server keygen's format).
+    std::ifstream in(client_keys);
+    if (!in) return Fail("cannot read --client-keys '" + client_keys + "'");
+    std::string line;
+    while (std::getline(in, line)) {
+      const size_t eq = line.find('=');
+      if (eq == std::string::npos || line[0] == '#') continue;
+      std::string key = line.substr(0, eq), value = line.substr(eq + 1);
+      auto trim = [](std::string& x) {
+        x.erase(0, x.find_first_not_of(" \t"));
+        x.erase(x.find_last_not_of(" \t\r") + 1);
+      };
+      trim(key);
+      trim(value);
+      if (key == "public") options.client_public_key = value;
+      else if (key == "secret") options.client_secret_key = value;
+    }
+    if (options.client_public_key.empty() || options.client_secret_key.empty())
+      return Fail("--client-keys '" + client_keys + "' needs 'public = ...' and 'secret = ...' lines");
+  }
+  if (command == "fetch") {
+    if (server.empty() || fetch_id.empty() || fetch_token.empty() || out_dir.empty())
+      return Fail("fetch needs --server, --session, --token and --out (see --help)");
+  } else if (server.empty() || sequence_dir.empty() || out_dir.empty()) {
     return Fail("--server, --sequence and --out are required (see --help)");
+  }
   options.live = realtime;
   options.client_name = "prism-client";
-
-  prism::StatusOr<prism::Sequence> seq = prism::LoadSequence(sequence_dir);
-  if (!seq.ok()) return Fail(seq.status().ToString());
-  if (!seq->has_calibration) return Fail("sequence '" + sequence_dir + "' has no camera.yaml (the rig calibration)");
   std::error_code ec;
   std::filesystem::create_directories(out_dir + "/chunks", ec);
   if (ec) return Fail("cannot create '" + out_dir + "/chunks': " + ec.message());
+  std::unique_ptr<pc::Session> session;
+  if (command == "fetch") {
+    pc::Status st = pc::Session::Resume(server, fetch_id, fetch_token, options, &session);
+    if (!st.ok()) return Fail("cannot fetch session " + fetch_id + " from " + server + ": " + st.ToString());
+  }
+
+  prism::Sequence empty_sequence;
+  prism::StatusOr<prism::Sequence> seq = command == "fetch" ? prism::StatusOr<prism::Sequence>(empty_sequence)
+                                                            : prism::LoadSequence(sequence_dir);
+  if (!seq.ok()) return Fail(seq.status().ToString());
+  if (command == "stream" && !seq->has_calibration)
+    return Fail("sequence '" + sequence_dir + "' has no camera.yaml (the rig calibration)");
 
   const prism::RigCalibration& cal = seq->calibration;
   pc::Rig rig;
@@ -116,10 +164,14 @@ int main(int argc, char** argv) {
   }
   for (int k = 0; k < 9; ++k) rig.crosstalk[k] = cal.crosstalk(k / 3, k % 3);
 
-  std::unique_ptr<pc::Session> session;
-  pc::Status st = pc::Session::Open(server, rig, options, &session);
-  if (!st.ok()) return Fail("cannot open a session on " + server + ": " + st.ToString());
+  pc::Status st;
+  if (!session) {
+    st = pc::Session::Open(server, rig, options, &session);
+    if (!st.ok()) return Fail("cannot open a session on " + server + ": " + st.ToString());
+  }
   std::cerr << "prism-client: session " << session->session_id() << " on " << server << "\n";
+  std::ofstream(out_dir + "/session.json") << "{\"session\": \"" << session->session_id() << "\", \"token\": \""
+                                           << session->resume_token() << "\", \"server\": \"" << server << "\"}\n";
 
   std::vector<pc::Pose> poses;
   size_t chunks = 0, chunk_bytes = 0, frame_errors = 0, skipped = 0;
@@ -151,7 +203,7 @@ int main(int argc, char** argv) {
   const auto start = std::chrono::steady_clock::now();
   const size_t n = std::min(seq->frames.size(), static_cast<size_t>(max_frames));
   const double t0 = n ? seq->frames[0].timestamp_s : 0.0;
-  for (size_t i = 0; i < n && fatal.empty(); ++i) {
+  for (size_t i = 0; i < n && fatal.empty() && !session->read_only(); ++i) {
     prism::StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
     if (!rgb.ok()) return Fail(rgb.status().ToString());
     if (realtime) {
@@ -164,6 +216,7 @@ int main(int argc, char** argv) {
     }
     const int64_t ts = static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9 + 0.5);
     st = session->PushFrame(ts, rgb->ptr<uint8_t>(), rgb->cols, rgb->rows, static_cast<int>(rgb->step));
+    if (!st.ok() && session->read_only()) break;  // interrupted on the server: collect what it persisted
     if (!st.ok()) return Fail("frame " + std::to_string(i) + ": " + st.ToString());
     drain(0);
     if ((i + 1) % 10 == 0 || i + 1 == n)
@@ -171,6 +224,8 @@ int main(int argc, char** argv) {
                 << " chunks\n";
   }
   if (!fatal.empty()) return Fail("the session failed: " + fatal);
+  if (session->read_only() && command == "stream")
+    std::cerr << "prism-client: the server lost the running session (restart); fetching what it persisted\n";
   pc::Summary summary;
   std::cerr << "prism-client: stream done; waiting for the last keyframes\n";
   // Close, handling events as they come (chunks keep arriving while the server finishes).
@@ -208,15 +263,16 @@ int main(int argc, char** argv) {
                 "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"errors\": %zu, "
                 "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
                 "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"metres_per_unit\": %.6g, "
-                "\"reason\": \"%s\"}\n",
+                "\"reconnects\": %d, \"reason\": \"%s\"}\n",
                 session->session_id().c_str(), n - skipped, skipped, poses.size(), chunks, chunk_bytes, map.size(),
                 frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
                 n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0,
                 seconds, seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,
                 static_cast<unsigned long long>(summary.keyframes),
                 static_cast<unsigned long long>(summary.keyframes_failed), summary.metres_per_unit,
-                summary.reason.c_str());
+                session->reconnects(), summary.reason.c_str());
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
-  return 0;
+  if (session->reconnects() > 0) std::cerr << "prism-client: resumed after " << session->reconnects() << " lost connection(s)\n";
+  return summary.reason.rfind("interrupted", 0) == 0 ? 3 : 0;
 }

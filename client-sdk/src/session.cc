@@ -1,7 +1,12 @@
+#include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <cstring>
 #include <deque>
 #include <exception>
+#include <thread>
 #include <unordered_map>
+#include <unordered_set>
 
 #include <opencv2/core.hpp>
 #include <zmq.hpp>
@@ -93,16 +98,38 @@ Status DecodeChunk(const uint8_t* data, size_t size, std::vector<Point>* points)
 
 struct Session::Impl {
   zmq::context_t context{1};
-  zmq::socket_t socket{context, zmq::socket_type::dealer};
+  std::unique_ptr<zmq::socket_t> socket;
+  std::unique_ptr<zmq::socket_t> monitor;  // ZMQ socket events of `socket` (disconnects, CURVE refusals)
+  std::string endpoint;
   SessionOptions options;
   Rig rig;
-  std::string session_id;
+  std::string session_id, resume_token;
   int64_t frame_credits = 0;
   double voxel_m = 0.002;
   uint64_t next_sequence = 0;
   uint64_t bytes_sent = 0;
-  bool opened = false, closed = false, summary_received = false;
+  bool opened = false, closed = false, summary_received = false, close_sent = false;
+  bool read_only = false;
+  // The server's per-session frame-rate limit (0 = none), kept here so frames are paced, not refused.
+  double max_frame_rate_hz = 0, rate_tokens = 0, rate_burst = 1;
+  Clock::time_point rate_refilled = Clock::now();
+  // Reply to the last OpenSession (new or resume).
+  bool got_opened = false;
+  uint64_t resume_next_frame = 0;
   Status open_error;
+  // Connection state from the monitor.
+  bool need_reconnect = false, reconnecting = false;
+  int reconnects = 0;
+  // Resume bookkeeping: what was received, and the frames not yet answered by a pose.
+  int64_t last_chunk = -1;
+  uint64_t next_pose = 0;
+  std::unordered_set<uint64_t> chunks_seen;
+  struct SentFrame {
+    v1::Envelope envelope;
+    std::vector<uint8_t> bytes;
+  };
+  std::deque<SentFrame> unanswered;  // at most kMaxUnanswered
+  static constexpr size_t kMaxUnanswered = 64;
   Summary summary;
   std::deque<Event> events;
   std::function<void(const Event&)> callback;
@@ -121,14 +148,52 @@ struct Session::Impl {
     else events.push_back(std::move(e));
   }
 
+  // A fresh DEALER (and its monitor) connected to the endpoint; the old one is dropped unsent.
+  Status Connect() {
+    static std::atomic<uint64_t> monitor_counter{0};
+    try {
+      monitor.reset();
+      socket.reset();
+      socket = std::make_unique<zmq::socket_t>(context, zmq::socket_type::dealer);
+      socket->set(zmq::sockopt::linger, 1000);
+      socket->set(zmq::sockopt::heartbeat_ivl, 1000);
+      socket->set(zmq::sockopt::heartbeat_timeout, 5000);
+      socket->set(zmq::sockopt::heartbeat_ttl, 5000);
+      socket->set(zmq::sockopt::reconnect_ivl, 100);
+      socket->set(zmq::sockopt::reconnect_ivl_max, 2000);
+      if (!options.server_public_key.empty()) {
+        if (!zmq_has("curve")) return Make(Code::kUnavailable, "this libzmq has no CURVE support");
+        if (options.server_public_key.size() != 40 || options.client_public_key.size() != 40 ||
+            options.client_secret_key.size() != 40)
+          return Make(Code::kInvalidArgument,
+                      "CURVE needs server_public_key, client_public_key and client_secret_key (Z85, 40 characters)");
+        socket->set(zmq::sockopt::curve_serverkey, options.server_public_key);
+        socket->set(zmq::sockopt::curve_publickey, options.client_public_key);
+        socket->set(zmq::sockopt::curve_secretkey, options.client_secret_key);
+      }
+      const std::string monitor_endpoint = "inproc://prism-client-monitor-" + std::to_string(++monitor_counter);
+      if (zmq_socket_monitor(socket->handle(), monitor_endpoint.c_str(),
+                             ZMQ_EVENT_DISCONNECTED | ZMQ_EVENT_HANDSHAKE_FAILED_AUTH |
+                                 ZMQ_EVENT_HANDSHAKE_FAILED_PROTOCOL | ZMQ_EVENT_HANDSHAKE_FAILED_NO_DETAIL) != 0)
+        return Make(Code::kInternal, "zmq_socket_monitor failed");
+      monitor = std::make_unique<zmq::socket_t>(context, zmq::socket_type::pair);
+      monitor->set(zmq::sockopt::linger, 0);
+      monitor->connect(monitor_endpoint);
+      socket->connect(endpoint);
+    } catch (const zmq::error_t& e) {
+      return Make(Code::kInvalidArgument, "cannot connect to '" + endpoint + "': " + e.what());
+    }
+    return Status();
+  }
+
   bool SendEnvelope(const v1::Envelope& env, const std::vector<uint8_t>* payload = nullptr) {
     const std::string header = env.SerializeAsString();
     try {
       if (payload) {
-        if (!socket.send(zmq::buffer(header), zmq::send_flags::sndmore)) return false;
-        return socket.send(zmq::buffer(*payload), zmq::send_flags::none).has_value();
+        if (!socket->send(zmq::buffer(header), zmq::send_flags::sndmore)) return false;
+        return socket->send(zmq::buffer(*payload), zmq::send_flags::none).has_value();
       }
-      return socket.send(zmq::buffer(header), zmq::send_flags::none).has_value();
+      return socket->send(zmq::buffer(header), zmq::send_flags::none).has_value();
     } catch (const zmq::error_t&) {
       return false;
     }
@@ -140,6 +205,139 @@ struct Session::Impl {
     return env;
   }
 
+  v1::Envelope OpenEnvelope() {
+    v1::Envelope env = NewEnvelope();
+    v1::OpenSession* o = env.mutable_open_session();
+    o->set_protocol_version(v1::PROTOCOL_VERSION_1);
+    o->set_codec(ToWire(options.codec));
+    o->set_client_name(options.client_name);
+    o->set_input_policy(options.live ? v1::INPUT_POLICY_LIVE : v1::INPUT_POLICY_UPLOAD);
+    o->set_initial_chunk_credits(static_cast<uint32_t>(options.chunk_credits));
+    if (!session_id.empty()) {
+      o->set_resume_session_id(session_id);
+      o->set_resume_token(resume_token);
+      o->set_resume_next_chunk(static_cast<uint64_t>(last_chunk + 1));
+      o->set_resume_next_pose(next_pose);
+      return env;
+    }
+    v1::RigCalibration* r = o->mutable_calibration();
+    v1::CameraIntrinsics* c = r->mutable_camera();
+    c->set_width(static_cast<uint32_t>(rig.camera.width));
+    c->set_height(static_cast<uint32_t>(rig.camera.height));
+    c->set_fx(rig.camera.fx);
+    c->set_fy(rig.camera.fy);
+    c->set_cx(rig.camera.cx);
+    c->set_cy(rig.camera.cy);
+    for (double d : rig.camera.distortion) c->add_distortion(d);
+    for (const Light& l : rig.lights) {
+      v1::LightCalibration* w = r->add_lights();
+      w->set_name(l.name);
+      w->set_type(l.directional ? v1::LightCalibration::TYPE_DIRECTIONAL : v1::LightCalibration::TYPE_POINT);
+      SetVector(l.position_in_camera, w->mutable_position_in_camera());
+      SetVector(l.direction_in_camera, w->mutable_direction_in_camera());
+      SetVector(l.color, w->mutable_color());
+      w->set_intensity(l.intensity);
+    }
+    for (double x : rig.crosstalk) r->add_crosstalk(x);
+    return env;
+  }
+
+  // Sends OpenSession (new or resume) and waits for the answer: OK, the server's Error, kTimeout, or
+  // kUnauthenticated when the CURVE handshake is refused.
+  Status OpenOnce(int timeout_ms) {
+    got_opened = false;
+    open_error = Status();
+    if (!SendEnvelope(OpenEnvelope())) return Make(Code::kUnavailable, "cannot send OpenSession to '" + endpoint + "'", true);
+    const auto deadline = Clock::now() + std::chrono::milliseconds(timeout_ms);
+    while (!got_opened && open_error.ok() && Clock::now() < deadline)
+      Pump(static_cast<int>(std::max<int64_t>(
+          1, std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count())));
+    if (!open_error.ok()) return open_error;
+    if (!got_opened)
+      return Make(Code::kTimeout, "no answer from '" + endpoint + "' within " + std::to_string(timeout_ms) +
+                                      " ms (is prism-server running there?)",
+                  true);
+    return Status();
+  }
+
+  // After SessionOpened of a resume: frames the server never got go again (as credit allows).
+  void AfterResume() {
+    while (!unanswered.empty() && unanswered.front().envelope.frame().sequence_number() < resume_next_frame)
+      unanswered.pop_front();
+    if (read_only) {
+      unanswered.clear();
+      return;
+    }
+    for (SentFrame& f : unanswered) {
+      if (frame_credits <= 0) break;
+      if (!SendEnvelope(f.envelope, &f.bytes)) break;
+      --frame_credits;
+    }
+    if (close_sent) {
+      v1::Envelope env = NewEnvelope();
+      env.mutable_close()->set_session_id(session_id);
+      SendEnvelope(env);
+    }
+  }
+
+  // The connection dropped: resume on a new socket with backoff until reconnect_timeout_ms.
+  void Reconnect() {
+    need_reconnect = false;
+    if (closed || reconnecting) return;
+    reconnecting = true;
+    Status last = Make(Code::kUnavailable, "reconnection disabled (reconnect_timeout_ms = 0)");
+    const auto deadline = Clock::now() + std::chrono::milliseconds(options.reconnect_timeout_ms);
+    int wait_ms = 250;
+    bool resumed = false;
+    while (Clock::now() < deadline) {
+      last = Connect();
+      if (!last.ok()) break;
+      last = OpenOnce(wait_ms);
+      if (last.ok()) {
+        resumed = true;
+        break;
+      }
+      // Final answers: the session is gone or the key/token is refused.
+      if (last.code == Code::kNotFound || last.code == Code::kUnauthenticated || last.code == Code::kInvalidArgument)
+        break;
+      wait_ms = std::min(wait_ms * 2, 4000);
+    }
+    reconnecting = false;
+    if (resumed) {
+      ++reconnects;
+      AfterResume();
+      return;
+    }
+    closed = true;
+    Event e;
+    e.kind = Event::Kind::kError;
+    e.error = Make(last.code == Code::kTimeout ? Code::kUnavailable : last.code,
+                   "connection to '" + endpoint + "' lost and session '" + session_id +
+                       "' could not be resumed: " + last.ToString());
+    Emit(std::move(e));
+  }
+
+  void HandleMonitor() {
+    for (;;) {
+      zmq::message_t event, address;
+      if (!monitor->recv(event, zmq::recv_flags::dontwait)) return;
+      if (event.more()) (void)monitor->recv(address, zmq::recv_flags::none);
+      if (event.size() < 6) continue;
+      uint16_t id = 0;
+      std::memcpy(&id, event.data(), sizeof(id));
+      if (id == ZMQ_EVENT_DISCONNECTED) {
+        if (opened && !closed) need_reconnect = true;
+      } else if (id == ZMQ_EVENT_HANDSHAKE_FAILED_AUTH) {
+        open_error = Make(Code::kUnauthenticated, "the server refused this client's CURVE key (not on its allow-list)");
+      } else if (id == ZMQ_EVENT_HANDSHAKE_FAILED_PROTOCOL || id == ZMQ_EVENT_HANDSHAKE_FAILED_NO_DETAIL) {
+        open_error = Make(Code::kUnauthenticated,
+                          options.server_public_key.empty()
+                              ? "connection handshake failed (does the server require CURVE keys?)"
+                              : "CURVE handshake failed (wrong server public key, or the server does not use CURVE)");
+      }
+    }
+  }
+
   void Handle(std::vector<zmq::message_t>& parts) {
     v1::Envelope env;
     if (parts.empty() || !env.ParseFromArray(parts[0].data(), static_cast<int>(parts[0].size()))) return;
@@ -147,8 +345,17 @@ struct Session::Impl {
       case v1::Envelope::kSessionOpened: {
         const v1::SessionOpened& o = env.session_opened();
         session_id = o.session_id();
+        if (!o.resume_token().empty()) resume_token = o.resume_token();
         frame_credits = o.initial_frame_credits();
         if (o.map_voxel_m() > 0) voxel_m = o.map_voxel_m();
+        read_only = o.read_only();
+        max_frame_rate_hz = o.max_frame_rate_hz();
+        rate_burst = std::max<double>(1.0, o.initial_frame_credits());
+        rate_tokens = std::min(rate_tokens, rate_burst);
+        if (!o.resumed()) rate_tokens = rate_burst;
+        rate_refilled = Clock::now();
+        resume_next_frame = o.next_frame_sequence();
+        got_opened = true;
         opened = true;
         return;
       }
@@ -157,6 +364,10 @@ struct Session::Impl {
         return;
       case v1::Envelope::kPoseUpdate: {
         const v1::PoseUpdate& p = env.pose_update();
+        if (p.frame_sequence_number() < next_pose) return;  // resent after a resume, already seen
+        next_pose = p.frame_sequence_number() + 1;
+        while (!unanswered.empty() && unanswered.front().envelope.frame().sequence_number() <= p.frame_sequence_number())
+          unanswered.pop_front();
         Event e;
         e.kind = Event::Kind::kPose;
         e.pose.frame_sequence_number = p.frame_sequence_number();
@@ -174,19 +385,22 @@ struct Session::Impl {
         return;
       }
       case v1::Envelope::kMapChunk: {
-        Event e;
-        e.kind = Event::Kind::kChunk;
-        e.chunk.keyframe_id = env.map_chunk().keyframe_id();
-        e.chunk.sequence_number = env.map_chunk().chunk_sequence_number();
-        if (parts.size() >= 2) {
-          const auto* d = static_cast<const uint8_t*>(parts[1].data());
-          e.chunk.draco.assign(d, d + parts[1].size());
-        }
         // Grant the credit back: this chunk is consumed.
         v1::Envelope credit = NewEnvelope();
         credit.mutable_chunk_credits()->set_session_id(session_id);
         credit.mutable_chunk_credits()->set_chunks(1);
         SendEnvelope(credit);
+        const uint64_t seq = env.map_chunk().chunk_sequence_number();
+        if (!chunks_seen.insert(seq).second) return;  // resent after a resume, already seen
+        last_chunk = std::max(last_chunk, static_cast<int64_t>(seq));
+        Event e;
+        e.kind = Event::Kind::kChunk;
+        e.chunk.keyframe_id = env.map_chunk().keyframe_id();
+        e.chunk.sequence_number = seq;
+        if (parts.size() >= 2) {
+          const auto* d = static_cast<const uint8_t*>(parts[1].data());
+          e.chunk.draco.assign(d, d + parts[1].size());
+        }
         const Status s = DecodeChunk(e.chunk.draco.data(), e.chunk.draco.size(), &e.chunk.points);
         if (!s.ok()) {
           Event err;
@@ -222,8 +436,21 @@ struct Session::Impl {
       case v1::Envelope::kError: {
         const v1::Error& w = env.error();
         Status s = Make(FromWire(w.code()), w.message(), w.retryable());
-        if (!opened) {
+        if (!opened || reconnecting) {
           open_error = s;
+          return;
+        }
+        if (w.has_frame()) {
+          for (auto it = unanswered.begin(); it != unanswered.end(); ++it)
+            if (it->envelope.frame().sequence_number() == w.frame_sequence_number()) {
+              unanswered.erase(it);
+              break;
+            }
+        }
+        // A server that restarted does not know this session on this connection: resume it.
+        if (w.session_closed() && w.code() == v1::ERROR_CODE_NOT_FOUND && w.session_id() == session_id &&
+            options.reconnect_timeout_ms > 0) {
+          need_reconnect = true;
           return;
         }
         if (w.session_closed()) closed = true;
@@ -237,84 +464,72 @@ struct Session::Impl {
     }
   }
 
-  // Handles incoming messages, waiting up to timeout_ms for the first.
+  // Handles incoming messages, waiting up to timeout_ms for the first; resumes after a lost connection.
   void Pump(int timeout_ms) {
-    zmq::pollitem_t item{socket.handle(), 0, ZMQ_POLLIN, 0};
+    zmq::pollitem_t items[2] = {{socket->handle(), 0, ZMQ_POLLIN, 0}, {monitor->handle(), 0, ZMQ_POLLIN, 0}};
     try {
-      zmq::poll(&item, 1, std::chrono::milliseconds(timeout_ms));
+      zmq::poll(items, 2, std::chrono::milliseconds(timeout_ms));
+      HandleMonitor();
       for (;;) {
         std::vector<zmq::message_t> parts;
         zmq::message_t part;
-        if (!socket.recv(part, zmq::recv_flags::dontwait)) break;
+        if (!socket->recv(part, zmq::recv_flags::dontwait)) break;
         parts.push_back(std::move(part));
         while (parts.back().more()) {
           zmq::message_t next;
-          (void)socket.recv(next, zmq::recv_flags::none);
+          (void)socket->recv(next, zmq::recv_flags::none);
           parts.push_back(std::move(next));
         }
         Handle(parts);
       }
     } catch (const zmq::error_t&) {
     }
+    if (need_reconnect && !reconnecting) Reconnect();
   }
 };
 
 Session::Session(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 Session::~Session() = default;
 
-Status Session::Open(const std::string& endpoint, const Rig& rig, const SessionOptions& options,
-                     std::unique_ptr<Session>* session) {
+namespace {
+
+Status CheckOptions(const SessionOptions& options) {
   if (options.jpeg_quality < 1 || options.jpeg_quality > 100)
     return Make(Code::kInvalidArgument, "SessionOptions.jpeg_quality must be in [1, 100]");
   if (options.chunk_credits < 1) return Make(Code::kInvalidArgument, "SessionOptions.chunk_credits must be >= 1");
+  if (options.timeout_ms < 1) return Make(Code::kInvalidArgument, "SessionOptions.timeout_ms must be >= 1");
+  if (options.reconnect_timeout_ms < 0)
+    return Make(Code::kInvalidArgument, "SessionOptions.reconnect_timeout_ms must be >= 0");
+  return Status();
+}
+
+}  // namespace
+
+Status Session::Open(const std::string& endpoint, const Rig& rig, const SessionOptions& options,
+                     std::unique_ptr<Session>* session) {
+  if (Status s = CheckOptions(options); !s.ok()) return s;
   auto impl = std::make_unique<Impl>();
   impl->options = options;
   impl->rig = rig;
-  try {
-    impl->socket.set(zmq::sockopt::linger, 1000);
-    impl->socket.set(zmq::sockopt::heartbeat_ivl, 1000);
-    impl->socket.set(zmq::sockopt::heartbeat_timeout, 5000);
-    impl->socket.set(zmq::sockopt::heartbeat_ttl, 5000);
-    impl->socket.connect(endpoint);
-  } catch (const zmq::error_t& e) {
-    return Make(Code::kInvalidArgument, "cannot connect to '" + endpoint + "': " + e.what());
-  }
-  v1::Envelope env = impl->NewEnvelope();
-  v1::OpenSession* o = env.mutable_open_session();
-  o->set_protocol_version(v1::PROTOCOL_VERSION_1);
-  o->set_codec(ToWire(options.codec));
-  o->set_client_name(options.client_name);
-  o->set_input_policy(options.live ? v1::INPUT_POLICY_LIVE : v1::INPUT_POLICY_UPLOAD);
-  o->set_initial_chunk_credits(static_cast<uint32_t>(options.chunk_credits));
-  v1::RigCalibration* r = o->mutable_calibration();
-  v1::CameraIntrinsics* c = r->mutable_camera();
-  c->set_width(static_cast<uint32_t>(rig.camera.width));
-  c->set_height(static_cast<uint32_t>(rig.camera.height));
-  c->set_fx(rig.camera.fx);
-  c->set_fy(rig.camera.fy);
-  c->set_cx(rig.camera.cx);
-  c->set_cy(rig.camera.cy);
-  for (double d : rig.camera.distortion) c->add_distortion(d);
-  for (const Light& l : rig.lights) {
-    v1::LightCalibration* w = r->add_lights();
-    w->set_name(l.name);
-    w->set_type(l.directional ? v1::LightCalibration::TYPE_DIRECTIONAL : v1::LightCalibration::TYPE_POINT);
-    SetVector(l.position_in_camera, w->mutable_position_in_camera());
-    SetVector(l.direction_in_camera, w->mutable_direction_in_camera());
-    SetVector(l.color, w->mutable_color());
-    w->set_intensity(l.intensity);
-  }
-  for (double x : rig.crosstalk) r->add_crosstalk(x);
-  if (!impl->SendEnvelope(env)) return Make(Code::kUnavailable, "cannot send OpenSession to '" + endpoint + "'");
-  const auto deadline = Clock::now() + std::chrono::milliseconds(options.timeout_ms);
-  while (!impl->opened && impl->open_error.ok() && Clock::now() < deadline)
-    impl->Pump(static_cast<int>(
-        std::max<int64_t>(1, std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count())));
-  if (!impl->open_error.ok()) return impl->open_error;
-  if (!impl->opened)
-    return Make(Code::kTimeout, "no answer from '" + endpoint + "' within " + std::to_string(options.timeout_ms) +
-                                    " ms (is prism-server running there?)",
-                true);
+  impl->endpoint = endpoint;
+  if (Status s = impl->Connect(); !s.ok()) return s;
+  if (Status s = impl->OpenOnce(options.timeout_ms); !s.ok()) return s;
+  session->reset(new Session(std::move(impl)));
+  return Status();
+}
+
+Status Session::Resume(const std::string& endpoint, const std::string& session_id, const std::string& resume_token,
+                       const SessionOptions& options, std::unique_ptr<Session>* session) {
+  if (Status s = CheckOptions(options); !s.ok()) return s;
+  if (session_id.empty() || resume_token.empty())
+    return Make(Code::kInvalidArgument, "Resume needs a session id and its resume token");
+  auto impl = std::make_unique<Impl>();
+  impl->options = options;
+  impl->endpoint = endpoint;
+  impl->session_id = session_id;
+  impl->resume_token = resume_token;
+  if (Status s = impl->Connect(); !s.ok()) return s;
+  if (Status s = impl->OpenOnce(options.timeout_ms); !s.ok()) return s;
   session->reset(new Session(std::move(impl)));
   return Status();
 }
@@ -335,24 +550,49 @@ Status Session::PushEncoded(int64_t timestamp_ns, Codec codec, const std::vector
                             int height) {
   Impl& m = *impl_;
   m.Pump(0);
-  if (m.closed) return Make(Code::kFailedPrecondition, "the session is closed");
+  auto ended = [&] {
+    return Make(Code::kFailedPrecondition, m.read_only ? "the session has ended on the server (" +
+                                                             (m.summary_received ? m.summary.reason : std::string("read-only")) + ")"
+                                                       : std::string("the session is closed"));
+  };
+  if (m.closed || m.read_only) return ended();
   const auto deadline = Clock::now() + std::chrono::milliseconds(m.options.timeout_ms);
-  while (m.frame_credits <= 0 && !m.closed && Clock::now() < deadline) m.Pump(5);
-  if (m.closed) return Make(Code::kFailedPrecondition, "the session is closed");
+  while (m.frame_credits <= 0 && !m.closed && !m.read_only && Clock::now() < deadline) m.Pump(5);
+  if (m.closed || m.read_only) return ended();
   if (m.frame_credits <= 0)
     return Make(Code::kResourceExhausted,
                 "no frame credit from the server within " + std::to_string(m.options.timeout_ms) + " ms", true);
-  v1::Envelope env = m.NewEnvelope();
-  v1::Frame* f = env.mutable_frame();
+  if (m.max_frame_rate_hz > 0) {
+    // Pace to the server's limit (slightly under it, so clock jitter never trips the server's bucket).
+    const double rate = 0.95 * m.max_frame_rate_hz;
+    for (;;) {
+      const auto now = Clock::now();
+      m.rate_tokens = std::min(m.rate_burst, m.rate_tokens + std::chrono::duration<double>(now - m.rate_refilled).count() * rate);
+      m.rate_refilled = now;
+      if (m.rate_tokens >= 1.0) break;
+      m.Pump(std::max(1, static_cast<int>(1000.0 * (1.0 - m.rate_tokens) / rate)));
+      if (m.closed || m.read_only) return ended();
+    }
+    m.rate_tokens -= 1.0;
+  }
+  Impl::SentFrame sent;
+  sent.envelope = m.NewEnvelope();
+  v1::Frame* f = sent.envelope.mutable_frame();
   f->set_session_id(m.session_id);
   f->set_sequence_number(m.next_sequence++);
   f->set_timestamp_ns(timestamp_ns);
   f->set_codec(ToWire(codec));
   f->set_width(static_cast<uint32_t>(width));
   f->set_height(static_cast<uint32_t>(height));
-  if (!m.SendEnvelope(env, &bytes)) return Make(Code::kUnavailable, "cannot send the frame", true);
+  if (!m.SendEnvelope(sent.envelope, &bytes)) return Make(Code::kUnavailable, "cannot send the frame", true);
   --m.frame_credits;
   m.bytes_sent += bytes.size();
+  // Kept until its pose arrives, to be sent again if the connection drops first.
+  if (m.options.reconnect_timeout_ms > 0) {
+    sent.bytes = bytes;
+    m.unanswered.push_back(std::move(sent));
+    if (m.unanswered.size() > Impl::kMaxUnanswered) m.unanswered.pop_front();
+  }
   return Status();
 }
 
@@ -373,14 +613,22 @@ void Session::SetEventCallback(std::function<void(const Event&)> callback) { imp
 Status Session::Close(int timeout_ms, Summary* summary) {
   Impl& m = *impl_;
   if (!m.summary_received) {
-    v1::Envelope env = m.NewEnvelope();
-    env.mutable_close()->set_session_id(m.session_id);
-    if (!m.SendEnvelope(env)) return Make(Code::kUnavailable, "cannot send Close");
+    if (!m.read_only && !m.close_sent) {
+      v1::Envelope env = m.NewEnvelope();
+      env.mutable_close()->set_session_id(m.session_id);
+      if (!m.SendEnvelope(env)) return Make(Code::kUnavailable, "cannot send Close");
+      m.close_sent = true;
+    }
     const auto deadline = Clock::now() + std::chrono::milliseconds(timeout_ms);
-    while (!m.summary_received && Clock::now() < deadline) m.Pump(20);
+    while (!m.summary_received && Clock::now() < deadline) {
+      m.Pump(20);
+      if (m.closed && !m.summary_received) break;  // ended without a summary (error event says why)
+    }
   }
-  if (!m.summary_received)
+  if (!m.summary_received) {
+    if (m.closed) return Make(Code::kUnavailable, "the session ended without a summary (see the error events)");
     return Make(Code::kTimeout, "no session summary within " + std::to_string(timeout_ms) + " ms", true);
+  }
   if (summary) *summary = m.summary;
   return Status();
 }
@@ -393,6 +641,18 @@ std::vector<Point> Session::Map() const {
 }
 
 const std::string& Session::session_id() const { return impl_->session_id; }
+const std::string& Session::resume_token() const { return impl_->resume_token; }
+bool Session::read_only() const { return impl_->read_only; }
+int Session::reconnects() const { return impl_->reconnects; }
 uint64_t Session::bytes_sent() const { return impl_->bytes_sent; }
+
+Status GenerateKeyPair(std::string* public_key, std::string* secret_key) {
+  if (!zmq_has("curve")) return Make(Code::kUnavailable, "this libzmq has no CURVE support");
+  char pub[41], sec[41];
+  if (zmq_curve_keypair(pub, sec) != 0) return Make(Code::kInternal, "zmq_curve_keypair failed");
+  *public_key = pub;
+  *secret_key = sec;
+  return Status();
+}
 
 }  // namespace prism::client

@@ -13,6 +13,17 @@
 // No exceptions cross this API, and no ZeroMQ or protobuf type appears in it. A Session is not
 // thread-safe: one thread calls it. Callbacks (SetEventCallback) run on that thread, inside PushFrame,
 // Poll and Close.
+//
+// Reliability: when the connection drops (or the server restarts), the session reconnects by itself
+// with backoff (SessionOptions::reconnect_timeout_ms) and resumes: the server resends every map chunk
+// and pose the client missed, and the frames it never received are sent again. A session the server
+// can no longer run (it restarted meanwhile) turns read-only: its persisted poses and chunks arrive,
+// then a Summary whose reason says "interrupted". Session::Resume fetches the results of an ended
+// session later (its id and resume_token()).
+//
+// Security: with SessionOptions::server_public_key set, the connection uses ZeroMQ CURVE (encrypted,
+// and the server admits only the client public keys on its allow-list); a refused key is
+// kUnauthenticated at once, not a timeout. GenerateKeyPair makes keys (as `prism-server keygen`).
 #pragma once
 
 #include <array>
@@ -81,6 +92,14 @@ struct SessionOptions {
   std::string client_name = "libprism_client";
   // How long Open waits for SessionOpened, and PushFrame for a frame credit, ms.
   int timeout_ms = 10000;
+  // After a lost connection, how long to keep trying to resume (backoff 0.25 s doubling to 4 s), ms;
+  // 0 = never reconnect (the session ends with a kUnavailable error).
+  int reconnect_timeout_ms = 60000;
+  // CURVE (Z85 keys, 40 characters): the server's public key, and this client's key pair (its public
+  // key must be on the server's allow-list). All empty = plain TCP.
+  std::string server_public_key;
+  std::string client_public_key;
+  std::string client_secret_key;
 };
 
 enum class TrackingState { kUnknown, kInitialising, kTracking, kLost };
@@ -130,6 +149,12 @@ class Session {
   // Connects a DEALER socket to `endpoint`, opens a session and waits for SessionOpened.
   static Status Open(const std::string& endpoint, const Rig& rig, const SessionOptions& options,
                      std::unique_ptr<Session>* session);
+  // Re-attaches to a session by id and resume token: a running one goes on (its missed chunks and
+  // poses are resent); an ended one (finished, or interrupted by a server restart) replays all its
+  // persisted poses and chunks, then its Summary (read_only() is true). kNotFound for an unknown id,
+  // kUnauthenticated for a wrong token.
+  static Status Resume(const std::string& endpoint, const std::string& session_id, const std::string& resume_token,
+                       const SessionOptions& options, std::unique_ptr<Session>* session);
   ~Session();
   Session(const Session&) = delete;
   Session& operator=(const Session&) = delete;
@@ -155,6 +180,12 @@ class Session {
   // The running map: every chunk received so far, merged by voxel (a later chunk replaces a voxel).
   std::vector<Point> Map() const;
   const std::string& session_id() const;
+  // The secret that lets this client (or another) resume the session; keep it with the id.
+  const std::string& resume_token() const;
+  // The session has ended on the server; only its persisted results (and the Summary) still come.
+  bool read_only() const;
+  // Successful automatic resumes after a lost connection.
+  int reconnects() const;
   // Bytes of frame payloads sent so far.
   uint64_t bytes_sent() const;
 
@@ -166,5 +197,8 @@ class Session {
 
 // Reads a Draco map chunk (a .drc from the server) into points.
 Status DecodeChunk(const uint8_t* data, size_t size, std::vector<Point>* points);
+
+// A CURVE key pair, Z85-encoded (40 characters each). kUnavailable when libzmq has no CURVE.
+Status GenerateKeyPair(std::string* public_key, std::string* secret_key);
 
 }  // namespace prism::client

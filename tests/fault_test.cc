@@ -1,0 +1,535 @@
+// Fault tests (label slow): a real prism-server and real clients on 127.0.0.1, hurt on purpose.
+//   - clients SIGKILLed and SIGSTOPped mid-session: reaped within the idle timeout, server RSS back;
+//   - the server SIGKILLed and restarted mid-session: prism-client resumes by itself and ends with
+//     every persisted chunk, compared byte for byte;
+//   - a client that grants no chunk credits: the held chunks wait on disk, not in memory; granted
+//     later, every one arrives;
+//   - a client sending at 10x the frame rate (live): every frame is tracked, dropped or refused
+//     (counted), and frame->pose latency stays bounded;
+//   - several concurrent sessions, round after round: RSS flat within 10%, no errors.
+// Each prints its measurements (chunks lost, RSS before/after) for the report.
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <zmq.hpp>
+
+#include "core/io/sequence.h"
+#include "prism/v1/session.pb.h"
+#include "tests/server_process.h"
+#include "tests/test_process.h"
+
+namespace prism {
+namespace {
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+using test::Bin;
+using test::Execute;
+using test::ProcessResult;
+using test::ServerProcess;
+
+constexpr int kFrames = 60;
+
+std::string ReadAll(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::ostringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+// A background process (stdout and stderr to log_path).
+pid_t Spawn(const std::vector<std::string>& args, const std::string& log_path) {
+  const pid_t pid = fork();
+  if (pid == 0) {
+    const int log = open(log_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    if (log >= 0) {
+      dup2(log, 1);
+      dup2(log, 2);
+    }
+    std::vector<std::string> all = args;
+    std::vector<char*> argv;
+    for (auto& a : all) argv.push_back(a.data());
+    argv.push_back(nullptr);
+    execv(argv[0], argv.data());
+    _exit(127);
+  }
+  return pid;
+}
+
+// Exit code, or -1 after SIGKILL when it did not end within timeout.
+int WaitExit(pid_t pid, int timeout_ms) {
+  const auto deadline = Clock::now() + std::chrono::milliseconds(timeout_ms);
+  int status = 0;
+  while (waitpid(pid, &status, WNOHANG) == 0) {
+    if (Clock::now() > deadline) {
+      kill(pid, SIGKILL);
+      waitpid(pid, &status, 0);
+      return -1;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+std::string HttpGet(const std::string& url) {
+  const size_t host_begin = url.find("//") + 2, colon = url.rfind(':'), path = url.find('/', colon);
+  const std::string host = url.substr(host_begin, colon - host_begin);
+  const int port = std::stoi(url.substr(colon + 1, path == std::string::npos ? std::string::npos : path - colon - 1));
+  const std::string target = path == std::string::npos ? "/" : url.substr(path);
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_port = htons(static_cast<uint16_t>(port));
+  inet_pton(AF_INET, host.c_str(), &addr.sin_addr);
+  if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0) {
+    close(fd);
+    return "";
+  }
+  const std::string req = "GET " + target + " HTTP/1.0\r\n\r\n";
+  (void)!write(fd, req.data(), req.size());
+  std::string resp;
+  char buf[4096];
+  ssize_t n;
+  while ((n = read(fd, buf, sizeof(buf))) > 0) resp.append(buf, static_cast<size_t>(n));
+  close(fd);
+  return resp;
+}
+
+// The value of a Prometheus sample (NaN when absent).
+double Metric(const std::string& metrics_url, const std::string& name) {
+  std::istringstream in(HttpGet(metrics_url + "/metrics"));
+  std::string line;
+  while (std::getline(in, line))
+    if (line.rfind(name + " ", 0) == 0) return std::stod(line.substr(name.size() + 1));
+  return std::nan("");
+}
+
+std::vector<fs::path> Files(const fs::path& dir, const std::string& ext) {
+  std::vector<fs::path> out;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(dir, ec))
+    if (e.path().extension() == ext) out.push_back(e.path());
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+class FaultTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    seq_dir_ = fs::temp_directory_path() / ("prism_fault_test_seq_" + std::to_string(getpid()));
+    fs::remove_all(seq_dir_);
+    const ProcessResult r = Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --size 256x256 --frames " +
+                                    std::to_string(kFrames) + " --out " + seq_dir_.string());
+    if (r.exit_code != 0) seq_dir_.clear();
+  }
+  static void TearDownTestSuite() {
+    if (!seq_dir_.empty()) fs::remove_all(seq_dir_);
+  }
+  void SetUp() override {
+    ASSERT_FALSE(seq_dir_.empty()) << "prism-synth failed";
+    dir_ = fs::temp_directory_path() / ("prism_fault_test_" + std::to_string(getpid()) + "_" +
+                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override {
+    if (!HasFailure()) fs::remove_all(dir_);
+  }
+  std::string P(const std::string& name) const { return (dir_ / name).string(); }
+  std::unique_ptr<ServerProcess> Start(const std::vector<std::string>& args, const std::string& log = "server.log") {
+    auto s = std::make_unique<ServerProcess>(P("data"), args, P(log));
+    EXPECT_TRUE(s->ok()) << "prism-server did not start; log in " << dir_;
+    return s;
+  }
+  std::vector<std::string> ClientArgs(const std::string& endpoint, const std::string& out) const {
+    return {Bin("prism-client"), "stream", "--server", endpoint, "--sequence", seq_dir_.string(), "--out", P(out),
+            "--timeout-ms", "30000", "--reconnect-timeout-ms", "30000", "--close-timeout-ms", "120000"};
+  }
+  // Waits until `pred` holds (polling), at most timeout_ms.
+  static bool WaitFor(const std::function<bool()>& pred, int timeout_ms) {
+    const auto deadline = Clock::now() + std::chrono::milliseconds(timeout_ms);
+    while (Clock::now() < deadline) {
+      if (pred()) return true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return pred();
+  }
+  // The one session directory under data/sessions whose id is not in `known`.
+  std::string NewSession(const std::vector<std::string>& known) const {
+    std::error_code ec;
+    for (const auto& e : fs::directory_iterator(dir_ / "data" / "sessions", ec)) {
+      const std::string id = e.path().filename().string();
+      if (std::find(known.begin(), known.end(), id) == known.end()) return id;
+    }
+    return "";
+  }
+  static fs::path seq_dir_;
+  fs::path dir_;
+};
+fs::path FaultTest::seq_dir_;
+
+TEST_F(FaultTest, ServerKilledAndRestartedMidSessionLosesNoFinishedChunk) {
+  auto server = Start({});
+  ASSERT_TRUE(server->ok());
+  const std::string endpoint = server->endpoint();
+  const pid_t client = Spawn(ClientArgs(endpoint, "out"), P("client.log"));
+  // Kill once at least two chunks are persisted (chunk .pb files are written last).
+  std::string id;
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        id = NewSession({});
+        return !id.empty() && Files(dir_ / "data" / "sessions" / id / "chunks", ".pb").size() >= 2;
+      },
+      120000))
+      << ReadAll(P("client.log"));
+  server->Kill();
+  const size_t persisted_at_kill = Files(dir_ / "data" / "sessions" / id / "chunks", ".pb").size();
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  server = Start({"--bind", endpoint}, "server2.log");
+  ASSERT_TRUE(server->ok());
+  const int exit_code = WaitExit(client, 120000);
+  const std::string log = ReadAll(P("client.log"));
+  // 3: the session was interrupted on the server; prism-client fetched what it had persisted.
+  EXPECT_EQ(exit_code, 3) << log;
+  EXPECT_NE(log.find("\"reconnects\": 1"), std::string::npos) << log;
+  EXPECT_NE(log.find("interrupted"), std::string::npos) << log;
+  // Chunk by chunk: every persisted chunk reached the client, byte for byte.
+  const std::vector<fs::path> server_chunks = Files(dir_ / "data" / "sessions" / id / "chunks", ".drc");
+  size_t lost = 0, differing = 0;
+  for (const fs::path& c : server_chunks) {
+    const fs::path mine = dir_ / "out" / "chunks" / c.filename();
+    if (!fs::exists(mine)) ++lost;
+    else if (ReadAll(mine) != ReadAll(c)) ++differing;
+  }
+  std::cout << "[fault] server SIGKILL + restart: persisted " << server_chunks.size() << " chunks (" << persisted_at_kill
+            << " at the kill), client has " << Files(dir_ / "out" / "chunks", ".drc").size() << ", lost " << lost
+            << ", differing " << differing << "\n";
+  EXPECT_EQ(server_chunks.size(), persisted_at_kill);
+  EXPECT_GE(server_chunks.size(), 2u);
+  EXPECT_EQ(lost, 0u);
+  EXPECT_EQ(differing, 0u);
+  EXPECT_EQ(Files(dir_ / "out" / "chunks", ".drc").size(), server_chunks.size());
+  EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / id / "map.ply"));  // rebuilt from the chunks
+  // Later, `prism-client fetch` gets the same results again.
+  const std::string session_json = ReadAll(P("out/session.json"));
+  const size_t t = session_json.find("\"token\": \"") + 10;
+  const std::string token = session_json.substr(t, session_json.find('"', t) - t);
+  const ProcessResult fetched = Execute(Bin("prism-client") + " fetch --server " + endpoint + " --session " + id +
+                                        " --token " + token + " --out " + P("fetched"));
+  EXPECT_EQ(fetched.exit_code, 3) << fetched.out;
+  EXPECT_EQ(Files(dir_ / "fetched" / "chunks", ".drc").size(), server_chunks.size());
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+TEST_F(FaultTest, KilledAndStoppedClientsAreReapedAndServerMemoryReturns) {
+  constexpr int kIdleTimeoutMs = 3000;
+  auto server = Start({"--idle-timeout-ms", std::to_string(kIdleTimeoutMs), "--heartbeat-timeout-ms", "2000"});
+  ASSERT_TRUE(server->ok());
+  // Warm-up session to the end: the baseline includes the allocator's and SLAM's steady state.
+  std::vector<std::string> args = ClientArgs(server->endpoint(), "warm");
+  ASSERT_EQ(WaitExit(Spawn(args, P("warm.log")), 180000), 0) << ReadAll(P("warm.log"));
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  const long baseline_kib = server->RssKib();
+  std::vector<std::string> known = {NewSession({})};
+  for (const int sig : {SIGKILL, SIGSTOP}) {
+    const std::string name = sig == SIGKILL ? "SIGKILL" : "SIGSTOP";
+    args = ClientArgs(server->endpoint(), "out_" + name);
+    const pid_t client = Spawn(args, P("client_" + name + ".log"));
+    std::string id;
+    ASSERT_TRUE(WaitFor(
+        [&] {
+          id = NewSession(known);
+          return !id.empty() && Files(dir_ / "data" / "sessions" / id / "chunks", ".pb").size() >= 1;
+        },
+        120000));
+    known.push_back(id);
+    const long during_kib = server->RssKib();
+    kill(client, sig);
+    const auto t0 = Clock::now();
+    const bool reaped = WaitFor([&] { return Metric(server->metrics(), "prism_sessions_active") == 0; }, 30000);
+    const double reap_s = std::chrono::duration<double>(Clock::now() - t0).count();
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    const long after_kib = server->RssKib();
+    std::cout << "[fault] client " << name << ": session reaped after " << reap_s << " s (idle timeout "
+              << kIdleTimeoutMs / 1000.0 << " s), server RSS baseline " << baseline_kib / 1024 << " MiB, during "
+              << during_kib / 1024 << " MiB, after " << after_kib / 1024 << " MiB\n";
+    EXPECT_TRUE(reaped);
+    // Reaped within the idle timeout plus the dense job in flight and a housekeeping tick.
+    EXPECT_LT(reap_s, kIdleTimeoutMs / 1000.0 + 5.0);
+    EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / id / "summary.pb"));
+    // Back near the baseline: within 15% (allocator caching), at most 40 MiB above it.
+    EXPECT_LT(after_kib, baseline_kib + std::min<long>(40 * 1024, baseline_kib * 15 / 100 + 8 * 1024));
+    if (sig == SIGSTOP) kill(client, SIGCONT);
+    WaitExit(client, 30000);
+  }
+  EXPECT_EQ(Metric(server->metrics(), "prism_sessions_reaped_total"), 2);
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+// Raw DEALER client speaking the wire protocol (to grant no credits and to send too fast).
+class WireClient {
+ public:
+  explicit WireClient(const std::string& endpoint) : socket_(context_, zmq::socket_type::dealer) {
+    socket_.set(zmq::sockopt::linger, 0);
+    socket_.connect(endpoint);
+  }
+  void Send(const v1::Envelope& env, const std::string* payload = nullptr) {
+    const std::string header = env.SerializeAsString();
+    socket_.send(zmq::buffer(header), payload ? zmq::send_flags::sndmore : zmq::send_flags::none);
+    if (payload) socket_.send(zmq::buffer(*payload), zmq::send_flags::none);
+  }
+  // Next message within timeout (envelope; payload size in *payload_bytes).
+  std::optional<v1::Envelope> Receive(int timeout_ms, std::string* payload = nullptr) {
+    zmq::pollitem_t item{socket_.handle(), 0, ZMQ_POLLIN, 0};
+    zmq::poll(&item, 1, std::chrono::milliseconds(timeout_ms));
+    zmq::message_t part;
+    if (!socket_.recv(part, zmq::recv_flags::dontwait)) return std::nullopt;
+    v1::Envelope env;
+    env.ParseFromArray(part.data(), static_cast<int>(part.size()));
+    while (part.more()) {
+      (void)socket_.recv(part, zmq::recv_flags::none);
+      if (payload) *payload = part.to_string();
+    }
+    return env;
+  }
+  static v1::Envelope Open(const RigCalibration& rig, v1::InputPolicy policy, uint32_t chunk_credits) {
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    v1::OpenSession* o = env.mutable_open_session();
+    o->set_protocol_version(v1::PROTOCOL_VERSION_1);
+    o->set_codec(v1::FRAME_CODEC_PNG);
+    o->set_input_policy(policy);
+    o->set_initial_chunk_credits(chunk_credits);
+    v1::CameraIntrinsics* c = o->mutable_calibration()->mutable_camera();
+    c->set_width(static_cast<uint32_t>(rig.camera.width));
+    c->set_height(static_cast<uint32_t>(rig.camera.height));
+    c->set_fx(rig.camera.fx);
+    c->set_fy(rig.camera.fy);
+    c->set_cx(rig.camera.cx);
+    c->set_cy(rig.camera.cy);
+    for (double d : rig.camera.distortion) c->add_distortion(d);
+    for (const Light& l : rig.lights) {
+      v1::LightCalibration* w = o->mutable_calibration()->add_lights();
+      w->set_name(l.name);
+      w->set_type(l.type == LightType::kDirectional ? v1::LightCalibration::TYPE_DIRECTIONAL
+                                                    : v1::LightCalibration::TYPE_POINT);
+      auto set = [](const Eigen::Vector3d& v, v1::Vector3* out) {
+        out->set_x(v.x());
+        out->set_y(v.y());
+        out->set_z(v.z());
+      };
+      set(l.position_in_camera, w->mutable_position_in_camera());
+      set(l.direction_in_camera, w->mutable_direction_in_camera());
+      set(l.color, w->mutable_color());
+      w->set_intensity(l.intensity);
+    }
+    for (int i = 0; i < 9; ++i) o->mutable_calibration()->add_crosstalk(rig.crosstalk(i / 3, i % 3));
+    return env;
+  }
+  static v1::Envelope Frame(const std::string& session, uint64_t seq, int64_t timestamp_ns) {
+    v1::Envelope env;
+    env.set_protocol_version(v1::PROTOCOL_VERSION_1);
+    env.mutable_frame()->set_session_id(session);
+    env.mutable_frame()->set_sequence_number(seq);
+    env.mutable_frame()->set_timestamp_ns(timestamp_ns);
+    env.mutable_frame()->set_codec(v1::FRAME_CODEC_PNG);
+    return env;
+  }
+
+ private:
+  zmq::context_t context_{1};
+  zmq::socket_t socket_;
+};
+
+TEST_F(FaultTest, ClientGrantingNoChunkCreditsCostsNoServerMemory) {
+  constexpr int kInMemory = 2;
+  // No frame-rate limit: this client sends as fast as its frame credits allow.
+  auto server = Start({"--max-pending-chunks-in-memory", std::to_string(kInMemory), "--max-frame-rate-hz", "0"});
+  ASSERT_TRUE(server->ok());
+  StatusOr<Sequence> seq = LoadSequence(seq_dir_.string());
+  ASSERT_TRUE(seq.ok());
+  WireClient client(server->endpoint());
+  client.Send(WireClient::Open(seq->calibration, v1::INPUT_POLICY_UPLOAD, /*chunk_credits=*/1));
+  std::optional<v1::Envelope> opened = client.Receive(10000);
+  ASSERT_TRUE(opened && opened->has_session_opened()) << (opened ? opened->DebugString() : "timeout");
+  const std::string id = opened->session_opened().session_id();
+  int64_t credits = opened->session_opened().initial_frame_credits();
+  const long start_kib = server->RssKib();
+  size_t chunks = 0, max_chunk_bytes = 0;
+  long peak_kib = start_kib;
+  for (int i = 0; i < kFrames;) {
+    if (credits > 0) {
+      const std::string png = ReadAll(seq->Path(seq->frames[i].rgb_file));
+      client.Send(WireClient::Frame(id, static_cast<uint64_t>(i), static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9)),
+                  &png);
+      --credits;
+      ++i;
+      continue;
+    }
+    std::string payload;
+    std::optional<v1::Envelope> m = client.Receive(30000, &payload);
+    ASSERT_TRUE(m.has_value()) << "no frame credit";
+    if (m->has_frame_credits()) credits += m->frame_credits().frames();
+    if (m->has_map_chunk()) {
+      ++chunks;
+      max_chunk_bytes = std::max(max_chunk_bytes, payload.size());
+    }
+    peak_kib = std::max(peak_kib, server->RssKib());
+  }
+  v1::Envelope close;
+  close.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  close.mutable_close()->set_session_id(id);
+  client.Send(close);
+  // The pipeline finishes; the server holds the chunks for credit (the session stays until the client
+  // grants or goes idle).
+  ASSERT_TRUE(WaitFor([&] { return Metric(server->metrics(), "prism_chunks_waiting_for_credit") >= 3; }, 120000));
+  std::this_thread::sleep_for(std::chrono::milliseconds(2000));
+  const double waiting = Metric(server->metrics(), "prism_chunks_waiting_for_credit");
+  const double in_memory = Metric(server->metrics(), "prism_chunk_bytes_waiting_in_memory");
+  const long held_kib = server->RssKib();
+  std::cout << "[fault] no chunk credits: " << waiting << " chunks held, " << in_memory
+            << " bytes of them in memory (limit " << kInMemory << " chunks), server RSS at open " << start_kib / 1024
+            << " MiB, peak " << std::max(peak_kib, held_kib) / 1024 << " MiB, holding " << held_kib / 1024 << " MiB\n";
+  EXPECT_GE(waiting, 3);
+  // Only the first kInMemory held chunks are in memory (a chunk is at most a few hundred KiB here).
+  EXPECT_LE(in_memory, kInMemory * 1024.0 * 1024.0);
+  // Granting credits now delivers every held chunk (from disk), then the summary.
+  v1::Envelope grant;
+  grant.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  grant.mutable_chunk_credits()->set_session_id(id);
+  grant.mutable_chunk_credits()->set_chunks(1000);
+  client.Send(grant);
+  std::optional<v1::SessionSummary> summary;
+  while (!summary) {
+    std::string payload;
+    std::optional<v1::Envelope> m = client.Receive(30000, &payload);
+    ASSERT_TRUE(m.has_value());
+    if (m->has_map_chunk()) {
+      ++chunks;
+      EXPECT_EQ(payload.size(), m->map_chunk().payload_bytes());
+    }
+    if (m->has_session_summary()) summary = m->session_summary();
+  }
+  EXPECT_EQ(chunks, Files(dir_ / "data" / "sessions" / id / "chunks", ".drc").size());
+  EXPECT_EQ(summary->chunks_sent(), chunks);
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBounded) {
+  auto server = Start({"--max-frame-rate-hz", "100", "--frame-queue", "4"});
+  ASSERT_TRUE(server->ok());
+  StatusOr<Sequence> seq = LoadSequence(seq_dir_.string());
+  ASSERT_TRUE(seq.ok());
+  WireClient client(server->endpoint());
+  client.Send(WireClient::Open(seq->calibration, v1::INPUT_POLICY_LIVE, 64));
+  std::optional<v1::Envelope> opened = client.Receive(10000);
+  ASSERT_TRUE(opened && opened->has_session_opened());
+  const std::string id = opened->session_opened().session_id();
+  // 300 frames/s, ignoring credits: the sequence twice over.
+  std::vector<std::string> pngs;
+  for (const SequenceFrame& f : seq->frames) pngs.push_back(ReadAll(seq->Path(f.rgb_file)));
+  const int total = 2 * kFrames;
+  std::map<uint64_t, Clock::time_point> sent;
+  std::vector<double> latency_ms;
+  size_t refused = 0, poses = 0;
+  auto handle = [&](const v1::Envelope& m) {
+    if (m.has_pose_update()) {
+      ++poses;
+      latency_ms.push_back(std::chrono::duration<double, std::milli>(
+                               Clock::now() - sent[m.pose_update().frame_sequence_number()])
+                               .count());
+    }
+    if (m.has_error() && m.error().has_frame()) {
+      ++refused;
+      EXPECT_EQ(m.error().code(), v1::ERROR_CODE_RESOURCE_EXHAUSTED) << m.error().message();
+    }
+  };
+  const auto start = Clock::now();
+  for (int i = 0; i < total; ++i) {
+    std::this_thread::sleep_until(start + std::chrono::microseconds(3333 * i));
+    const int k = i % kFrames;
+    const int64_t ts = static_cast<int64_t>(seq->frames[k].timestamp_s * 1e9) + (i / kFrames) * 10'000'000'000;
+    sent[static_cast<uint64_t>(i)] = Clock::now();
+    client.Send(WireClient::Frame(id, static_cast<uint64_t>(i), ts), &pngs[static_cast<size_t>(k)]);
+    while (std::optional<v1::Envelope> m = client.Receive(0)) handle(*m);
+  }
+  v1::Envelope close;
+  close.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  close.mutable_close()->set_session_id(id);
+  client.Send(close);
+  std::optional<v1::SessionSummary> summary;
+  while (!summary) {
+    std::optional<v1::Envelope> m = client.Receive(60000);
+    ASSERT_TRUE(m.has_value());
+    handle(*m);
+    if (m->has_session_summary()) summary = m->session_summary();
+  }
+  std::sort(latency_ms.begin(), latency_ms.end());
+  const double p50 = latency_ms.empty() ? 0 : latency_ms[latency_ms.size() / 2];
+  const double p95 = latency_ms.empty() ? 0 : latency_ms[latency_ms.size() * 95 / 100];
+  const double max = latency_ms.empty() ? 0 : latency_ms.back();
+  std::cout << "[fault] 10x frame rate (" << total << " frames at 300/s, limit 100/s, live, queue 4): " << poses
+            << " tracked, " << summary->frames_dropped() << " dropped from the queue, " << refused
+            << " refused by the rate limit; frame->pose latency p50 " << p50 << " ms, p95 " << p95 << " ms, max "
+            << max << " ms\n";
+  // Every frame is accounted for: tracked, dropped (queue) or refused (rate), all counted.
+  EXPECT_EQ(poses + summary->frames_dropped() + refused, static_cast<size_t>(total));
+  EXPECT_GT(refused, 0u);
+  EXPECT_GT(poses, 0u);
+  // Bounded: a tracked frame waited behind at most the 4 queued frames (generous for 2 shared cores).
+  EXPECT_LT(max, 5000.0);
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+TEST_F(FaultTest, ConcurrentSessionsRoundAfterRoundKeepServerMemoryFlat) {
+  constexpr int kSessions = 4, kRounds = 3;
+  auto server = Start({"--max-sessions", std::to_string(kSessions)});
+  ASSERT_TRUE(server->ok());
+  std::vector<long> rss_after_round;
+  for (int round = 0; round < kRounds; ++round) {
+    std::vector<pid_t> clients;
+    for (int s = 0; s < kSessions; ++s) {
+      const std::string name = "r" + std::to_string(round) + "s" + std::to_string(s);
+      clients.push_back(Spawn(ClientArgs(server->endpoint(), name), P(name + ".log")));
+    }
+    for (int s = 0; s < kSessions; ++s) {
+      const std::string name = "r" + std::to_string(round) + "s" + std::to_string(s);
+      const std::string log = ReadAll(P(name + ".log"));
+      EXPECT_EQ(WaitExit(clients[static_cast<size_t>(s)], 300000), 0) << log;
+      EXPECT_NE(ReadAll(P(name + ".log")).find("\"errors\": 0"), std::string::npos) << ReadAll(P(name + ".log"));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    rss_after_round.push_back(server->RssKib());
+  }
+  std::cout << "[fault] " << kSessions << " concurrent sessions x " << kRounds << " rounds: server RSS after each round";
+  for (long r : rss_after_round) std::cout << " " << r / 1024 << " MiB";
+  std::cout << "\n";
+  // Flat after the first (warm-up) round: within 10%.
+  for (size_t r = 2; r < rss_after_round.size(); ++r)
+    EXPECT_LT(std::abs(rss_after_round[r] - rss_after_round[1]), rss_after_round[1] / 10);
+  const double failed = Metric(server->metrics(), "prism_sessions_failed_total");
+  EXPECT_TRUE(std::isnan(failed) || failed == 0) << failed;
+  EXPECT_EQ(server->Stop(), 0);
+}
+
+}  // namespace
+}  // namespace prism
