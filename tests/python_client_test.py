@@ -78,6 +78,7 @@ class PythonClientTest(unittest.TestCase):
             summary = session.close()
             poses, cloud = session.poses(), session.map()
             all_poses = session.poses(tracked_only=False)
+            keyframes = session.poses(tracked_only=False, keyframes_only=True)
         self.assertEqual(server.stop(), 0)
         self.assertEqual(summary["frames_received"], self.frames)
         self.assertEqual(summary["reason"], "closed by client")
@@ -94,6 +95,22 @@ class PythonClientTest(unittest.TestCase):
         self.assertEqual(cloud["normals"].shape, (n, 3))
         norms = np.linalg.norm(cloud["normals"], axis=1)
         self.assertLess(np.median(np.abs(norms - 1.0)), 1e-2)
+
+        # The keyframes as a COLMAP model named after the sequence's images.
+        # Every keyframe pose the server flagged (the keyframe SLAM initialises on is made from an earlier
+        # frame after its pose went out, so one may be unflagged).
+        self.assertGreater(len(keyframes), 0)
+        self.assertLessEqual(len(keyframes), summary["keyframes"])
+        self.assertLess(len(keyframes), len(all_poses))
+        names = {round(float(t), 3): f for t, f in (line.split() for line in open(os.path.join(self.seq, "rgb.txt"))
+                                                    if not line.startswith("#"))}
+        colmap = os.path.join(self.tmp, "colmap")
+        prism_client.write_colmap(colmap, rig.camera, keyframes, [names[round(k[0], 3)] for k in keyframes], cloud)
+        images = [line.split() for line in open(os.path.join(colmap, "images.txt")) if line[0] != "#" and line.strip()]
+        self.assertEqual(len(images), len(keyframes))
+        self.assertTrue(all(os.path.exists(os.path.join(self.seq, image[9])) for image in images))
+        with self.assertRaises(prism_client.PrismError):
+            prism_client.write_colmap(colmap, rig.camera, keyframes[:, :7])
 
         # The map in the ground-truth frame, scored on the object (as roundtrip_test does): Sim(3) from
         # the streamed trajectory, rotation from the camera orientations, scale and translation from

@@ -6,6 +6,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <cstdio>
 #include <cstring>
 #include <deque>
 #include <memory>
@@ -14,6 +15,7 @@
 #include <vector>
 
 #include "core/io/calibration_io.h"
+#include "core/io/colmap_io.h"
 #include "core/io/image_io.h"
 #include "core/io/sequence.h"
 #include "prism/client/client.h"
@@ -250,11 +252,13 @@ class PySession {
   }
 
   // (N, 8) float64: timestamp_s tx ty tz qx qy qz qw (world_from_camera, TUM order, metres once the
-  // server knows the scale), for the poses received so far (tracked ones only by default).
-  py::array_t<double> Poses(bool tracked_only) const {
+  // server knows the scale), for the poses received so far: tracked ones only by default; keyframes_only
+  // keeps the frames the SLAM made keyframes (the images the dense map comes from, e.g. for write_colmap).
+  py::array_t<double> Poses(bool tracked_only, bool keyframes_only) const {
     std::vector<const pc::Pose*> rows;
     for (const pc::Pose& p : poses_)
-      if (!tracked_only || p.state == pc::TrackingState::kTracking) rows.push_back(&p);
+      if ((!tracked_only || p.state == pc::TrackingState::kTracking) && (!keyframes_only || p.is_keyframe))
+        rows.push_back(&p);
     // One scale for the whole trajectory (as prism-client writes it): the session's final one from the
     // Summary, else the latest a pose carried; SLAM units while the server has none.
     double s = summary_scale_;
@@ -345,6 +349,56 @@ PYBIND11_MODULE(_native, m) {
       },
       py::arg("path"), "Reads an 8-bit image file as an (H, W, 3) uint8 RGB array.");
   m.def(
+      "write_colmap",
+      [](const std::string& dir, const pc::Camera& camera,
+         py::array_t<double, py::array::c_style | py::array::forcecast> poses, const std::vector<std::string>& names,
+         py::object cloud) {
+        if (poses.ndim() != 2 || poses.shape(1) != 8)
+          Raise({pc::Code::kInvalidArgument, "poses must be an (N, 8) array: t tx ty tz qx qy qz qw", false});
+        if (!names.empty() && names.size() != static_cast<size_t>(poses.shape(0)))
+          Raise({pc::Code::kInvalidArgument, "names must be empty or one per pose", false});
+        prism::ColmapModel model;
+        prism::PinholeCamera& c = model.cameras[1];
+        c.width = camera.width;
+        c.height = camera.height;
+        c.fx = camera.fx;
+        c.fy = camera.fy;
+        c.cx = camera.cx;
+        c.cy = camera.cy;
+        c.distortion = camera.distortion;
+        auto a = poses.unchecked<2>();
+        for (py::ssize_t i = 0; i < poses.shape(0); ++i) {
+          prism::ColmapImage image;
+          image.image_id = static_cast<uint32_t>(i + 1);
+          char name[64];
+          std::snprintf(name, sizeof(name), "%.6f.png", a(i, 0));
+          image.name = names.empty() ? std::string(name) : names[i];
+          const prism::Rigid3d world_from_camera(Eigen::Quaterniond(a(i, 7), a(i, 4), a(i, 5), a(i, 6)),
+                                                 Eigen::Vector3d(a(i, 1), a(i, 2), a(i, 3)));
+          image.cam_from_world = world_from_camera.Inverse();
+          model.images.push_back(image);
+        }
+        if (!cloud.is_none()) {
+          py::dict d = cloud.cast<py::dict>();
+          auto positions = d["positions"].cast<py::array_t<float, py::array::c_style | py::array::forcecast>>();
+          auto colors = d["colors"].cast<py::array_t<uint8_t, py::array::c_style | py::array::forcecast>>();
+          if (positions.ndim() != 2 || positions.shape(1) != 3 || colors.ndim() != 2 || colors.shape(1) != 3 ||
+              colors.shape(0) != positions.shape(0))
+            Raise({pc::Code::kInvalidArgument, "cloud needs positions and colors as (M, 3) arrays", false});
+          auto pa = positions.unchecked<2>();
+          auto ca = colors.unchecked<2>();
+          for (py::ssize_t i = 0; i < positions.shape(0); ++i) {
+            model.points.positions.emplace_back(pa(i, 0), pa(i, 1), pa(i, 2));
+            model.points.colors.emplace_back(ca(i, 0), ca(i, 1), ca(i, 2));
+          }
+        }
+        const prism::Status st = prism::WriteColmapText(dir, model);
+        if (!st.ok()) Raise({pc::Code::kInvalidArgument, st.ToString(), false});
+      },
+      py::arg("dir"), py::arg("camera"), py::arg("poses"), py::arg("names") = std::vector<std::string>(),
+      py::arg("cloud") = py::none(),
+      "Writes a COLMAP text model (cameras.txt, images.txt, points3D.txt) of poses (N, 8) seen by camera.");
+  m.def(
       "decode_chunk",
       [](py::bytes data) {
         const std::string bytes = data;
@@ -363,7 +417,7 @@ PYBIND11_MODULE(_native, m) {
       .def("stream_folder", &PySession::StreamFolder, py::arg("sequence_dir"), py::arg("max_frames") = size_t(-1))
       .def("poll", &PySession::Poll, py::arg("timeout_ms") = 0)
       .def("close", &PySession::Close, py::arg("timeout_ms") = 300000)
-      .def("poses", &PySession::Poses, py::arg("tracked_only") = true)
+      .def("poses", &PySession::Poses, py::arg("tracked_only") = true, py::arg("keyframes_only") = false)
       .def("map", &PySession::Map)
       .def_property_readonly("id", &PySession::id)
       .def_property_readonly("frame_credits", &PySession::frame_credits)

@@ -15,9 +15,9 @@ import urllib.error
 import urllib.request
 
 from . import _native
-from ._native import Camera, Light, Rig, decode_chunk, load_rig, read_image
+from ._native import Camera, Light, Rig, decode_chunk, load_rig, read_image, write_colmap
 
-__all__ = ["Camera", "Light", "Rig", "Session", "PrismError", "load_rig", "read_image", "decode_chunk", "allocate",
+__all__ = ["Camera", "Light", "Rig", "Session", "PrismError", "load_rig", "read_image", "decode_chunk", "write_colmap", "allocate",
            "write_ply"]
 
 
