@@ -29,6 +29,8 @@ DNS1123_LABEL = re.compile(r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$")
 DNS1123_SUBDOMAIN = re.compile(r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$")
 QUANTITY = re.compile(r"^[0-9]+(\.[0-9]+)?(m|k|M|G|T|P|E|Ki|Mi|Gi|Ti|Pi|Ei)?$")
 ENV_NAME = re.compile(r"^[-._a-zA-Z][-._a-zA-Z0-9]*$")
+# Environment variables of the image's entrypoint that name files.
+FILE_ENV = {"PRISM_CONFIG", "PRISM_CURVE_KEYS", "PRISM_ALLOWED_CLIENTS"}
 
 # The schema subset: for each object path, its allowed fields -> (type, required). A type is a Python
 # type, a nested schema name, or ("list", item). Anything not listed is an unknown field (a typo, or a
@@ -247,6 +249,24 @@ def check_k8s(directory, prism_server, report):
                     if ref not in defined:
                         report.add(cwhere, f"env {env.get('name')}: $({ref}) is not defined before it")
                 defined.add(env.get("name"))
+            # Files the server is pointed at (config, CURVE keys) must lie under a mount, and a Secret
+            # mounted there must have the key named by the file.
+            mounts = [m for m in container.get("volumeMounts", []) or [] if isinstance(m, dict)]
+            for env in container.get("env", []) or []:
+                if not isinstance(env, dict) or env.get("name") not in FILE_ENV:
+                    continue
+                path = str(env.get("value", ""))
+                mount = next((m for m in mounts if path == m.get("mountPath") or
+                              path.startswith(str(m.get("mountPath", "")).rstrip("/") + "/")), None)
+                if mount is None:
+                    report.add(cwhere, f"env {env['name']} = {path} is not under any volumeMount")
+                    continue
+                volume = volumes.get(mount.get("name"), {})
+                if "secret" in volume and path != mount.get("mountPath"):
+                    secret = named("Secret", volume["secret"].get("secretName"))
+                    key = path[len(str(mount["mountPath"]).rstrip("/")) + 1:]
+                    if secret is not None and key not in {**(secret.get("data") or {}), **(secret.get("stringData") or {})}:
+                        report.add(cwhere, f"env {env['name']}: Secret {secret['metadata']['name']} has no key {key!r}")
             for mount in container.get("volumeMounts", []) or []:
                 if not isinstance(mount, dict):
                     continue

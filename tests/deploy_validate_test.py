@@ -83,6 +83,14 @@ class DeployValidateTest(unittest.TestCase):
         self.edit("k8s/configmap.yaml", "  server.conf: |", "  prism.conf: |")
         self.expect_problem("subPath 'server.conf' is not a key")
 
+    def test_curve_key_file_must_be_in_the_secret(self):
+        self.edit("k8s/statefulset.yaml", "/etc/prism/curve/server.keys", "/etc/prism/curve/server.key")
+        self.expect_problem("Secret prism-curve has no key 'server.key'")
+
+    def test_file_env_must_be_under_a_mount(self):
+        self.edit("k8s/statefulset.yaml", "value: /etc/prism/curve/allowed_clients", "value: /etc/curve/allowed_clients")
+        self.expect_problem("PRISM_ALLOWED_CLIENTS = /etc/curve/allowed_clients is not under any volumeMount")
+
     def test_compose_depends_on_unknown_service(self):
         self.edit("docker-compose.yml", "      prism:\n        condition", "      server:\n        condition")
         self.expect_problem("depends_on 'server': no such service")

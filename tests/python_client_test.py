@@ -180,6 +180,33 @@ class PythonClientTest(unittest.TestCase):
             np.testing.assert_array_equal(decoded["positions"], chunk["positions"])
             np.testing.assert_array_equal(decoded["colors"], chunk["colors"])
 
+    def test_curve_admits_allow_listed_clients_only(self):
+        server_public, server_secret = prism_client.generate_key_pair()
+        client_public, client_secret = prism_client.generate_key_pair()
+        stranger_public, stranger_secret = prism_client.generate_key_pair()
+        self.assertEqual(len(server_public), 40)
+        self.assertNotEqual(server_public, client_public)
+        keys = os.path.join(self.tmp, "server.keys")
+        with open(keys, "w") as f:
+            f.write(f"public = {server_public}\nsecret = {server_secret}\n")
+        allowed = os.path.join(self.tmp, "allowed_clients")
+        with open(allowed, "w") as f:
+            f.write(client_public + "\n")
+        server = Server(self.data, "--curve-keys", keys, "--allowed-clients", allowed)
+        rig = prism_client.load_rig(os.path.join(self.seq, "camera.yaml"))
+        frames = [(i * 33_333_333, prism_client.read_image(os.path.join(self.seq, "rgb", name)))
+                  for i, name in enumerate(sorted(os.listdir(os.path.join(self.seq, "rgb")))[:3])]
+        with prism_client.Session(server.endpoint, rig, server_public_key=server_public, client_public_key=client_public,
+                                  client_secret_key=client_secret) as session:
+            self.assertEqual(session.stream(frames), 3)
+            session.close()
+            self.assertEqual(len(session.poses(tracked_only=False)), 3)
+        with self.assertRaises(prism_client.PrismError) as refused:
+            prism_client.Session(server.endpoint, rig, server_public_key=server_public, client_public_key=stranger_public,
+                                 client_secret_key=stranger_secret, timeout_ms=5000)
+        self.assertEqual(refused.exception.code, "UNAUTHENTICATED")
+        self.assertEqual(server.stop(), 0)
+
     def test_errors_raise_prism_error(self):
         server = Server(self.data, "--max-sessions", "1")
         rig = prism_client.load_rig(os.path.join(self.seq, "camera.yaml"))

@@ -160,7 +160,8 @@ pc::Codec ParseCodec(const std::string& name) {
 class PySession {
  public:
   PySession(const std::string& endpoint, const pc::Rig& rig, const std::string& codec, int jpeg_quality, bool live,
-            int chunk_credits, int timeout_ms, const std::string& client_name) {
+            int chunk_credits, int timeout_ms, const std::string& client_name, const std::string& server_public_key,
+            const std::string& client_public_key, const std::string& client_secret_key) {
     pc::SessionOptions options;
     options.codec = ParseCodec(codec);
     options.jpeg_quality = jpeg_quality;
@@ -168,6 +169,9 @@ class PySession {
     options.chunk_credits = chunk_credits;
     options.timeout_ms = timeout_ms;
     options.client_name = client_name;
+    options.server_public_key = server_public_key;
+    options.client_public_key = client_public_key;
+    options.client_secret_key = client_secret_key;
     pc::Status s;
     {
       py::gil_scoped_release release;
@@ -338,6 +342,14 @@ PYBIND11_MODULE(_native, m) {
       },
       py::arg("path"), "Reads a rig calibration (camera.yaml, OpenCV FileStorage) into a Rig.");
   m.def(
+      "generate_key_pair",
+      []() {
+        std::string public_key, secret_key;
+        Check(pc::GenerateKeyPair(&public_key, &secret_key));
+        return py::make_tuple(public_key, secret_key);
+      },
+      "A CURVE key pair (public, secret), Z85 text, as `prism-server keygen` makes.");
+  m.def(
       "read_image",
       [](const std::string& path) {
         prism::StatusOr<cv::Mat> rgb = prism::ReadRgbImage(path);
@@ -409,10 +421,12 @@ PYBIND11_MODULE(_native, m) {
       py::arg("data"), "Decodes a Draco map chunk (.drc bytes) into positions, normals and colours.");
 
   py::class_<PySession>(m, "Session")
-      .def(py::init<const std::string&, const pc::Rig&, const std::string&, int, bool, int, int, const std::string&>(),
+      .def(py::init<const std::string&, const pc::Rig&, const std::string&, int, bool, int, int, const std::string&,
+                    const std::string&, const std::string&, const std::string&>(),
            py::arg("endpoint"), py::arg("rig"), py::arg("codec") = "png", py::arg("jpeg_quality") = 95,
            py::arg("live") = false, py::arg("chunk_credits") = 8, py::arg("timeout_ms") = 10000,
-           py::arg("client_name") = "prism_client.py")
+           py::arg("client_name") = "prism_client.py", py::arg("server_public_key") = "",
+           py::arg("client_public_key") = "", py::arg("client_secret_key") = "")
       .def("push_frame", &PySession::PushFrame, py::arg("rgb"), py::arg("timestamp_ns"))
       .def("stream_folder", &PySession::StreamFolder, py::arg("sequence_dir"), py::arg("max_frames") = size_t(-1))
       .def("poll", &PySession::Poll, py::arg("timeout_ms") = 0)

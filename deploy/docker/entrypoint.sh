@@ -9,6 +9,8 @@
 #   PRISM_ADVERTISE     endpoint /allocate hands out, e.g. the pod's DNS name (optional)
 #   PRISM_MAX_SESSIONS  concurrent sessions                     (optional)
 #   PRISM_LOG_LEVEL     debug|info|warning|error                (optional)
+#   PRISM_CURVE_KEYS    CURVE key pair file (prism-server keygen --out FILE); with
+#   PRISM_ALLOWED_CLIENTS  the client public keys admitted, one per line (both or neither)
 set -eu
 
 if [ "$#" -eq 0 ] || [ "$1" = "prism-server" ]; then
@@ -23,6 +25,8 @@ set -- --bind "${PRISM_BIND:-tcp://0.0.0.0:5555}" \
        ${PRISM_ADVERTISE:+--advertise "$PRISM_ADVERTISE"} \
        ${PRISM_MAX_SESSIONS:+--max-sessions "$PRISM_MAX_SESSIONS"} \
        ${PRISM_LOG_LEVEL:+--log-level "$PRISM_LOG_LEVEL"} \
+       ${PRISM_CURVE_KEYS:+--curve-keys "$PRISM_CURVE_KEYS"} \
+       ${PRISM_ALLOWED_CLIENTS:+--allowed-clients "$PRISM_ALLOWED_CLIENTS"} \
        "$@"
 # --config is read before every flag by prism-server, so its place in the list does not matter.
 if [ -n "${PRISM_CONFIG:-}" ]; then set -- --config "$PRISM_CONFIG" "$@"; fi

@@ -8,6 +8,10 @@
         poses = session.poses()                    # (N, 8): t tx ty tz qx qy qz qw, world_from_camera
         cloud = session.map()                      # positions/normals (N, 3) float32, colors (N, 3) uint8
 
+With CURVE (a server started with --curve-keys/--allowed-clients): Session(..., server_public_key=...,
+client_public_key=..., client_secret_key=...); generate_key_pair() makes a client's keys. A key the
+server does not admit raises PrismError("UNAUTHENTICATED").
+
 Errors raise PrismError (code, message, retryable).
 """
 import json
@@ -15,9 +19,9 @@ import urllib.error
 import urllib.request
 
 from . import _native
-from ._native import Camera, Light, Rig, decode_chunk, load_rig, read_image, write_colmap
+from ._native import Camera, Light, Rig, decode_chunk, generate_key_pair, load_rig, read_image, write_colmap
 
-__all__ = ["Camera", "Light", "Rig", "Session", "PrismError", "load_rig", "read_image", "decode_chunk", "write_colmap", "allocate",
+__all__ = ["Camera", "Light", "Rig", "Session", "PrismError", "load_rig", "read_image", "decode_chunk", "write_colmap", "generate_key_pair", "allocate",
            "write_ply"]
 
 
