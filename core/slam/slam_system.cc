@@ -216,7 +216,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   }
   cv::Mat K = (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
   cv::Mat inlier_mask;
-  cv::Mat E = cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.5 * cam.width / 512.0, inlier_mask);
+  cv::Mat E = cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.0 * cam.width / 512.0, inlier_mask);
   if (E.rows != 3 || E.cols != 3) {
     *why = "essential matrix estimation failed";
     return false;

@@ -111,10 +111,11 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
 
 // Tolerances from measurement (printed): see the note of the SLAM issue.
 INSTANTIATE_TEST_SUITE_P(DarkRoomPresets, SlamSystemPresetTest,
+                         // Measured: bunny 0.57% / 2.2%, dragon 0.77% / 5.7%.
                          ::testing::Values(SlamCase{"bunny-multicolor-forward", 150, /*max_ate_percent_of_path=*/1.0,
-                                                    /*max_depth_median_rel_error=*/0.06},
+                                                    /*max_depth_median_rel_error=*/0.03},
                                            SlamCase{"dragon-multicolor-sideways", 150, /*max_ate_percent_of_path=*/1.0,
-                                                    /*max_depth_median_rel_error=*/0.06}),
+                                                    /*max_depth_median_rel_error=*/0.07}),
                          [](const ::testing::TestParamInfo<SlamCase>& info) {
                            std::string n = info.param.preset;
                            std::replace(n.begin(), n.end(), '-', '_');
