@@ -409,6 +409,11 @@ int RunCloud(const std::vector<std::string>& args) {
     if (!selected.ok()) return Fail(cmd, kExitFailure, selected.status());
     evaluated.clear();
     for (size_t i : *selected) evaluated.push_back(cloud->positions[i]);
+    if (evaluated.empty() && !cloud->positions.empty())
+      return Fail(cmd, kExitFailure,
+                  FailedPreconditionError("--object-only: none of the " + std::to_string(cloud->positions.size()) +
+                                          " reconstructed points is seen on the object in the ground-truth frames "
+                                          "(is the cloud in the ground truth's world frame? see --align-trajectory)"));
   }
   auto metrics = EvaluateCloud(evaluated, samples->points_in_world, options, pool.get());
   if (!metrics.ok()) return Fail(cmd, kExitFailure, metrics.status());
