@@ -13,6 +13,7 @@ PACKAGES=(
   libdraco-dev draco
   libjpeg-dev
   libgtest-dev libgmock-dev libbenchmark-dev
+  clang  # libFuzzer targets (PRISM_FUZZ) and the sanitizer builds
   libcgal-demo
   python3 python3-numpy python3-dev pybind11-dev python3-yaml
   python3-open3d docker-compose

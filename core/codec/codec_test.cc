@@ -1,4 +1,5 @@
 #include <cmath>
+#include <cstring>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -211,6 +212,33 @@ TEST(MapChunkCodecTest, CorruptTruncatedAndEmptyInputs) {
   EXPECT_EQ(w->dropped_points, 2u);
   options.subdivisions = 0;
   EXPECT_EQ(EncodeMapChunk(wild, options).status().code(), StatusCode::kInvalidArgument);
+}
+
+// Regression (fuzz/fuzz_draco_chunk, out-of-memory): a chunk whose header claims far more points than
+// its bytes could carry made Draco allocate ~800 MB from a few hundred bytes; it is refused before
+// Draco sizes anything.
+TEST(MapChunkCodecTest, ClaimedPointCountBeyondTheBytesIsRefusedBeforeDecoding) {
+  MapChunkCodecOptions options;
+  const MapChunk chunk = SphereChunk(options.voxel_m, 200, 8);
+  StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(chunk.cloud, options);
+  ASSERT_TRUE(encoded.ok());
+  ASSERT_TRUE(DecodeMapChunk(encoded->bytes.data(), encoded->bytes.size()).ok());
+  for (const int32_t claimed : {int32_t{1} << 30, int32_t{50'000'000}, -1,
+                                static_cast<int32_t>(8 * encoded->bytes.size() + 65)}) {
+    std::vector<uint8_t> bytes = encoded->bytes;
+    std::memcpy(bytes.data() + 11, &claimed, sizeof(claimed));  // the int32 point count after the header
+    const Status s = DecodeMapChunk(bytes.data(), bytes.size()).status();
+    EXPECT_EQ(s.code(), StatusCode::kDataLoss) << claimed;
+    EXPECT_NE(s.message().find("claims"), std::string::npos) << s;
+  }
+  // Not what EncodeMapChunk writes: a mesh, metadata, another major or an older minor version, kd-tree
+  // coding (fuzzing found Draco 2.0 kd-tree input asking for ~43 GB).
+  for (const auto& [offset, value] :
+       {std::pair{7, 1}, std::pair{10, 0x80}, std::pair{5, 1}, std::pair{6, 0}, std::pair{8, 1}}) {
+    std::vector<uint8_t> bytes = encoded->bytes;
+    bytes[static_cast<size_t>(offset)] = static_cast<uint8_t>(value);
+    EXPECT_FALSE(DecodeMapChunk(bytes.data(), bytes.size()).ok()) << offset;
+  }
 }
 
 TEST(MapChunkCodecTest, DebianDracoDecoderReadsTheChunk) {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <numeric>
 #include <string>
 
@@ -146,6 +147,28 @@ StatusOr<EncodedMapChunk> EncodeMapChunk(const PointCloud& cloud, const MapChunk
 
 StatusOr<PointCloud> DecodeMapChunk(const uint8_t* data, size_t size) {
   if (data == nullptr || size == 0) return DataLossError("empty map chunk");
+  // Draco sizes its attribute buffers from the point count the stream claims, before reading them: 15
+  // bytes could ask for gigabytes (found by fuzz/fuzz_draco_chunk). A map chunk is a Draco 2.x point
+  // cloud without metadata, so the int32 point count follows the 11-byte header; it is bounded by the
+  // bytes that would have to carry the points (>= 1 bit each; real chunks use ~35) and kMaxChunkPoints.
+  constexpr size_t kHeaderBytes = 11;
+  constexpr int64_t kMaxChunkPoints = int64_t{1} << 24;
+  if (size < kHeaderBytes + 4 || std::memcmp(data, "DRACO", 5) != 0)
+    return DataLossError("corrupt map chunk: no Draco header");
+  // Version 2.2+ (what EncodeMapChunk writes), a point cloud, sequential coding: fuzzing found older
+  // versions and the kd-tree decoder asking for tens of GB, so nothing else is handed to Draco.
+  if (data[5] != 2 || data[6] < 2)
+    return DataLossError("corrupt map chunk: Draco version " + std::to_string(data[5]) + "." + std::to_string(data[6]) +
+                         ", expected 2.2 or later");
+  if (data[7] != 0) return InvalidArgumentError("map chunk is a Draco mesh, not a point cloud");
+  if (data[8] != 0) return InvalidArgumentError("map chunk is not sequentially coded (Draco method " + std::to_string(data[8]) + ")");
+  if ((data[9] | (data[10] << 8)) & 0x8000) return InvalidArgumentError("map chunk carries Draco metadata");
+  int32_t claimed_points = 0;
+  std::memcpy(&claimed_points, data + kHeaderBytes, sizeof(claimed_points));
+  if (claimed_points < 0 || claimed_points > kMaxChunkPoints ||
+      static_cast<uint64_t>(claimed_points) > 8 * static_cast<uint64_t>(size) + 64)
+    return DataLossError("corrupt map chunk: claims " + std::to_string(claimed_points) + " points in " +
+                         std::to_string(size) + " bytes");
   draco::DecoderBuffer buffer;
   buffer.Init(reinterpret_cast<const char*>(data), size);
   draco::Decoder decoder;
@@ -154,12 +177,16 @@ StatusOr<PointCloud> DecodeMapChunk(const uint8_t* data, size_t size) {
     return DataLossError(std::string("corrupt map chunk (Draco: ") + decoded.status().error_msg() + ")");
   const draco::PointCloud& pc = *decoded.value();
   const draco::PointAttribute* position = pc.GetNamedAttribute(draco::GeometryAttribute::POSITION);
-  if (position == nullptr || position->num_components() != 3)
-    return InvalidArgumentError("map chunk has no 3D position attribute");
+  if (position == nullptr || position->num_components() != 3 || position->data_type() != draco::DT_FLOAT32)
+    return InvalidArgumentError("map chunk has no 3D float position attribute");
   const draco::PointAttribute* normal = pc.GetNamedAttribute(draco::GeometryAttribute::NORMAL);
   const draco::PointAttribute* color = pc.GetNamedAttribute(draco::GeometryAttribute::COLOR);
-  if (normal != nullptr && normal->num_components() != 3)
-    return InvalidArgumentError("map chunk normals have " + std::to_string(normal->num_components()) + " components");
+  // The attribute types EncodeMapChunk writes; anything else (e.g. DT_BOOL, whose conversion reads
+  // arbitrary bytes as bool: undefined behaviour found by fuzzing) is refused.
+  if (normal != nullptr && (normal->num_components() != 3 || normal->data_type() != draco::DT_FLOAT32))
+    return InvalidArgumentError("map chunk normals are not 3 floats");
+  if (color != nullptr && color->data_type() != draco::DT_UINT8)
+    return InvalidArgumentError("map chunk colours are not 8-bit");
   if (color != nullptr && (color->num_components() < 3 || color->num_components() > 4))
     return InvalidArgumentError("map chunk colours have " + std::to_string(color->num_components()) + " components");
   const size_t n = pc.num_points();
