@@ -216,7 +216,13 @@ int main(int argc, char** argv) {
     }
     const int64_t ts = static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9 + 0.5);
     st = session->PushFrame(ts, rgb->ptr<uint8_t>(), rgb->cols, rgb->rows, static_cast<int>(rgb->step));
-    if (!st.ok() && session->read_only()) break;  // interrupted on the server: collect what it persisted
+    if (!st.ok() && (session->read_only() || st.code == pc::Code::kFailedPrecondition)) {
+      // The session ended on the server (interrupted, failed or reaped): collect what arrived and what
+      // it persisted, then report.
+      std::cerr << "prism-client: frame " << i << ": " << st.ToString() << " (read-only " << session->read_only()
+                << ", reconnects " << session->reconnects() << ")\n";
+      break;
+    }
     if (!st.ok()) return Fail("frame " + std::to_string(i) + ": " + st.ToString());
     drain(0);
     if ((i + 1) % 10 == 0 || i + 1 == n)

@@ -329,6 +329,10 @@ struct Session::Impl {
         if (opened && !closed) need_reconnect = true;
       } else if (id == ZMQ_EVENT_HANDSHAKE_FAILED_AUTH) {
         open_error = Make(Code::kUnauthenticated, "the server refused this client's CURVE key (not on its allow-list)");
+      } else if (id == ZMQ_EVENT_HANDSHAKE_FAILED_NO_DETAIL && reconnecting) {
+        // A server that is going down or starting up drops connections mid-handshake: keep trying (the
+        // fault test's restart hit this); only an explicit refusal or a protocol mismatch is final.
+        continue;
       } else if (id == ZMQ_EVENT_HANDSHAKE_FAILED_PROTOCOL || id == ZMQ_EVENT_HANDSHAKE_FAILED_NO_DETAIL) {
         open_error = Make(Code::kUnauthenticated,
                           options.server_public_key.empty()
