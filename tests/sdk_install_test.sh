@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# The client SDK as a user gets it: `cmake --install` the build into a fresh prefix, build the
+# installed example with find_package(prism_client) in a separate CMake project, and run it against
+# a real prism-server from this build.
+# usage: sdk_install_test.sh BUILD_DIR
+set -euo pipefail
+BUILD=$1
+WORK=$(mktemp -d /tmp/prism_sdk_install_XXXXXX)
+SERVER_PID=
+cleanup() {
+  [ -n "$SERVER_PID" ] && kill -TERM "$SERVER_PID" 2>/dev/null && wait "$SERVER_PID" 2>/dev/null || true
+  rm -rf "$WORK"
+}
+trap cleanup EXIT
+cmake --install "$BUILD" --prefix "$WORK/prefix" > "$WORK/install.log"
+test -f "$WORK/prefix/include/prism/client/client.h"
+EXAMPLE="$WORK/prefix/share/prism_client/example"
+test -f "$EXAMPLE/CMakeLists.txt"
+# No zmq, protobuf or project-internal header may leak into the public header.
+if grep -E '#include ["<](zmq|google/protobuf|core/)' "$WORK/prefix/include/prism/client/client.h"; then
+  echo "the public header includes an internal dependency"; exit 1
+fi
+cmake -S "$EXAMPLE" -B "$WORK/example-build" -G Ninja -DCMAKE_PREFIX_PATH="$WORK/prefix" > "$WORK/configure.log"
+cmake --build "$WORK/example-build" > "$WORK/build.log"
+"$BUILD/bin/prism-server" --bind 'tcp://127.0.0.1:*' --data-dir "$WORK/data" --metrics off > "$WORK/server.json" 2> "$WORK/server.log" &
+SERVER_PID=$!
+for _ in $(seq 100); do [ -s "$WORK/server.json" ] && break; sleep 0.1; done
+ENDPOINT=$(sed -n 's/.*"endpoint": "\([^"]*\)".*/\1/p' "$WORK/server.json")
+[ -n "$ENDPOINT" ] || { echo "prism-server did not start"; cat "$WORK/server.log"; exit 1; }
+LD_LIBRARY_PATH="$WORK/prefix/lib:$WORK/prefix/lib/x86_64-linux-gnu" "$WORK/example-build/prism_client_example" "$ENDPOINT" 5
+echo "installed SDK: find_package, build and a session against prism-server: ok"
