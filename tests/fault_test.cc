@@ -48,6 +48,13 @@ using test::ProcessResult;
 using test::ServerProcess;
 
 constexpr int kFrames = 60;
+// Under ASan/TSan freed memory sits in the sanitizer's quarantine, so RSS says nothing about leaks
+// there (LeakSanitizer does); the RSS bounds are checked in plain builds only.
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+constexpr bool kRssIsMeaningful = false;
+#else
+constexpr bool kRssIsMeaningful = true;
+#endif
 
 std::string ReadAll(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
@@ -277,7 +284,8 @@ TEST_F(FaultTest, KilledAndStoppedClientsAreReapedAndServerMemoryReturns) {
     EXPECT_LT(reap_s, kIdleTimeoutMs / 1000.0 + 5.0);
     EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / id / "summary.pb"));
     // Back near the baseline: within 15% (allocator caching), at most 40 MiB above it.
-    EXPECT_LT(after_kib, baseline_kib + std::min<long>(40 * 1024, baseline_kib * 15 / 100 + 8 * 1024));
+    if (kRssIsMeaningful)
+      EXPECT_LT(after_kib, baseline_kib + std::min<long>(40 * 1024, baseline_kib * 15 / 100 + 8 * 1024));
     if (sig == SIGSTOP) kill(client, SIGCONT);
     WaitExit(client, 30000);
   }
@@ -524,7 +532,7 @@ TEST_F(FaultTest, ConcurrentSessionsRoundAfterRoundKeepServerMemoryFlat) {
   for (long r : rss_after_round) std::cout << " " << r / 1024 << " MiB";
   std::cout << "\n";
   // Flat after the first (warm-up) round: within 10%.
-  for (size_t r = 2; r < rss_after_round.size(); ++r)
+  for (size_t r = 2; r < rss_after_round.size() && kRssIsMeaningful; ++r)
     EXPECT_LT(std::abs(rss_after_round[r] - rss_after_round[1]), rss_after_round[1] / 10);
   const double failed = Metric(server->metrics(), "prism_sessions_failed_total");
   EXPECT_TRUE(std::isnan(failed) || failed == 0) << failed;
