@@ -284,8 +284,9 @@ TEST_F(FaultTest, KilledAndStoppedClientsAreReapedAndServerMemoryReturns) {
     EXPECT_LT(reap_s, kIdleTimeoutMs / 1000.0 + 5.0);
     EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / id / "summary.pb"));
     // Back near the baseline: within 15% (allocator caching), at most 40 MiB above it.
-    if (kRssIsMeaningful)
+    if (kRssIsMeaningful) {
       EXPECT_LT(after_kib, baseline_kib + std::min<long>(40 * 1024, baseline_kib * 15 / 100 + 8 * 1024));
+    }
     if (sig == SIGSTOP) kill(client, SIGCONT);
     WaitExit(client, 30000);
   }
