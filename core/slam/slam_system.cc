@@ -107,6 +107,8 @@ struct SlamSystem::Impl {
   bool Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index);
   void FinishCurrent();
   Rigid3d WorldFromFrame(const FrameRecord& f) const;
+  // The pose of the most recent tracked frame (identity before any).
+  Rigid3d LastGoodWorldFromCamera() const;
 };
 
 StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& rig, const SlamOptions& options,
@@ -367,6 +369,12 @@ Rigid3d SlamSystem::Impl::WorldFromFrame(const FrameRecord& f) const {
   return k.world_from_keyframe.TransformPose(f.frame_from_keyframe.Inverse());
 }
 
+Rigid3d SlamSystem::Impl::LastGoodWorldFromCamera() const {
+  for (auto it = frames.rbegin(); it != frames.rend(); ++it)
+    if (it->result.state == SlamState::kTracking) return it->result.world_from_camera;
+  return Rigid3d();
+}
+
 StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double timestamp, const cv::Mat& rgb) {
   FrameRecord rec;
   rec.result.frame_id = frame_id;
@@ -415,12 +423,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     rec.result.state = SlamState::kLost;
     rec.result.message = "tracking lost: " + tr.lost_reason + reloc_failure;
     // Keep the last good pose.
-    for (auto it = frames.rbegin(); it != frames.rend(); ++it) {
-      if (it->result.state == SlamState::kTracking) {
-        rec.result.world_from_camera = it->result.world_from_camera;
-        break;
-      }
-    }
+    rec.result.world_from_camera = LastGoodWorldFromCamera();
     rec.result.keyframe_id = -1;
     frames.push_back(rec);
     return rec.result;
@@ -498,13 +501,7 @@ void SlamSystem::Impl::FinishCurrent() {
 
 bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index) {
   // The last good pose, and the keyframes nearest to it (finished ones have their final depth).
-  Rigid3d last_world_from_camera;
-  for (auto it = frames.rbegin(); it != frames.rend(); ++it) {
-    if (it->result.state == SlamState::kTracking) {
-      last_world_from_camera = it->result.world_from_camera;
-      break;
-    }
-  }
+  const Rigid3d last_world_from_camera = LastGoodWorldFromCamera();
   std::vector<std::pair<double, int>> candidates;
   for (const Keyframe& k : keyframes) {
     if (!k.finished) continue;
