@@ -43,6 +43,7 @@ options:
                         0 keeps all): flying pixels along silhouettes
   --position-weight W   fusion: weight of the SLAM positions against the normals (FusionOptions)
   --fusion-passes N     fusion: solve passes with normal correction in between (default 2)
+  --correction-sigma PX fusion: scale of the normal correction's low-pass filter (default 16)
   --no-icp              merge keyframe clouds at their poses without ICP
   --max-icp-correction-m M, --max-icp-correction-deg D
                         largest ICP correction applied (default 0.01 m, 1 deg); larger ones,
@@ -51,6 +52,15 @@ options:
   --seed S              seed of the depth simulation (default 1)
   --help                this text
 )";
+
+// CV_8U, 255 where a CV_32FC3 normal map has a normal (not all zero).
+cv::Mat NonZeroNormals(const cv::Mat& normals) {
+  cv::Mat out(normals.size(), CV_8U);
+  for (int y = 0; y < normals.rows; ++y)
+    for (int x = 0; x < normals.cols; ++x)
+      out.at<uint8_t>(y, x) = normals.at<cv::Vec3f>(y, x) == cv::Vec3f(0, 0, 0) ? 0 : 255;
+  return out;
+}
 
 int Fail(const std::string& m) {
   std::cerr << "prism-fuse: " << m << "\n";
@@ -117,6 +127,7 @@ int main(int argc, char** argv) {
     else if (a == "--max-edge-step" && is_num && num >= 0) max_edge_step = num;
     else if (a == "--position-weight" && is_num && num >= 0) fusion_options.position_weight = num;
     else if (a == "--fusion-passes" && is_num && num >= 1) fusion_options.passes = static_cast<int>(num);
+    else if (a == "--correction-sigma" && is_num && num > 0) fusion_options.correction_sigma_px = num;
     else if (a == "--max-icp-correction-m" && is_num && num >= 0) max_icp_correction_m = num;
     else if (a == "--max-icp-correction-deg" && is_num && num >= 0) max_icp_correction_deg = num;
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
@@ -149,6 +160,8 @@ int main(int argc, char** argv) {
   StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(rig, dense_options, &pool);
   if (!stage.ok()) return Fail(stage.status().ToString());
   NormalErrorAccumulator ps_error, fused_error, prior_error;
+  // The same comparison restricted to the pixels where both PS and fusion give a normal.
+  NormalErrorAccumulator ps_common_error, fused_common_error, corrected_common_error;
   double ps_ms = 0, fusion_ms = 0, icp_ms = 0;
   // Pooled over keyframes: squared depth errors (metres^2) and pixel counts, and coverage.
   double fused_sse = 0, semi_sse = 0, min_coverage = 1.0;
@@ -197,6 +210,11 @@ int main(int argc, char** argv) {
       (void)ps_error.Add(ps->normals, *truth_normals, mask);
       (void)fused_error.Add(fused->normals, *truth_normals, mask);
       (void)prior_error.Add(ps->prior_normals, *truth_normals, mask);
+      cv::Mat common = NonZeroNormals(ps->normals) & NonZeroNormals(fused->normals);
+      if (!mask.empty()) common &= mask;
+      (void)ps_common_error.Add(ps->normals, *truth_normals, common);
+      (void)fused_common_error.Add(fused->normals, *truth_normals, common);
+      if (!fused->corrected_normals.empty()) (void)corrected_common_error.Add(fused->corrected_normals, *truth_normals, common);
       if (auto e = ComputeNormalError(ps->normals, *truth_normals, mask); e.ok()) ps_median = e->median_deg;
       if (auto e = ComputeNormalError(fused->normals, *truth_normals, mask); e.ok()) fused_median = e->median_deg;
     }
@@ -268,19 +286,24 @@ int main(int argc, char** argv) {
   const PointCloud merged = (*stage)->map().ToPointCloud();
   if (Status s = WritePointCloudPly(out_dir + "/map.ply", merged); !s.ok()) return Fail(s.ToString());
   const AngularErrorStats ps_stats = ps_error.Summarize(), fused_stats = fused_error.Summarize(),
-                          prior_stats = prior_error.Summarize();
+                          prior_stats = prior_error.Summarize(), ps_common = ps_common_error.Summarize(),
+                          fused_common = fused_common_error.Summarize(),
+                          corrected_common = corrected_common_error.Summarize();
   std::ostringstream json;
-  char head[1024];
+  char head[2048];
   std::snprintf(head, sizeof(head),
                 "{\n  \"keyframes\": %d,\n  \"map_points\": %zu,\n  \"session_depth_scale\": %.5f,\n"
                 "  \"slam_scale_true\": %.5f,\n  \"ps_median_deg\": %.4f,\n  \"ps_mean_deg\": %.4f,\n"
                 "  \"fused_normal_median_deg\": %.4f,\n  \"prior_normal_median_deg\": %.4f,\n"
+                "  \"ps_median_common_deg\": %.4f,\n  \"fused_normal_median_common_deg\": %.4f,\n"
+                "  \"corrected_normal_median_common_deg\": %.4f,\n  \"common_normal_pixels\": %zu,\n"
                 "  \"fused_depth_rmse_m\": %.6g,\n  \"semi_dense_depth_rmse_m\": %.6g,\n"
                 "  \"min_fused_coverage\": %.4f,\n"
                 "  \"ps_ms_per_keyframe\": %.1f,\n  \"fusion_ms_per_keyframe\": %.1f,\n  \"icp_merge_ms_per_keyframe\": %.1f,\n"
                 "  \"per_keyframe\": [\n",
                 keyframes, merged.size(), (*stage)->depth_scale().has_value() ? (*stage)->depth_scale().value() : 0.0, slam_scale,
                 ps_stats.median_deg, ps_stats.mean_deg, fused_stats.median_deg, prior_stats.median_deg,
+                ps_common.median_deg, fused_common.median_deg, corrected_common.median_deg, ps_common_error.count(),
                 fused_n ? std::sqrt(fused_sse / fused_n) : 0.0, semi_n ? std::sqrt(semi_sse / semi_n) : 0.0, min_coverage,
                 ps_ms / keyframes, fusion_ms / keyframes, icp_ms / keyframes);
   json << head << keyframes_json.str() << "\n  ]\n}\n";
