@@ -32,15 +32,18 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-constexpr char kUsage[] = R"(usage: prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw]
+constexpr char kUsage[] = R"(usage: prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F]
 
 Starts prism-server (from this binary's folder) on 127.0.0.1 with a free port (input policy upload,
 so no frame is dropped), renders the preset (default bunny-multicolor-forward, 150 frames, 512x512)
 in memory and streams it through libprism_client once per codec, as fast as the server's frame
 credits allow. Prints one JSON object:
-  per codec: frames_per_s (frames sent / time until the last pose), frame_to_pose_ms p50/p95 (frame
-  sent -> its pose received), keyframe_to_chunk_ms p50/p95 (the pose that finishes keyframe k, i.e.
-  the next keyframe's pose, -> keyframe k's chunk), uplink_bytes_per_frame, chunk_bits_per_point,
+With --fps F the frames are pushed at F frames/s (a live camera) instead of as fast as possible.
+  per codec: frames_per_s (frames sent / time until the last pose), map_frames_per_s (frames sent /
+  time until the session summary, i.e. every keyframe's chunks delivered), map_done_after_last_pose_s,
+  frame_to_pose_ms p50/p95 (frame
+  sent -> its pose received), keyframe_to_chunk_ms p50/p95 (the first pose on keyframe k + 1,
+  which finishes keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point,
   chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb.
 )";
 
@@ -93,6 +96,7 @@ prism::client::Rig ToClientRig(const prism::RigCalibration& rig) {
 int main(int argc, char** argv) {
   std::string preset = "bunny-multicolor-forward", codecs = "png,jpeg,raw";
   int frames = 150;
+  double fps = 0;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
@@ -104,9 +108,11 @@ int main(int argc, char** argv) {
     if (a == "--preset") preset = v;
     else if (a == "--frames") frames = std::atoi(v.c_str());
     else if (a == "--codecs") codecs = v;
+    else if (a == "--fps") fps = std::atof(v.c_str());
     else return Fail("unknown argument '" + a + "' (see --help)");
   }
   if (frames < 20) return Fail("--frames must be >= 20");
+  if (!(fps >= 0)) return Fail("--fps must be >= 0");
 
   // Render.
   prism::synth::PresetOptions po;
@@ -166,7 +172,7 @@ int main(int argc, char** argv) {
   std::ostringstream json;
   json.setf(std::ios::fixed);
   json.precision(2);
-  json << "{\n  \"preset\": \"" << preset << "\",\n  \"frames\": " << frames << ",\n  \"size\": \""
+  json << "{\n  \"preset\": \"" << preset << "\",\n  \"frames\": " << frames << ",\n  \"push_fps\": " << fps << ",\n  \"size\": \""
        << setup->rig.camera.width << "x" << setup->rig.camera.height << "\",\n  \"hardware_threads\": "
        << std::thread::hardware_concurrency() << ",\n  \"server_rss_mb_idle\": " << ProcStatusMb(pid, "VmRSS")
        << ",\n  \"codecs\": {";
@@ -192,7 +198,7 @@ int main(int argc, char** argv) {
     }
     std::map<uint64_t, Clock::time_point> sent;      // frame sequence number -> send time
     std::vector<double> frame_to_pose;
-    std::vector<Clock::time_point> keyframe_pose_time;  // arrival of each is_keyframe pose, in order
+    std::map<uint64_t, Clock::time_point> keyframe_pose_time;  // keyframe id -> first pose tracked on it
     std::map<uint64_t, Clock::time_point> chunk_time;   // keyframe id -> first chunk arrival
     uint64_t chunk_bytes = 0, chunk_points = 0, chunks = 0;
     Clock::time_point last_pose;
@@ -201,7 +207,7 @@ int main(int argc, char** argv) {
       if (e.kind == prism::client::Event::Kind::kPose) {
         auto it = sent.find(e.pose.frame_sequence_number);
         if (it != sent.end()) frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
-        if (e.pose.is_keyframe) keyframe_pose_time.push_back(now);
+        if (e.pose.state == prism::client::TrackingState::kTracking) keyframe_pose_time.emplace(e.pose.keyframe_id, now);
         last_pose = now;
       } else if (e.kind == prism::client::Event::Kind::kChunk) {
         ++chunks;
@@ -213,6 +219,7 @@ int main(int argc, char** argv) {
     session->SetEventCallback(handle);
     const auto t0 = Clock::now();
     for (int i = 0; i < frames; ++i) {
+      if (fps > 0) std::this_thread::sleep_until(t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(i / fps)));
       sent[static_cast<uint64_t>(i)] = Clock::now();
       s = session->PushFrame(static_cast<int64_t>(trajectory[i].timestamp_s * 1e9), images[i].data, images[i].cols,
                              images[i].rows, static_cast<int>(images[i].step));
@@ -228,14 +235,19 @@ int main(int argc, char** argv) {
       stop_server();
       return Fail("close: " + s.ToString());
     }
+    const auto t_done = Clock::now();
     const double seconds = std::chrono::duration<double>(last_pose - t0).count();
+    const double map_seconds = std::chrono::duration<double>(t_done - t0).count();
     std::vector<double> kf_to_chunk;
     for (const auto& [kf, t] : chunk_time) {
       // Keyframe kf is finished when keyframe kf + 1 is made (or at the end of the stream).
-      if (kf + 1 < keyframe_pose_time.size())
-        kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - keyframe_pose_time[kf + 1]).count());
+      // (The first pose with keyframe id kf + 1 is the one that made keyframe kf + 1.)
+      if (auto next = keyframe_pose_time.find(kf + 1); next != keyframe_pose_time.end())
+        kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - next->second).count());
     }
     json << (first ? "" : ",") << "\n    \"" << codec_name << "\": {\"frames_per_s\": " << frames / std::max(1e-9, seconds)
+         << ", \"map_frames_per_s\": " << frames / std::max(1e-9, map_seconds)
+         << ", \"map_done_after_last_pose_s\": " << map_seconds - seconds
          << ", \"poses\": " << frame_to_pose.size() << ", \"frame_to_pose_ms_p50\": " << Percentile(frame_to_pose, 0.5)
          << ", \"frame_to_pose_ms_p95\": " << Percentile(frame_to_pose, 0.95)
          << ", \"keyframe_to_chunk_ms_p50\": " << Percentile(kf_to_chunk, 0.5)
@@ -244,6 +256,7 @@ int main(int argc, char** argv) {
          << ", \"chunks\": " << chunks << ", \"chunk_bits_per_point\": "
          << (chunk_points ? 8.0 * chunk_bytes / chunk_points : -1) << ", \"keyframes\": " << summary.keyframes
          << ", \"keyframes_dropped\": " << summary.keyframes_dropped
+         << ", \"keyframes_failed\": " << summary.keyframes_failed
          << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS") << "}";
     first = false;
   }

@@ -83,6 +83,7 @@ py::dict PoseToDict(const pc::Pose& pose) {
   d["translation"] = py::make_tuple(pose.translation[0], pose.translation[1], pose.translation[2]);
   d["state"] = StateName(pose.state);
   d["is_keyframe"] = pose.is_keyframe;
+  d["keyframe_id"] = pose.keyframe_id;
   d["metres_per_unit"] = pose.metres_per_unit;
   return d;
 }

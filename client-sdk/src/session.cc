@@ -384,6 +384,7 @@ struct Session::Impl {
                        : p.state() == v1::PoseUpdate::TRACKING_STATE_LOST         ? TrackingState::kLost
                                                                                   : TrackingState::kUnknown;
         e.pose.is_keyframe = p.is_keyframe();
+        e.pose.keyframe_id = p.keyframe_id();
         e.pose.metres_per_unit = p.metres_per_unit();
         Emit(std::move(e));
         return;

@@ -112,6 +112,7 @@ struct Pose {
   TrackingState state = TrackingState::kUnknown;
   bool is_keyframe = false;
   double metres_per_unit = 0;  // 0 until the server has estimated the scale
+  uint64_t keyframe_id = 0;    // the keyframe this frame was tracked against (while tracking)
 };
 
 struct Point {
