@@ -327,10 +327,34 @@ void SessionDepthScale::Add(double keyframe_estimate) {
   if (std::isfinite(keyframe_estimate) && keyframe_estimate > 0) estimates_.push_back(keyframe_estimate);
 }
 
+std::pair<size_t, size_t> SessionDepthScale::Group(const std::vector<double>& sorted) const {
+  std::pair<size_t, size_t> best(0, 0);
+  for (size_t begin = 0, end = 0; begin < sorted.size(); ++begin) {
+    end = std::max(end, begin);
+    while (end < sorted.size() && sorted[end] <= sorted[begin] * agreement_factor_) ++end;
+    // Largest group; among equal sizes the tightest (largest smallest/largest ratio).
+    const size_t size = end - begin, best_size = best.second - best.first;
+    if (size > best_size ||
+        (size == best_size && sorted[begin] / sorted[end - 1] > sorted[best.first] / sorted[best.second - 1]))
+      best = {begin, end};
+  }
+  return best;
+}
+
+int SessionDepthScale::agreeing() const {
+  std::vector<double> v = estimates_;
+  std::sort(v.begin(), v.end());
+  const auto [begin, end] = Group(v);
+  return static_cast<int>(end - begin);
+}
+
 double SessionDepthScale::value() const {
   PRISM_CHECK(!estimates_.empty()) << "SessionDepthScale::value() without estimates";
   std::vector<double> v = estimates_;
-  return Median(v);
+  std::sort(v.begin(), v.end());
+  const auto [begin, end] = Group(v);
+  std::vector<double> group(v.begin() + static_cast<std::ptrdiff_t>(begin), v.begin() + static_cast<std::ptrdiff_t>(end));
+  return Median(group);
 }
 
 bool FitLightingMatrix(const std::vector<Eigen::Vector3d>& colors, const std::vector<Eigen::Vector3d>& normals,

@@ -10,6 +10,7 @@
 //                  lights), fitted by robust least squares to the prior normals.
 #pragma once
 
+#include <utility>
 #include <vector>
 
 #include <Eigen/Core>
@@ -131,19 +132,29 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
                                             const RigCalibration& rig, const PhotometricOptions& options,
                                             ThreadPool* pool = nullptr);
 
-// The depth scale (metres per SLAM depth unit) of a session: the median of per-keyframe estimates
-// (PhotometricResult::depth_scale with estimate_depth_scale = true). A single keyframe whose
-// shading constrains the scale poorly can be far off; the median is not. Once it has a value, a
-// pipeline passes it as PhotometricOptions::depth_scale with estimate_depth_scale = false, which is
-// also several times cheaper. Not thread-safe.
+// The depth scale (metres per SLAM depth unit) of a session from per-keyframe estimates
+// (PhotometricResult::depth_scale with estimate_depth_scale = true). A single keyframe whose shading
+// or depth constrains the scale poorly can be far off: on SLAM depth the first two keyframes, whose
+// depth comes from the monocular initialisation, gave 3.3 and 2.8 m/unit where the later ones gave
+// 0.44-0.68 (true 0.566). So the value is the median of the largest group of estimates that agree
+// with each other (largest / smallest <= agreement_factor), and a pipeline keeps estimating until
+// that group has enough members (agreeing()). Once settled, it passes the value as
+// PhotometricOptions::depth_scale with estimate_depth_scale = false, which is also several times
+// cheaper. Not thread-safe.
 class SessionDepthScale {
  public:
+  explicit SessionDepthScale(double agreement_factor = 1.25) : agreement_factor_(agreement_factor) {}
   void Add(double keyframe_estimate);  // ignores non-finite or non-positive values
   bool has_value() const { return !estimates_.empty(); }
   int count() const { return static_cast<int>(estimates_.size()); }
-  double value() const;  // requires has_value()
+  // Size of the largest group of estimates within agreement_factor of each other (0 when empty).
+  int agreeing() const;
+  double value() const;  // median of that group (the tightest one on ties); requires has_value()
 
  private:
+  // [begin, end) of the largest agreeing group in the sorted estimates.
+  std::pair<size_t, size_t> Group(const std::vector<double>& sorted) const;
+  double agreement_factor_;
   std::vector<double> estimates_;
 };
 

@@ -1,5 +1,6 @@
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <random>
 
 #include <gtest/gtest.h>
@@ -237,6 +238,30 @@ TEST(PhotometricStereoTest, DiligentBallFromThreeLights) {
   std::cout << "DiLiGenT ball, lights " << lights[0] << "/" << lights[1] << "/" << lights[2] << ", " << colors.size()
             << " prior normals: mean " << e.mean_deg << " median " << e.median_deg << " deg over " << e.count << " px\n";
   EXPECT_LT(e.mean_deg, /*max_mean_normal_error_deg=*/8.0);
+}
+
+}  // namespace
+}  // namespace prism
+
+namespace prism {
+namespace {
+
+// The first two keyframes of a SLAM session on bunny-multicolor-forward gave these estimates (their
+// depth comes from the monocular initialisation); true 0.566 m/unit.
+TEST(SessionDepthScaleTest, OutlyingFirstEstimatesDoNotFixTheScale) {
+  SessionDepthScale scale;
+  EXPECT_FALSE(scale.has_value());
+  EXPECT_EQ(scale.agreeing(), 0);
+  for (double e : {3.290, 2.787, 0.4415}) scale.Add(e);
+  EXPECT_EQ(scale.agreeing(), 2);  // a plain median would now say 2.787
+  scale.Add(0.5313);
+  EXPECT_EQ(scale.agreeing(), 2);
+  scale.Add(0.5238);
+  scale.Add(-1.0);  // ignored
+  scale.Add(std::numeric_limits<double>::quiet_NaN());
+  EXPECT_EQ(scale.count(), 5);
+  EXPECT_EQ(scale.agreeing(), 3);
+  EXPECT_NEAR(scale.value(), 0.5238, 1e-9);
 }
 
 }  // namespace

@@ -4,6 +4,8 @@
 #include <cmath>
 #include <string>
 
+#include "core/util/logging.h"
+
 namespace prism {
 namespace {
 
@@ -23,6 +25,8 @@ Status DenseStageOptions::Check() const {
   PRISM_RETURN_IF_ERROR(map.Check());
   PRISM_RETURN_IF_ERROR(icp.Check());
   if (scale_keyframes < 1) return Violated("scale_keyframes", scale_keyframes, ">= 1");
+  if (max_scale_keyframes < scale_keyframes)
+    return Violated("max_scale_keyframes", max_scale_keyframes, ">= scale_keyframes");
   if (!(max_edge_step >= 0)) return Violated("max_edge_step", max_edge_step, ">= 0");
   if (!(max_icp_correction_m >= 0)) return Violated("max_icp_correction_m", max_icp_correction_m, ">= 0");
   if (!(max_icp_correction_deg >= 0)) return Violated("max_icp_correction_deg", max_icp_correction_deg, ">= 0");
@@ -62,12 +66,17 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   // Photometric stereo: the first keyframes estimate the depth scale, then the session fixes it.
   auto t0 = std::chrono::steady_clock::now();
   PhotometricOptions ps_options = options_.photometric;
-  result.estimated_depth_scale = depth_scale_.count() < options_.scale_keyframes;
+  result.estimated_depth_scale = !ScaleSettled();
   ps_options.estimate_depth_scale = result.estimated_depth_scale;
   if (!result.estimated_depth_scale) ps_options.depth_scale = depth_scale_.value();
   PRISM_ASSIGN_OR_RETURN(result.photometric, EstimateNormals(keyframe.rgb, keyframe.depth, rig_, ps_options, pool_));
   result.photometric_ms = MsSince(t0);
-  if (result.estimated_depth_scale) depth_scale_.Add(result.photometric.depth_scale);
+  if (result.estimated_depth_scale) {
+    depth_scale_.Add(result.photometric.depth_scale);
+    PRISM_LOG(INFO) << "dense: keyframe " << keyframe.id << " depth scale estimate " << result.photometric.depth_scale
+                    << " m/unit (session " << depth_scale_.value() << ", " << depth_scale_.agreeing() << " of "
+                    << depth_scale_.count() << " estimates agree)";
+  }
   result.metres_per_unit = depth_scale_.has_value() ? depth_scale_.value() : result.photometric.depth_scale;
 
   // Fusion of the SLAM positions and the PS normals.
@@ -104,7 +113,7 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
     PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, &result));
   } else {
     pending_.push_back({keyframe.id, result.cloud});
-    result.pending = depth_scale_.count() < options_.scale_keyframes;
+    result.pending = !ScaleSettled();
     if (!result.pending) {
       PRISM_RETURN_IF_ERROR(MergePending(depth_scale_.value(), &result));
       for (Eigen::Vector3f& p : result.cloud.positions) p *= static_cast<float>(depth_scale_.value());
@@ -148,6 +157,10 @@ Status DenseStage::MergePending(double metres_per_unit, DenseKeyframeResult* res
     PRISM_RETURN_IF_ERROR(Merge(p.cloud_in_slam_world, p.keyframe_id, result));
   }
   return Status::Ok();
+}
+
+bool DenseStage::ScaleSettled() const {
+  return depth_scale_.agreeing() >= options_.scale_keyframes || depth_scale_.count() >= options_.max_scale_keyframes;
 }
 
 StatusOr<MapChunk> DenseStage::Flush() {

@@ -34,9 +34,11 @@ struct DenseStageOptions {
   IcpOptions icp;
   // Register each keyframe cloud to the map with ICP before merging it.
   bool icp_enabled = true;
-  // Keyframes that estimate the depth scale (metres per SLAM unit) from the shading before the session
-  // fixes it at the median of their estimates, >= 1.
+  // Keyframes estimate the depth scale (metres per SLAM unit) from the shading until scale_keyframes
+  // of the estimates agree (SessionDepthScale), or max_scale_keyframes have estimated it; then the
+  // session fixes it at the median of the agreeing ones. 1 <= scale_keyframes <= max_scale_keyframes.
   int scale_keyframes = 3;
+  int max_scale_keyframes = 8;
   // Pixels whose fused depth differs from a neighbour's by more than this (relative) are removed from
   // the keyframe's depth and cloud (flying pixels along silhouettes), >= 0; 0 keeps every pixel.
   double max_edge_step = 0.03;
@@ -52,8 +54,8 @@ struct DenseStageOptions {
   // In [0, 1].
   double min_icp_inlier_fraction = 0.3;
   // true: DenseKeyframe::world_from_keyframe maps into the SLAM world (SLAM units) and the stage maps
-  // it to metres with the session depth scale (the live pipeline). The first scale_keyframes clouds
-  // wait until that scale is fixed (it is the median of their estimates), so that every cloud enters
+  // it to metres with the session depth scale (the live pipeline). The clouds of the keyframes that
+  // estimate it wait until that scale is fixed (see scale_keyframes), so that every cloud enters
   // the map with the same scale. false: it already maps into a metric world (prism-fuse with
   // ground-truth poses) and each cloud is merged at once.
   bool world_in_slam_units = true;
@@ -103,7 +105,7 @@ class DenseStage {
   StatusOr<DenseKeyframeResult> Process(const DenseKeyframe& keyframe);
 
   // Merges the clouds still waiting for the session scale with the current estimate (end of a session
-  // with fewer than scale_keyframes keyframes) and returns the changed voxels; empty when none wait.
+  // before the scale settled) and returns the changed voxels; empty when none wait.
   StatusOr<MapChunk> Flush();
 
   const GlobalMap& map() const { return map_; }
@@ -116,6 +118,8 @@ class DenseStage {
   // ICP against the map (with the guard) and merge; fills the ICP fields and insert stats of result.
   Status Merge(const PointCloud& cloud_in_world, uint64_t keyframe_id, DenseKeyframeResult* result);
   Status MergePending(double metres_per_unit, DenseKeyframeResult* result);
+  // The session depth scale is fixed (see DenseStageOptions::scale_keyframes).
+  bool ScaleSettled() const;
 
   RigCalibration rig_;
   DenseStageOptions options_;

@@ -200,7 +200,7 @@ void SessionPipeline::SlamLoop() {
     }
   }
   // Last job of the strand: after every keyframe queued above. Clouds still waiting for the session
-  // scale (fewer keyframes than DenseStageOptions::scale_keyframes) enter the map now.
+  // scale (it had not settled: DenseStageOptions::scale_keyframes) enter the map now.
   strand_->Post([this] {
     if (!aborted_ && !failed_) {
       try {
