@@ -127,6 +127,11 @@ const std::vector<PresetDef>& Definitions() {
     d.push_back({{"bunny-multicolor-forward", "Stanford bunny, multi-coloured regions, forward start (the demo)"},
                  [](const Ctx& c, Scene* s) { return AddMesh(c, "bunny00.off", 1, 1, 200, MultiColor(c.seed), s); },
                  TrajectoryStart::kForward, 0.08, 120, nullptr});
+    d.push_back({{"bunny-multicolor-orbit",
+                  "Stanford bunny, multi-coloured regions, forward start, then a full orbit and 40 deg beyond "
+                  "(returns to where it started: loop closure; use >= 450 frames)"},
+                 [](const Ctx& c, Scene* s) { return AddMesh(c, "bunny00.off", 1, 1, 200, MultiColor(c.seed), s); },
+                 TrajectoryStart::kForward, 0.08, 400, nullptr});
     d.push_back({{"sphere-uniform-sideways", "uniform-albedo sphere, sideways start"},
                  [](const Ctx& c, Scene* s) { return AddSphere(c, Uniform(), s); }, TrajectoryStart::kSideways, 0.1,
                  120, nullptr});
