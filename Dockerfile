@@ -33,7 +33,8 @@ RUN apt-get update -qq \
       libprotobuf32 libzmq5 libdraco7 libjpeg62-turbo \
       python3 python3-numpy \
  && rm -rf /var/lib/apt/lists/* \
- && useradd --system --uid 10001 --user-group --create-home --home-dir /var/lib/prism --shell /usr/sbin/nologin prism \
+ && groupadd --system --gid 10001 prism \
+ && useradd --system --uid 10001 --gid prism --create-home --home-dir /var/lib/prism --shell /usr/sbin/nologin prism \
  && mkdir -p /var/lib/prism/data && chown -R prism:prism /var/lib/prism
 COPY --from=build /opt/prism /opt/prism
 RUN echo /opt/prism/lib > /etc/ld.so.conf.d/prism.conf && ldconfig
