@@ -6,7 +6,8 @@
 //     later, every one arrives;
 //   - a client sending at 10x the frame rate (live): every frame is tracked, dropped or refused
 //     (counted), and frame->pose latency stays bounded;
-//   - several concurrent sessions, round after round: RSS flat within 10%, no errors.
+//   - a soak: 8 concurrent sessions, session after session, for 3.5 minutes: RSS flat within 10%
+//     (median of the last minute vs the second), no errors.
 // Each prints its measurements (chunks lost, RSS before/after) for the report.
 #include <arpa/inet.h>
 #include <fcntl.h>
@@ -17,6 +18,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <functional>
 #include <chrono>
@@ -509,32 +511,92 @@ TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBou
   EXPECT_EQ(server->Stop(), 0);
 }
 
-TEST_F(FaultTest, ConcurrentSessionsRoundAfterRoundKeepServerMemoryFlat) {
-  constexpr int kSessions = 4, kRounds = 3;
+// The soak: kSessions client slots, each streaming the sequence session after session (a new
+// prism-client as soon as the previous one ends) for kSoakS seconds, against one server; its RSS is
+// sampled every second throughout. "Flat within 10%": the median RSS of the last minute of the soak
+// differs from the median RSS of the second minute (after a one-minute warm-up) by less than 10% of the
+// latter. Every client must exit 0 with no frame errors and no session may fail.
+TEST_F(FaultTest, EightConcurrentSessionsForThreeMinutesKeepServerMemoryFlat) {
+  constexpr int kSessions = 8;
+  constexpr int kSoakS = 210, kWarmUpS = 60, kWindowS = 60;
   auto server = Start({"--max-sessions", std::to_string(kSessions)});
   ASSERT_TRUE(server->ok());
-  std::vector<long> rss_after_round;
-  for (int round = 0; round < kRounds; ++round) {
-    std::vector<pid_t> clients;
-    for (int s = 0; s < kSessions; ++s) {
-      const std::string name = "r" + std::to_string(round) + "s" + std::to_string(s);
-      clients.push_back(Spawn(ClientArgs(server->endpoint(), name), P(name + ".log")));
+  const long idle_before_kib = server->RssKib();
+  struct Sample {
+    double t_s;
+    long rss_kib;
+  };
+  std::vector<Sample> samples;
+  std::atomic<bool> sampling{true};
+  const auto start = Clock::now();
+  auto elapsed_s = [&] { return std::chrono::duration<double>(Clock::now() - start).count(); };
+  std::thread sampler([&] {
+    while (sampling) {
+      samples.push_back({elapsed_s(), server->RssKib()});
+      std::this_thread::sleep_for(std::chrono::seconds(1));
     }
-    for (int s = 0; s < kSessions; ++s) {
-      const std::string name = "r" + std::to_string(round) + "s" + std::to_string(s);
-      const std::string log = ReadAll(P(name + ".log"));
-      EXPECT_EQ(WaitExit(clients[static_cast<size_t>(s)], 300000), 0) << log;
-      EXPECT_NE(ReadAll(P(name + ".log")).find("\"errors\": 0"), std::string::npos) << ReadAll(P(name + ".log"));
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(500));
-    rss_after_round.push_back(server->RssKib());
+  });
+  // Per slot: sessions started, and the logs of the ones that failed (exit code or frame errors).
+  std::vector<int> started(kSessions, 0);
+  std::vector<std::vector<std::string>> failures(kSessions);
+  std::vector<std::thread> slots;
+  for (int s = 0; s < kSessions; ++s) {
+    slots.emplace_back([&, s] {
+      for (int n = 0; elapsed_s() < kSoakS; ++n) {
+        const std::string name = "s" + std::to_string(s) + "n" + std::to_string(n);
+        const pid_t client = Spawn(ClientArgs(server->endpoint(), name), P(name + ".log"));
+        ++started[static_cast<size_t>(s)];
+        const int exit_code = WaitExit(client, 300000);
+        const std::string log = ReadAll(P(name + ".log"));
+        if (exit_code != 0 || log.find("\"errors\": 0") == std::string::npos)
+          failures[static_cast<size_t>(s)].push_back(name + " exit " + std::to_string(exit_code) + ": " + log);
+        else
+          fs::remove_all(P(name));  // keeps the test's disk use bounded
+      }
+    });
   }
-  std::cout << "[fault] " << kSessions << " concurrent sessions x " << kRounds << " rounds: server RSS after each round";
-  for (long r : rss_after_round) std::cout << " " << r / 1024 << " MiB";
-  std::cout << "\n";
-  // Flat after the first (warm-up) round: within 10%.
-  for (size_t r = 2; r < rss_after_round.size() && kRssIsMeaningful; ++r)
-    EXPECT_LT(std::abs(rss_after_round[r] - rss_after_round[1]), rss_after_round[1] / 10);
+  for (std::thread& t : slots) t.join();
+  const double streamed_s = elapsed_s();
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  sampling = false;
+  sampler.join();
+  const long idle_after_kib = server->RssKib();
+
+  auto median_kib = [&](double from_s, double to_s) {
+    std::vector<long> v;
+    for (const Sample& x : samples)
+      if (x.t_s >= from_s && x.t_s < to_s) v.push_back(x.rss_kib);
+    if (v.empty()) return 0L;
+    std::sort(v.begin(), v.end());
+    return v[v.size() / 2];
+  };
+  long peak_kib = 0;
+  for (const Sample& x : samples) peak_kib = std::max(peak_kib, x.rss_kib);
+  int sessions = 0;
+  size_t failed_clients = 0;
+  for (int s = 0; s < kSessions; ++s) {
+    sessions += started[static_cast<size_t>(s)];
+    failed_clients += failures[static_cast<size_t>(s)].size();
+  }
+  const long warm_kib = median_kib(kWarmUpS, kWarmUpS + kWindowS);
+  const long end_kib = median_kib(kSoakS - kWindowS, kSoakS);
+  const double change = warm_kib > 0 ? static_cast<double>(end_kib - warm_kib) / warm_kib : 0;
+  std::cout << "[fault] soak: " << kSessions << " concurrent session slots for " << kSoakS << " s (" << sessions
+            << " sessions, all done after " << streamed_s << " s), " << failed_clients
+            << " failed clients; server RSS idle before " << idle_before_kib / 1024 << " MiB";
+  for (int t = 0; t + 30 <= kSoakS; t += 30)
+    std::cout << ", median " << t << "-" << t + 30 << " s " << median_kib(t, t + 30) / 1024 << " MiB";
+  std::cout << "; warm (median " << kWarmUpS << "-" << kWarmUpS + kWindowS << " s) " << warm_kib / 1024
+            << " MiB, end (median " << kSoakS - kWindowS << "-" << kSoakS << " s) " << end_kib / 1024 << " MiB, change "
+            << 100.0 * change << "%, peak " << peak_kib / 1024 << " MiB, idle after " << idle_after_kib / 1024
+            << " MiB\n";
+  for (const auto& slot : failures) {
+    for (const std::string& f : slot) ADD_FAILURE() << f;
+  }
+  EXPECT_GE(sessions, kSessions);
+  if (kRssIsMeaningful) {
+    EXPECT_LT(std::abs(change), /*max_rss_change=*/0.10);
+  }
   const double failed = Metric(server->metrics(), "prism_sessions_failed_total");
   EXPECT_TRUE(std::isnan(failed) || failed == 0) << failed;
   EXPECT_EQ(server->Stop(), 0);
