@@ -45,6 +45,7 @@ options:
   --dense          also run the dense stage (photometric stereo, fusion, ICP map; core/pipeline) on
                    every keyframe as it is finished and write map.ply and trajectory_metres.txt
                    (metres, by the session depth scale the dense stage estimates from the shading)
+  --no-loop-closure  no loop-closure edges in the keyframe pose graph (SlamOptions::loop_closure)
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
@@ -108,6 +109,7 @@ int main(int argc, char** argv) {
   int threads = 0;
   bool eval = true;
   bool dense = false;
+  bool loop_closure = true;
   DenseStageOptions dense_options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -121,6 +123,10 @@ int main(int argc, char** argv) {
     }
     if (a == "--dense") {
       dense = true;
+      continue;
+    }
+    if (a == "--no-loop-closure") {
+      loop_closure = false;
       continue;
     }
     if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
@@ -148,6 +154,7 @@ int main(int argc, char** argv) {
 
   ThreadPool pool(threads);
   SlamOptions options;
+  options.loop_closure = loop_closure;
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);
   if (!slam.ok()) return Fail(slam.status().ToString());
 
@@ -226,6 +233,7 @@ int main(int argc, char** argv) {
   std::ofstream kf_index(out_dir + "/keyframes/keyframes.txt");
   kf_index << "# id frame_id timestamp scale tx ty tz qx qy qz qw (world_from_keyframe, Sim(3))\n"
            << std::setprecision(17);
+  const std::vector<Sim3d> keyframe_poses = (*slam)->KeyframePoses();  // after the last loop closure
   for (const SlamKeyframe& k : keyframes) {
     char name[32];
     std::snprintf(name, sizeof(name), "%06d", k.id);
@@ -233,7 +241,7 @@ int main(int argc, char** argv) {
     if (!cv::imwrite(base + "_idepth.tiff", k.depth.inverse_depth) ||
         !cv::imwrite(base + "_variance.tiff", k.depth.variance))
       return Fail("cannot write '" + base + "_*.tiff'");
-    const Sim3d& p = k.world_from_keyframe;
+    const Sim3d& p = keyframe_poses[static_cast<size_t>(k.id)];
     kf_index << k.id << " " << k.frame_id << " " << k.timestamp << " " << p.scale << " " << p.translation.x() << " "
              << p.translation.y() << " " << p.translation.z() << " " << p.rotation.x() << " " << p.rotation.y() << " "
              << p.rotation.z() << " " << p.rotation.w() << "\n";
@@ -244,7 +252,8 @@ int main(int argc, char** argv) {
   std::ostringstream json;
   json << std::setprecision(6) << "{\n  \"frames\": " << results.size() << ",\n  \"keyframes\": " << keyframes.size()
        << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
-       << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"semidense_points\": " << cloud.size()
+       << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
+       << ",\n  \"semidense_points\": " << cloud.size()
        << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n);
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
@@ -277,7 +286,10 @@ int main(int argc, char** argv) {
         for (int y = 0; y < est.rows; ++y)
           for (int x = 0; x < est.cols; ++x) {
             const float d = k.depth.inverse_depth.at<float>(y, x);
-            if (d > 0) est.at<float>(y, x) = static_cast<float>(ate->gt_from_est.scale / d), ++claimed;
+            if (d > 0)
+              est.at<float>(y, x) =
+                  static_cast<float>(ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale / d),
+              ++claimed;
           }
         (void)acc.Add(est, *gt);
         DepthEvalOptions per;

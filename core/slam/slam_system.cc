@@ -10,6 +10,7 @@
 #include <opencv2/video/tracking.hpp>
 
 #include "core/photometric/depth_prior.h"
+#include "core/slam/pose_graph.h"
 #include "core/util/logging.h"
 #include "core/util/thread_pool.h"
 
@@ -41,6 +42,17 @@ Status SlamOptions::Check() const {
   if (relocalise_max_keyframes < 1) return InvalidArgumentError("SlamOptions: relocalise_max_keyframes must be >= 1");
   if (!(new_pixel_relative_sigma > 0)) return InvalidArgumentError("SlamOptions: new_pixel_relative_sigma must be > 0");
   if (tracker_refresh_frames < 1) return InvalidArgumentError("SlamOptions: tracker_refresh_frames must be >= 1");
+  if (loop_min_keyframe_gap < 2) return InvalidArgumentError("SlamOptions: loop_min_keyframe_gap must be >= 2");
+  if (!(loop_max_distance_fraction > 0)) return InvalidArgumentError("SlamOptions: loop_max_distance_fraction must be > 0");
+  if (!(loop_max_angle_deg > 0 && loop_max_angle_deg <= 180))
+    return InvalidArgumentError("SlamOptions: loop_max_angle_deg must be in (0, 180]");
+  if (loop_max_candidates < 1) return InvalidArgumentError("SlamOptions: loop_max_candidates must be >= 1");
+  if (!(loop_max_rotation_inconsistency_deg > 0))
+    return InvalidArgumentError("SlamOptions: loop_max_rotation_inconsistency_deg must be > 0");
+  if (loop_min_depth_matches < 10) return InvalidArgumentError("SlamOptions: loop_min_depth_matches must be >= 10");
+  for (double sigma : {odometry_rotation_sigma, odometry_translation_sigma, odometry_log_scale_sigma, loop_rotation_sigma,
+                       loop_translation_sigma, loop_log_scale_sigma})
+    if (!(sigma > 0)) return InvalidArgumentError("SlamOptions: pose-graph sigmas must be > 0");
   return Status::Ok();
 }
 
@@ -59,6 +71,9 @@ struct SlamSystem::Impl {
   ThreadPool* pool = nullptr;
   std::unique_ptr<Tracker> tracker;
   std::unique_ptr<Tracker> reloc_tracker;
+  std::unique_ptr<Tracker> loop_tracker;
+  std::vector<PoseGraphEdge> graph_edges;
+  int loop_closures = 0;
   // Tracks the initialisation frames on the first, rough depth: a looser residual limit.
   std::unique_ptr<Tracker> init_tracker;
 
@@ -106,6 +121,10 @@ struct SlamSystem::Impl {
   Status RefreshTracker();
   bool Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index);
   void FinishCurrent();
+  // Loop closure for finished keyframe `index` (see SlamOptions::loop_closure); re-optimises the pose
+  // graph when an edge was added.
+  void CloseLoops(int index);
+  bool AlignKeyframes(int j, int k, Sim3d* j_from_k, std::string* why);
   Rigid3d WorldFromFrame(const FrameRecord& f) const;
   // The pose of the most recent tracked frame (identity before any).
   Rigid3d LastGoodWorldFromCamera() const;
@@ -124,6 +143,8 @@ StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& r
   impl->tracker = std::make_unique<Tracker>(std::move(t));
   PRISM_ASSIGN_OR_RETURN(Tracker r, Tracker::Create(rig, options.tracker));
   impl->reloc_tracker = std::make_unique<Tracker>(std::move(r));
+  PRISM_ASSIGN_OR_RETURN(Tracker l, Tracker::Create(rig, options.tracker));
+  impl->loop_tracker = std::make_unique<Tracker>(std::move(l));
   TrackerOptions init_options = options.tracker;
   init_options.max_residual_rms *= options.init_residual_factor;
   PRISM_ASSIGN_OR_RETURN(Tracker it, Tracker::Create(rig, init_options));
@@ -484,9 +505,18 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   k.rgb = rgb.clone();
   k.world_from_keyframe =
       keyframes[static_cast<size_t>(reference_kf)].world_from_keyframe * ToSim3(frame_from_reference.Inverse());
+  PoseGraphEdge edge;
+  edge.from = reference_kf;
+  edge.to = k.id;
+  edge.from_from_to = ToSim3(frame_from_reference.Inverse());
+  edge.rotation_sigma = options.odometry_rotation_sigma;
+  edge.translation_sigma = options.odometry_translation_sigma;
+  edge.log_scale_sigma = options.odometry_log_scale_sigma;
+  graph_edges.push_back(edge);
   keyframes.push_back(std::move(k));
   current_depth = std::make_unique<KeyframeDepth>(std::move(kd));
   frames_since_keyframe = 0;
+  if (options.loop_closure && keyframes.size() >= 2) CloseLoops(static_cast<int>(keyframes.size()) - 2);
   has_last = true;
   last_frame_from_kf = Rigid3d();
   has_prev = false;
@@ -497,6 +527,118 @@ void SlamSystem::Impl::FinishCurrent() {
   if (!current_depth || keyframes.empty() || keyframes.back().finished) return;
   keyframes.back().final_depth = current_depth->ToInverseDepthMap();
   keyframes.back().finished = true;
+}
+
+bool SlamSystem::Impl::AlignKeyframes(int j, int k, Sim3d* j_from_k, std::string* why) {
+  const Keyframe& kj = keyframes[static_cast<size_t>(j)];
+  const Keyframe& kk = keyframes[static_cast<size_t>(k)];
+  // Current estimate as a rigid guess in each keyframe's units.
+  const Sim3d k_from_j_estimate = kk.world_from_keyframe.Inverse() * kj.world_from_keyframe;
+  const Rigid3d guess_k_from_j(k_from_j_estimate.rotation, k_from_j_estimate.translation / k_from_j_estimate.scale);
+  // A: image k against depth j -> k_from_j in j's units.
+  if (!loop_tracker->SetKeyframe(kj.rgb, kj.final_depth).ok()) return (*why = "keyframe j has too little depth", false);
+  StatusOr<TrackingResult> a = loop_tracker->Track(kk.rgb, guess_k_from_j);
+  if (!a.ok() || !a->ok) return (*why = "k does not track on j", false);
+  // B: image j against depth k -> j_from_k in k's units.
+  if (!loop_tracker->SetKeyframe(kk.rgb, kk.final_depth).ok()) return (*why = "keyframe k has too little depth", false);
+  const Rigid3d guess_j_from_k = a->frame_from_keyframe.Inverse();
+  StatusOr<TrackingResult> b = loop_tracker->Track(kj.rgb, guess_j_from_k);
+  if (!b.ok() || !b->ok) return (*why = "j does not track on k", false);
+  const double inconsistency_deg =
+      RotationAngle(a->frame_from_keyframe.rotation * b->frame_from_keyframe.rotation) * kRadToDeg;
+  if (inconsistency_deg > options.loop_max_rotation_inconsistency_deg)
+    return (*why = "alignments disagree by " + std::to_string(inconsistency_deg) + " deg", false);
+  // Ratio of the depth units (k units per j unit): j's points moved into k's camera (in j's units)
+  // against k's own depth at the pixels they land on.
+  const PinholeCamera& cam = rig.camera;
+  std::vector<double> ratios;
+  for (int y = 0; y < cam.height; y += 2) {
+    const float* d = kj.final_depth.inverse_depth.ptr<float>(y);
+    for (int x = 0; x < cam.width; x += 2) {
+      if (!(d[x] > 0)) continue;
+      const Eigen::Vector3d p = a->frame_from_keyframe * (cam.Unproject(Eigen::Vector2d(x, y)) / d[x]);
+      if (!(p.z() > 0)) continue;
+      const Eigen::Vector2d uv = cam.Project(p);
+      const int u = static_cast<int>(std::lround(uv.x())), v = static_cast<int>(std::lround(uv.y()));
+      if (u < 0 || v < 0 || u >= cam.width || v >= cam.height) continue;
+      const float idk = kk.final_depth.inverse_depth.at<float>(v, u);
+      if (idk > 0) ratios.push_back((1.0 / idk) / p.z());
+    }
+  }
+  if (static_cast<int>(ratios.size()) < options.loop_min_depth_matches / 4)
+    return (*why = "depths overlap on " + std::to_string(ratios.size()) + " points", false);
+  std::nth_element(ratios.begin(), ratios.begin() + static_cast<std::ptrdiff_t>(ratios.size() / 2), ratios.end());
+  const double s_kj = ratios[ratios.size() / 2];
+  if (!(s_kj > 0.5 && s_kj < 2.0)) return (*why = "implausible unit ratio " + std::to_string(s_kj), false);
+  const Sim3d k_from_j(s_kj, a->frame_from_keyframe.rotation, s_kj * a->frame_from_keyframe.translation);
+  *j_from_k = k_from_j.Inverse();
+  return true;
+}
+
+void SlamSystem::Impl::CloseLoops(int index) {
+  const Keyframe& kk = keyframes[static_cast<size_t>(index)];
+  if (!kk.finished) return;
+  // Mean depth of the keyframe in world units.
+  double sum = 0;
+  int count = 0;
+  for (int y = 0; y < kk.final_depth.inverse_depth.rows; y += 4) {
+    const float* d = kk.final_depth.inverse_depth.ptr<float>(y);
+    for (int x = 0; x < kk.final_depth.inverse_depth.cols; x += 4)
+      if (d[x] > 0) {
+        sum += 1.0 / d[x];
+        ++count;
+      }
+  }
+  if (count == 0) return;
+  const double mean_depth = kk.world_from_keyframe.scale * sum / count;
+  const Eigen::Vector3d axis_k = kk.world_from_keyframe.rotation * Eigen::Vector3d::UnitZ();
+  std::vector<std::pair<double, int>> candidates;
+  for (int j = 0; j + options.loop_min_keyframe_gap <= index; ++j) {
+    const Keyframe& kj = keyframes[static_cast<size_t>(j)];
+    if (!kj.finished) continue;
+    const double distance = (kj.world_from_keyframe.translation - kk.world_from_keyframe.translation).norm();
+    const double angle =
+        std::acos(std::clamp(axis_k.dot(kj.world_from_keyframe.rotation * Eigen::Vector3d::UnitZ()), -1.0, 1.0)) * kRadToDeg;
+    if (distance < options.loop_max_distance_fraction * mean_depth && angle < options.loop_max_angle_deg)
+      candidates.push_back({distance / mean_depth + angle / options.loop_max_angle_deg, j});
+  }
+  std::sort(candidates.begin(), candidates.end());
+  if (static_cast<int>(candidates.size()) > options.loop_max_candidates) candidates.resize(options.loop_max_candidates);
+  bool added = false;
+  for (const auto& [score, j] : candidates) {
+    Sim3d j_from_k;
+    std::string why;
+    if (!AlignKeyframes(j, index, &j_from_k, &why)) {
+      PRISM_LOG(INFO) << "slam: no loop edge " << j << " - " << index << ": " << why;
+      continue;
+    }
+    PoseGraphEdge edge;
+    edge.from = j;
+    edge.to = index;
+    edge.from_from_to = j_from_k;
+    edge.rotation_sigma = options.loop_rotation_sigma;
+    edge.translation_sigma = options.loop_translation_sigma;
+    edge.log_scale_sigma = options.loop_log_scale_sigma;
+    graph_edges.push_back(edge);
+    ++loop_closures;
+    added = true;
+    PRISM_LOG(INFO) << "slam: loop edge keyframe " << j << " - " << index << ", unit ratio " << 1.0 / j_from_k.scale;
+  }
+  if (!added) return;
+  std::vector<Sim3d> nodes;
+  for (const Keyframe& k : keyframes) nodes.push_back(k.world_from_keyframe);
+  StatusOr<PoseGraphSummary> summary = OptimisePoseGraph(graph_edges, PoseGraphOptions(), &nodes);
+  if (!summary.ok()) {
+    PRISM_LOG(WARNING) << "slam: pose graph: " << summary.status();
+    return;
+  }
+  for (size_t i = 0; i < keyframes.size(); ++i) keyframes[i].world_from_keyframe = nodes[i];
+  // Poses of tracked frames follow their keyframes.
+  for (FrameRecord& f : frames)
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= 0) f.result.world_from_camera = WorldFromFrame(f);
+  PRISM_LOG(INFO) << "slam: pose graph " << keyframes.size() << " keyframes, " << graph_edges.size() << " edges, cost "
+                  << summary->initial_cost << " -> " << summary->final_cost << " in " << summary->iterations
+                  << " iterations";
 }
 
 bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index) {
@@ -585,5 +727,13 @@ PointCloud SlamSystem::SemiDenseCloud() const {
 }
 
 int SlamSystem::num_keyframes() const { return static_cast<int>(impl_->keyframes.size()); }
+
+int SlamSystem::num_loop_closures() const { return impl_->loop_closures; }
+
+std::vector<Sim3d> SlamSystem::KeyframePoses() const {
+  std::vector<Sim3d> out;
+  for (const Impl::Keyframe& k : impl_->keyframes) out.push_back(k.world_from_keyframe);
+  return out;
+}
 
 }  // namespace prism

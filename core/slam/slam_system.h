@@ -2,8 +2,10 @@
 // every frame is tracked against the current keyframe (tracker.h); the keyframe's semi-dense inverse
 // depth is refined by small-baseline stereo along epipolar lines in the tracked frames (a per-pixel
 // Kalman-style filter, depth_filter.h); when the camera has moved far enough a new keyframe is made and
-// the depth is propagated into it. Keyframes are chained by their tracked poses (Sim(3) with scale 1;
-// no pose-graph optimisation or loop closure yet).
+// the depth is propagated into it. Keyframes form a Sim(3) pose graph (pose_graph.h): an edge from
+// each keyframe to the one it was made from (its tracked pose), and loop-closure edges when a finished
+// keyframe is found close to a much older one and the two align directly in both directions; every
+// loop edge re-optimises the graph, correcting position and scale drift.
 //
 // Monocular: the scale is arbitrary (fixed at initialisation so that the median depth of the first
 // triangulated points is 1) and drifts slowly; keyframe poses are Sim(3).
@@ -74,6 +76,23 @@ struct SlamOptions {
   // After this many consecutive lost frames the system tries to relocalise against every keyframe,
   // >= 1.
   int relocalise_after_lost_frames = 1;
+  // Loop closure: each finished keyframe is aligned (both ways, direct) with at most
+  // loop_max_candidates older keyframes, at least loop_min_keyframe_gap keyframes older, whose camera
+  // centre is within loop_max_distance_fraction of its mean depth and whose optical axis is within
+  // loop_max_angle_deg. The two alignments must agree within loop_max_rotation_inconsistency_deg, and
+  // at least loop_min_depth_matches of their depths must overlap (the ratio of the keyframes' depth
+  // units is their median ratio).
+  bool loop_closure = true;
+  int loop_min_keyframe_gap = 8;
+  double loop_max_distance_fraction = 0.35;
+  double loop_max_angle_deg = 30.0;
+  int loop_max_candidates = 3;
+  double loop_max_rotation_inconsistency_deg = 1.0;
+  int loop_min_depth_matches = 500;
+  // Standard deviations of the pose-graph edges (pose_graph.h): rotation (radians), translation (the
+  // keyframe's depth units), log-scale; odometry edges and loop edges.
+  double odometry_rotation_sigma = 0.002, odometry_translation_sigma = 0.005, odometry_log_scale_sigma = 0.01;
+  double loop_rotation_sigma = 0.002, loop_translation_sigma = 0.005, loop_log_scale_sigma = 0.005;
   Status Check() const;
 };
 
@@ -129,6 +148,11 @@ class SlamSystem {
   // The semi-dense points of all keyframes in the world frame, with colours.
   PointCloud SemiDenseCloud() const;
   int num_keyframes() const;
+  // world_from_keyframe of every keyframe by id, as optimised so far (SlamKeyframe has the pose at
+  // hand-over; loop closures move keyframes later).
+  std::vector<Sim3d> KeyframePoses() const;
+  // Loop-closure edges added to the pose graph so far.
+  int num_loop_closures() const;
 
  private:
   struct Impl;
