@@ -742,7 +742,7 @@ struct Server::Impl {
     env.set_protocol_version(v1::PROTOCOL_VERSION_1);
     switch (e.kind) {
       case PipelineEvent::Kind::kPose: {
-        ++s->frame_credits_to_grant;
+        if (!e.refined) ++s->frame_credits_to_grant;
         v1::PoseUpdate* p = env.mutable_pose_update();
         p->set_session_id(s->id);
         p->set_frame_sequence_number(e.frame_sequence_number);
@@ -754,6 +754,7 @@ struct Server::Impl {
         p->set_is_keyframe(e.slam.new_keyframe);
         p->set_keyframe_id(e.slam.keyframe_id);
         p->set_metres_per_unit(e.metres_per_unit);
+        p->set_refined(e.refined);
         s->pose_log.Append(*p);
         if (Send(s->peer, env)) {
           ++s->poses_sent;
@@ -815,6 +816,9 @@ struct Server::Impl {
         return;
       }
       case PipelineEvent::Kind::kFinished:
+        if (Status w = s->pose_log.WriteFinalTrajectory(); !w.ok()) {
+          PRISM_LOG(WARNING) << "session " << s->id << ": " << w;
+        }
         s->finished = true;
         s->stats = e.stats;
         if (s->reason.empty()) s->reason = "finished";

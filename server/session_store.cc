@@ -168,6 +168,7 @@ StatusOr<size_t> SessionStore::RebuildMap(const std::string& id, double voxel_m)
 }
 
 Status PoseLog::Open(const std::string& dir) {
+  dir_ = dir;
   poses_.open(dir + "/poses.bin", std::ios::binary | std::ios::app);
   trajectory_.open(dir + "/trajectory.txt", std::ios::app);
   if (!poses_ || !trajectory_) return UnavailableError("cannot open the pose files in '" + dir + "'");
@@ -187,9 +188,24 @@ void PoseLog::Append(const v1::PoseUpdate& pose) {
     std::snprintf(line, sizeof(line), "%.6f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", pose.timestamp_ns() * 1e-9,
                   p.translation().x(), p.translation().y(), p.translation().z(), p.rotation().x(), p.rotation().y(),
                   p.rotation().z(), p.rotation().w());
-    trajectory_ << line;
-    trajectory_.flush();
+    latest_[pose.frame_sequence_number()] = line;
+    if (!pose.refined()) {
+      trajectory_ << line;
+      trajectory_.flush();
+    }
   }
+  refined_ = refined_ || pose.refined();
+}
+
+Status PoseLog::WriteFinalTrajectory() {
+  if (!refined_) return Status::Ok();
+  const std::string path = dir_ + "/trajectory_final.txt";
+  std::ofstream f(path);
+  f << "# timestamp tx ty tz qx qy qz qw (world_from_camera, SLAM units; the latest pose of every tracked frame)\n";
+  for (const auto& [sequence, line] : latest_) f << line;
+  f.flush();
+  if (!f) return UnavailableError("cannot write '" + path + "'");
+  return Status::Ok();
 }
 
 }  // namespace prism::server

@@ -19,6 +19,7 @@
 
 #include <cstdint>
 #include <fstream>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -64,14 +65,21 @@ class SessionStore {
   std::string data_dir_;
 };
 
-// The append-only pose files of one running session.
+// The pose files of one running session: poses.bin (every PoseUpdate sent, appended as it goes),
+// trajectory.txt (TUM, the tracked poses as first sent, appended as it goes) and, at the end of a
+// session whose poses were refined, trajectory_final.txt (TUM, the latest pose of every tracked frame).
 class PoseLog {
  public:
   Status Open(const std::string& dir);
   void Append(const v1::PoseUpdate& pose);
+  // Writes trajectory_final.txt when refined poses were appended; OK and nothing written otherwise.
+  Status WriteFinalTrajectory();
 
  private:
+  std::string dir_;
   std::ofstream poses_, trajectory_;
+  std::map<uint64_t, std::string> latest_;  // frame sequence number -> TUM line of its latest pose
+  bool refined_ = false;
 };
 
 }  // namespace prism::server

@@ -204,10 +204,11 @@ int main(int argc, char** argv) {
     Clock::time_point last_pose;
     auto handle = [&](const prism::client::Event& e) {
       const auto now = Clock::now();
-      if (e.kind == prism::client::Event::Kind::kPose) {
+      if (e.kind == prism::client::Event::Kind::kPose && !e.pose.refined) {
         auto it = sent.find(e.pose.frame_sequence_number);
         if (it != sent.end()) frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
-        if (e.pose.state == prism::client::TrackingState::kTracking) keyframe_pose_time.emplace(e.pose.keyframe_id, now);
+        if (e.pose.state == prism::client::TrackingState::kTracking && e.pose.keyframe_id >= 0)
+          keyframe_pose_time.emplace(static_cast<uint64_t>(e.pose.keyframe_id), now);
         last_pose = now;
       } else if (e.kind == prism::client::Event::Kind::kChunk) {
         ++chunks;

@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <iostream>
 #include <string>
 #include <thread>
@@ -173,14 +174,18 @@ int main(int argc, char** argv) {
   std::ofstream(out_dir + "/session.json") << "{\"session\": \"" << session->session_id() << "\", \"token\": \""
                                            << session->resume_token() << "\", \"server\": \"" << server << "\"}\n";
 
-  std::vector<pc::Pose> poses;
+  std::map<uint64_t, pc::Pose> poses;  // by frame sequence number: the latest (refined) pose wins
+  size_t refined_poses = 0;
   size_t chunks = 0, chunk_bytes = 0, frame_errors = 0, skipped = 0;
   std::string fatal;
   auto drain = [&](int timeout_ms) {
     pc::Event e;
     while (session->Poll(&e, timeout_ms)) {
       timeout_ms = 0;
-      if (e.kind == pc::Event::Kind::kPose) poses.push_back(e.pose);
+      if (e.kind == pc::Event::Kind::kPose) {
+        refined_poses += e.pose.refined ? 1 : 0;
+        poses[e.pose.frame_sequence_number] = e.pose;
+      }
       else if (e.kind == pc::Event::Kind::kChunk) {
         char name[64];
         std::snprintf(name, sizeof(name), "/chunks/%06llu.drc", static_cast<unsigned long long>(e.chunk.sequence_number));
@@ -247,7 +252,7 @@ int main(int argc, char** argv) {
     std::ofstream traj(out_dir + "/trajectory.txt");
     traj << "# timestamp tx ty tz qx qy qz qw (world_from_camera, metres per unit " << s << ")\n";
     char line[256];
-    for (const pc::Pose& p : poses) {
+    for (const auto& [sequence, p] : poses) {
       if (p.state != pc::TrackingState::kTracking) continue;  // provisional (initialising) or lost
       std::snprintf(line, sizeof(line), "%.6f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", p.timestamp_ns * 1e-9,
                     p.translation[0] * s, p.translation[1] * s, p.translation[2] * s, p.rotation_xyzw[0],
@@ -265,12 +270,12 @@ int main(int argc, char** argv) {
   if (prism::Status w = prism::WritePointCloudPly(out_dir + "/map.ply", cloud); !w.ok()) return Fail(w.ToString());
   char json[1024];
   std::snprintf(json, sizeof(json),
-                "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"poses\": %zu, "
+                "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"poses\": %zu, \"refined_poses\": %zu, "
                 "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"errors\": %zu, "
                 "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
                 "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"metres_per_unit\": %.6g, "
                 "\"reconnects\": %d, \"reason\": \"%s\"}\n",
-                session->session_id().c_str(), n - skipped, skipped, poses.size(), chunks, chunk_bytes, map.size(),
+                session->session_id().c_str(), n - skipped, skipped, poses.size(), refined_poses, chunks, chunk_bytes, map.size(),
                 frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
                 n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0,
                 seconds, seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,

@@ -12,6 +12,7 @@
 #include <memory>
 #include <opencv2/core.hpp>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include "core/io/calibration_io.h"
@@ -84,6 +85,7 @@ py::dict PoseToDict(const pc::Pose& pose) {
   d["state"] = StateName(pose.state);
   d["is_keyframe"] = pose.is_keyframe;
   d["keyframe_id"] = pose.keyframe_id;
+  d["refined"] = pose.refined;
   d["metres_per_unit"] = pose.metres_per_unit;
   return d;
 }
@@ -237,7 +239,7 @@ class PySession {
         py::gil_scoped_release release;
         got = Live()->Poll(&e, timeout_ms);
       }
-      if (got && e.kind == pc::Event::Kind::kPose) poses_.push_back(e.pose);
+      if (got && e.kind == pc::Event::Kind::kPose) KeepPose(e.pose);
     }
     if (!got) return py::none();
     return EventToPython(e);
@@ -289,18 +291,31 @@ class PySession {
  private:
   // Never null: the constructor raises when Open fails.
   pc::Session* Live() const { return session_.get(); }
+  // One pose per frame: a refined pose replaces the frame's earlier one.
+  void KeepPose(const pc::Pose& pose) {
+    if (pose.refined) {
+      auto it = pose_index_.find(pose.frame_sequence_number);
+      if (it != pose_index_.end()) {
+        poses_[it->second] = pose;
+        return;
+      }
+    }
+    pose_index_[pose.frame_sequence_number] = poses_.size();
+    poses_.push_back(pose);
+  }
   // Moves the events waiting now into pending_ (for Poll) and keeps the poses. Runs without the GIL:
   // only C++ state.
   void Drain() {
     pc::Event e;
     while (session_->Poll(&e, 0)) {
-      if (e.kind == pc::Event::Kind::kPose) poses_.push_back(e.pose);
+      if (e.kind == pc::Event::Kind::kPose) KeepPose(e.pose);
       pending_.push_back(std::move(e));
     }
   }
 
   std::unique_ptr<pc::Session> session_;
-  std::vector<pc::Pose> poses_;
+  std::vector<pc::Pose> poses_;                      // in arrival order of each frame's first pose
+  std::unordered_map<uint64_t, size_t> pose_index_;  // frame sequence number -> index in poses_
   std::deque<pc::Event> pending_;  // received inside StreamFolder/Close, not yet polled
   int width_ = 0, height_ = 0;
   double summary_scale_ = 0;  // metres per SLAM unit from the Summary (0 before Close)

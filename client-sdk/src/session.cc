@@ -368,10 +368,13 @@ struct Session::Impl {
         return;
       case v1::Envelope::kPoseUpdate: {
         const v1::PoseUpdate& p = env.pose_update();
-        if (p.frame_sequence_number() < next_pose) return;  // resent after a resume, already seen
-        next_pose = p.frame_sequence_number() + 1;
-        while (!unanswered.empty() && unanswered.front().envelope.frame().sequence_number() <= p.frame_sequence_number())
-          unanswered.pop_front();
+        if (!p.refined()) {
+          if (p.frame_sequence_number() < next_pose) return;  // resent after a resume, already seen
+          next_pose = p.frame_sequence_number() + 1;
+          while (!unanswered.empty() &&
+                 unanswered.front().envelope.frame().sequence_number() <= p.frame_sequence_number())
+            unanswered.pop_front();
+        }
         Event e;
         e.kind = Event::Kind::kPose;
         e.pose.frame_sequence_number = p.frame_sequence_number();
@@ -385,6 +388,7 @@ struct Session::Impl {
                                                                                   : TrackingState::kUnknown;
         e.pose.is_keyframe = p.is_keyframe();
         e.pose.keyframe_id = p.keyframe_id();
+        e.pose.refined = p.refined();
         e.pose.metres_per_unit = p.metres_per_unit();
         Emit(std::move(e));
         return;

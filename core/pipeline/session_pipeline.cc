@@ -186,6 +186,7 @@ void SessionPipeline::SlamLoop() {
       e.timestamp_ns = frame->timestamp_ns;
       e.slam = *r;
       e.metres_per_unit = metres_per_unit_;
+      reported_.push_back({frame->sequence_number, frame->timestamp_ns, r->state, r->world_from_camera});
       sink_(std::move(e));
       for (SlamKeyframe& kf : slam_->TakeFinishedKeyframes()) QueueKeyframe(std::move(kf));
     } catch (const std::exception& ex) {
@@ -195,6 +196,7 @@ void SessionPipeline::SlamLoop() {
   if (!aborted_ && !failed_) {
     try {
       for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
+      EmitRefinedPoses();
     } catch (const std::exception& ex) {
       Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));
     }
@@ -221,6 +223,30 @@ void SessionPipeline::SlamLoop() {
     e.stats = stats();
     sink_(std::move(e));
   });
+}
+
+void SessionPipeline::EmitRefinedPoses() {
+  const std::vector<SlamFrameResult> final_poses = slam_->Trajectory();
+  size_t refined = 0;
+  for (size_t i = 0; i < final_poses.size() && i < reported_.size(); ++i) {
+    const SlamFrameResult& f = final_poses[i];
+    const ReportedPose& sent = reported_[i];
+    if (f.state != SlamState::kTracking) continue;  // still provisional or lost: nothing better to say
+    const bool moved = sent.state != SlamState::kTracking ||
+                       (f.world_from_camera.translation - sent.world_from_camera.translation).norm() > 1e-6 ||
+                       f.world_from_camera.rotation.angularDistance(sent.world_from_camera.rotation) > 1e-6;
+    if (!moved) continue;
+    PipelineEvent e;
+    e.kind = PipelineEvent::Kind::kPose;
+    e.frame_sequence_number = sent.sequence_number;
+    e.timestamp_ns = sent.timestamp_ns;
+    e.slam = f;
+    e.metres_per_unit = metres_per_unit_;
+    e.refined = true;
+    sink_(std::move(e));
+    ++refined;
+  }
+  PRISM_LOG(INFO) << "pipeline: " << refined << " of " << reported_.size() << " poses refined at the end";
 }
 
 void SessionPipeline::QueueKeyframe(SlamKeyframe keyframe) {

@@ -86,6 +86,9 @@ struct PipelineEvent {
   int64_t timestamp_ns = 0;
   SlamFrameResult slam;
   double metres_per_unit = 0;  // 0 until the dense stage estimated it
+  // A later pose of a frame already reported: at the end of the stream, every frame whose pose the
+  // SLAM changed since (initialisation frames, loop closures) is reported again with refined = true.
+  bool refined = false;
   // kChunk.
   uint64_t keyframe_id = 0;
   uint64_t chunk_sequence = 0;
@@ -147,6 +150,16 @@ class SessionPipeline {
   std::shared_ptr<DenseWorkers::Strand> strand_;
   PipelineEventSink sink_;
   std::unique_ptr<SlamSystem> slam_;   // SLAM thread only
+  // Per SLAM frame id: the frame's sequence number and timestamp and the pose and state reported
+  // (SLAM thread only); compared with the SLAM's final trajectory for the refined poses.
+  struct ReportedPose {
+    uint64_t sequence_number = 0;
+    int64_t timestamp_ns = 0;
+    SlamState state = SlamState::kInitializing;
+    Rigid3d world_from_camera;
+  };
+  std::vector<ReportedPose> reported_;
+  void EmitRefinedPoses();
   std::unique_ptr<DenseStage> dense_;  // strand jobs only (one at a time)
   BoundedQueue<EncodedFrame> frames_;
   std::atomic<bool> accepting_{true};

@@ -112,7 +112,10 @@ struct Pose {
   TrackingState state = TrackingState::kUnknown;
   bool is_keyframe = false;
   double metres_per_unit = 0;  // 0 until the server has estimated the scale
-  uint64_t keyframe_id = 0;    // the keyframe this frame was tracked against (while tracking)
+  int64_t keyframe_id = -1;    // the keyframe this frame was tracked against, -1 = none
+  // A later, better pose of a frame already received (sent at the end of a session for the frames
+  // the SLAM moved afterwards: initialisation, loop closures); the latest pose of a frame wins.
+  bool refined = false;
 };
 
 struct Point {
