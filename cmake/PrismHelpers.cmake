@@ -30,9 +30,14 @@ function(prism_add_test)
   if(NOT PRISM_BUILD_TESTS)
     return()
   endif()
-  cmake_parse_arguments(ARG "" "NAME" "SRCS;LINK;LABELS" ${ARGN})
+  cmake_parse_arguments(ARG "" "NAME;TIMEOUT" "SRCS;LINK;LABELS" ${ARGN})
   if(NOT ARG_LABELS)
     set(ARG_LABELS unit)
+  endif()
+  # TIMEOUT (seconds) overrides ctest's --timeout for this executable's tests.
+  set(timeout_property "")
+  if(ARG_TIMEOUT)
+    set(timeout_property TIMEOUT ${ARG_TIMEOUT})
   endif()
   add_executable(${ARG_NAME} ${ARG_SRCS})
   target_include_directories(${ARG_NAME} PRIVATE ${PROJECT_SOURCE_DIR})
@@ -42,7 +47,7 @@ function(prism_add_test)
     PRISM_SHARED_DATA_DIR="${PRISM_SHARED_DATA_DIR}"
     PRISM_BINARY_DIR="${CMAKE_BINARY_DIR}")
   gtest_discover_tests(${ARG_NAME}
-    PROPERTIES LABELS "${ARG_LABELS}"
+    PROPERTIES LABELS "${ARG_LABELS}" ${timeout_property}
     DISCOVERY_TIMEOUT 60)
 endfunction()
 
