@@ -523,7 +523,9 @@ class MultigridPreconditioner {
 
   // Gauss-Seidel on the pixels of one colour ((x + y) % 2 == colour) of rows [y0, y1): the update of
   // a whole row is computed (vectorised; a pixel's neighbours all have the other colour), then the
-  // pixels of the colour are written.
+  // pixels of the colour are written. The first and last row of the range read only the other colour
+  // of the rows beyond it: another thread is writing this colour there (a data race, found by TSan,
+  // even though those values were discarded).
   static void SmoothRows(GridLevel& g, int colour, int y0, int y1, float* t) {
     const int w = g.w;
     for (int y = y0; y < y1; ++y) {
@@ -533,6 +535,17 @@ class MultigridPreconditioner {
       const float* id = g.inv_diag.data() + row;
       const float* bb = g.b.data() + row;
       float* xc = g.x.data() + row;
+      if (y == y0 || y + 1 == y1) {  // same operations in the same order as below: the same result
+        for (int x = (colour + y) & 1; x < w; x += 2) {
+          float v = bb[x];
+          if (x + 1 < w) v -= rt[x] * xc[x + 1];
+          if (x > 0) v -= rt[x - 1] * xc[x - 1];
+          if (y + 1 < g.h) v -= dn[x] * xc[x + w];
+          if (y > 0) v -= dn[x - w] * xc[x - w];
+          xc[x] = v * id[x];
+        }
+        continue;
+      }
       for (int x = 0; x < w; ++x) t[x] = bb[x];
       for (int x = 0; x + 1 < w; ++x) t[x] -= rt[x] * xc[x + 1];
       for (int x = 1; x < w; ++x) t[x] -= rt[x - 1] * xc[x - 1];
