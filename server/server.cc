@@ -758,7 +758,7 @@ struct Server::Impl {
         s->pose_log.Append(*p);
         if (Send(s->peer, env)) {
           ++s->poses_sent;
-          metrics.Add("prism_poses_sent_total");
+          metrics.Add(e.refined ? "prism_poses_refined_total" : "prism_poses_sent_total");
         }
         return;
       }

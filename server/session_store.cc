@@ -2,9 +2,12 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <map>
 #include <sstream>
+#include <utility>
+#include <vector>
 
 #include "core/codec/map_chunk_codec.h"
 #include "core/io/ply_io.h"
@@ -123,7 +126,9 @@ std::vector<v1::PoseUpdate> SessionStore::ReadPoses(const std::string& id, uint6
     if (at + 4 + n > data.size()) break;  // torn last record
     v1::PoseUpdate p;
     if (!p.ParseFromArray(data.data() + at + 4, static_cast<int>(n))) break;
-    if (p.frame_sequence_number() >= from) poses.push_back(std::move(p));
+    // Refined poses carry earlier sequence numbers than the client's cursor: always replayed (the
+    // latest pose of a frame wins, so a repeat is harmless).
+    if (p.frame_sequence_number() >= from || p.refined()) poses.push_back(std::move(p));
     at += 4 + n;
   }
   return poses;
@@ -188,21 +193,40 @@ void PoseLog::Append(const v1::PoseUpdate& pose) {
     std::snprintf(line, sizeof(line), "%.6f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", pose.timestamp_ns() * 1e-9,
                   p.translation().x(), p.translation().y(), p.translation().z(), p.rotation().x(), p.rotation().y(),
                   p.rotation().z(), p.rotation().w());
-    latest_[pose.frame_sequence_number()] = line;
-    if (!pose.refined()) {
+    if (pose.refined()) {
+      refined_[std::string(line, std::strchr(line, ' ') - line)] = line;
+    } else {
       trajectory_ << line;
       trajectory_.flush();
     }
   }
-  refined_ = refined_ || pose.refined();
 }
 
 Status PoseLog::WriteFinalTrajectory() {
-  if (!refined_) return Status::Ok();
+  if (refined_.empty()) return Status::Ok();
+  // trajectory.txt in order, each line replaced by its frame's refined pose; refined poses of frames
+  // that were not tracked when first sent (initialisation) go first, by timestamp.
+  std::map<std::string, std::string> lines;  // timestamp (as written) -> line
+  std::ifstream streamed(dir_ + "/trajectory.txt");
+  std::vector<std::string> order;
+  for (std::string l; std::getline(streamed, l);) {
+    if (l.empty() || l[0] == '#') continue;
+    const std::string key = l.substr(0, l.find(' '));
+    order.push_back(key);
+    lines[key] = l + "\n";
+  }
   const std::string path = dir_ + "/trajectory_final.txt";
   std::ofstream f(path);
   f << "# timestamp tx ty tz qx qy qz qw (world_from_camera, SLAM units; the latest pose of every tracked frame)\n";
-  for (const auto& [sequence, line] : latest_) f << line;
+  std::vector<std::pair<double, const std::string*>> first;
+  for (const auto& [key, line] : refined_)
+    if (!lines.count(key)) first.emplace_back(std::stod(key), &line);
+  std::sort(first.begin(), first.end());
+  for (const auto& [t, line] : first) f << *line;
+  for (const std::string& key : order) {
+    auto r = refined_.find(key);
+    f << (r != refined_.end() ? r->second : lines[key]);
+  }
   f.flush();
   if (!f) return UnavailableError("cannot write '" + path + "'");
   return Status::Ok();

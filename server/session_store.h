@@ -54,7 +54,8 @@ class SessionStore {
 
   Status WriteChunk(const std::string& id, const v1::MapChunk& chunk, const std::vector<uint8_t>& draco) const;
   Status ReadChunk(const std::string& id, uint64_t sequence, v1::MapChunk* chunk, std::vector<uint8_t>* draco) const;
-  // The poses persisted for frames with sequence_number >= from (a torn last record is ignored).
+  // The poses persisted for frames with sequence_number >= from, and every refined pose (a torn last
+  // record is ignored).
   std::vector<v1::PoseUpdate> ReadPoses(const std::string& id, uint64_t from) const;
   Status WriteSummary(const std::string& id, const v1::SessionSummary& summary) const;
   // map.ply from every persisted chunk, merged by voxel in sequence order (a later chunk replaces a
@@ -78,8 +79,9 @@ class PoseLog {
  private:
   std::string dir_;
   std::ofstream poses_, trajectory_;
-  std::map<uint64_t, std::string> latest_;  // frame sequence number -> TUM line of its latest pose
-  bool refined_ = false;
+  // TUM lines of the refined poses by timestamp (they come at the end of a session); the rest of
+  // trajectory_final.txt is read back from trajectory.txt.
+  std::map<std::string, std::string> refined_;
 };
 
 }  // namespace prism::server

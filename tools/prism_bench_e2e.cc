@@ -42,8 +42,8 @@ With --fps F the frames are pushed at F frames/s (a live camera) instead of as f
   per codec: frames_per_s (frames sent / time until the last pose), map_frames_per_s (frames sent /
   time until the session summary, i.e. every keyframe's chunks delivered), map_done_after_last_pose_s,
   frame_to_pose_ms p50/p95 (frame
-  sent -> its pose received), keyframe_to_chunk_ms p50/p95 (the first pose on keyframe k + 1,
-  which finishes keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point,
+  sent -> its pose received), keyframe_to_chunk_ms p50/p95 (the pose of the frame that became
+  keyframe k + 1, which finishes keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point,
   chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb.
 )";
 
@@ -198,7 +198,11 @@ int main(int argc, char** argv) {
     }
     std::map<uint64_t, Clock::time_point> sent;      // frame sequence number -> send time
     std::vector<double> frame_to_pose;
-    std::map<uint64_t, Clock::time_point> keyframe_pose_time;  // keyframe id -> first pose tracked on it
+    // Keyframe id -> arrival of the pose of the frame that became it. Keyframes are numbered in
+    // creation order and the first one's frame is still initialising when its pose is sent, so the
+    // n-th live is_keyframe pose made keyframe n.
+    std::map<uint64_t, Clock::time_point> keyframe_pose_time;
+    uint64_t live_keyframes = 0;
     std::map<uint64_t, Clock::time_point> chunk_time;   // keyframe id -> first chunk arrival
     uint64_t chunk_bytes = 0, chunk_points = 0, chunks = 0;
     Clock::time_point last_pose;
@@ -207,8 +211,7 @@ int main(int argc, char** argv) {
       if (e.kind == prism::client::Event::Kind::kPose && !e.pose.refined) {
         auto it = sent.find(e.pose.frame_sequence_number);
         if (it != sent.end()) frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
-        if (e.pose.state == prism::client::TrackingState::kTracking && e.pose.keyframe_id >= 0)
-          keyframe_pose_time.emplace(static_cast<uint64_t>(e.pose.keyframe_id), now);
+        if (e.pose.is_keyframe) keyframe_pose_time.emplace(++live_keyframes, now);
         last_pose = now;
       } else if (e.kind == prism::client::Event::Kind::kChunk) {
         ++chunks;
@@ -242,7 +245,6 @@ int main(int argc, char** argv) {
     std::vector<double> kf_to_chunk;
     for (const auto& [kf, t] : chunk_time) {
       // Keyframe kf is finished when keyframe kf + 1 is made (or at the end of the stream).
-      // (The first pose with keyframe id kf + 1 is the one that made keyframe kf + 1.)
       if (auto next = keyframe_pose_time.find(kf + 1); next != keyframe_pose_time.end())
         kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - next->second).count());
     }

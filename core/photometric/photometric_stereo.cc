@@ -327,6 +327,10 @@ void SessionDepthScale::Add(double keyframe_estimate) {
   if (std::isfinite(keyframe_estimate) && keyframe_estimate > 0) estimates_.push_back(keyframe_estimate);
 }
 
+SessionDepthScale::SessionDepthScale(double agreement_factor) : agreement_factor_(agreement_factor) {
+  PRISM_CHECK(agreement_factor >= 1.0) << "SessionDepthScale: agreement_factor must be >= 1, got " << agreement_factor;
+}
+
 std::pair<size_t, size_t> SessionDepthScale::Group(const std::vector<double>& sorted) const {
   std::pair<size_t, size_t> best(0, 0);
   for (size_t begin = 0, end = 0; begin < sorted.size(); ++begin) {

@@ -143,7 +143,8 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
 // cheaper. Not thread-safe.
 class SessionDepthScale {
  public:
-  explicit SessionDepthScale(double agreement_factor = 1.25) : agreement_factor_(agreement_factor) {}
+  // agreement_factor >= 1 (checked).
+  explicit SessionDepthScale(double agreement_factor = 1.25);
   void Add(double keyframe_estimate);  // ignores non-finite or non-positive values
   bool has_value() const { return !estimates_.empty(); }
   int count() const { return static_cast<int>(estimates_.size()); }

@@ -68,11 +68,14 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   PhotometricOptions ps_options = options_.photometric;
   result.estimated_depth_scale = !ScaleSettled();
   ps_options.estimate_depth_scale = result.estimated_depth_scale;
-  if (!result.estimated_depth_scale) ps_options.depth_scale = depth_scale_.value();
+  // The photometric depth scale is metres per unit of this keyframe's depth; the session's is metres
+  // per SLAM world unit. They differ by the keyframe's Sim(3) scale (1 until a loop closure).
+  const double unit = options_.world_in_slam_units ? keyframe.world_from_keyframe.scale : 1.0;
+  if (!result.estimated_depth_scale) ps_options.depth_scale = depth_scale_.value() * unit;
   PRISM_ASSIGN_OR_RETURN(result.photometric, EstimateNormals(keyframe.rgb, keyframe.depth, rig_, ps_options, pool_));
   result.photometric_ms = MsSince(t0);
   if (result.estimated_depth_scale) {
-    depth_scale_.Add(result.photometric.depth_scale);
+    depth_scale_.Add(result.photometric.depth_scale / unit);
     PRISM_LOG(INFO) << "dense: keyframe " << keyframe.id << " depth scale estimate " << result.photometric.depth_scale
                     << " m/unit (session " << depth_scale_.value() << ", " << depth_scale_.agreeing() << " of "
                     << depth_scale_.count() << " estimates agree)";

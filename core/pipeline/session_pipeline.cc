@@ -186,7 +186,12 @@ void SessionPipeline::SlamLoop() {
       e.timestamp_ns = frame->timestamp_ns;
       e.slam = *r;
       e.metres_per_unit = metres_per_unit_;
-      reported_.push_back({frame->sequence_number, frame->timestamp_ns, r->state, r->world_from_camera});
+      // By SLAM frame id (a frame the SLAM recorded before failing leaves a gap).
+      if (r->frame_id >= 0) {
+        if (reported_.size() <= static_cast<size_t>(r->frame_id)) reported_.resize(static_cast<size_t>(r->frame_id) + 1);
+        reported_[static_cast<size_t>(r->frame_id)] = {true, frame->sequence_number, frame->timestamp_ns, r->state,
+                                                       r->world_from_camera};
+      }
       sink_(std::move(e));
       for (SlamKeyframe& kf : slam_->TakeFinishedKeyframes()) QueueKeyframe(std::move(kf));
     } catch (const std::exception& ex) {
@@ -231,7 +236,7 @@ void SessionPipeline::EmitRefinedPoses() {
   for (size_t i = 0; i < final_poses.size() && i < reported_.size(); ++i) {
     const SlamFrameResult& f = final_poses[i];
     const ReportedPose& sent = reported_[i];
-    if (f.state != SlamState::kTracking) continue;  // still provisional or lost: nothing better to say
+    if (!sent.valid || f.state != SlamState::kTracking) continue;  // provisional or lost: nothing better
     const bool moved = sent.state != SlamState::kTracking ||
                        (f.world_from_camera.translation - sent.world_from_camera.translation).norm() > 1e-6 ||
                        f.world_from_camera.rotation.angularDistance(sent.world_from_camera.rotation) > 1e-6;

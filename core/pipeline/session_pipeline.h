@@ -153,6 +153,7 @@ class SessionPipeline {
   // Per SLAM frame id: the frame's sequence number and timestamp and the pose and state reported
   // (SLAM thread only); compared with the SLAM's final trajectory for the refined poses.
   struct ReportedPose {
+    bool valid = false;  // false: the SLAM recorded the frame but the pipeline reported an error
     uint64_t sequence_number = 0;
     int64_t timestamp_ns = 0;
     SlamState state = SlamState::kInitializing;

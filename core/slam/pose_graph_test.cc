@@ -1,6 +1,7 @@
 #include "core/slam/pose_graph.h"
 
 #include <cmath>
+#include <iostream>
 #include <random>
 #include <vector>
 
@@ -93,6 +94,29 @@ TEST(PoseGraphTest, LoopEdgeCorrectsScaleDrift) {
   EXPECT_GT(open_error, 0.2);
   EXPECT_LT(closed_error, /*max_fraction_of_open_error=*/0.2 * open_error);
   EXPECT_LT(s->final_cost, s->initial_cost);
+}
+
+// Nodes marked fixed keep their values; the others follow the edges.
+TEST(PoseGraphTest, FixedNodesStay) {
+  const std::vector<Sim3d> truth = Ring(6);
+  std::vector<PoseGraphEdge> edges;
+  for (int i = 0; i + 1 < 6; ++i) {
+    PoseGraphEdge e;
+    e.from = i;
+    e.to = i + 1;
+    e.from_from_to = Relative(truth[static_cast<size_t>(i)], truth[static_cast<size_t>(i + 1)]);
+    edges.push_back(e);
+  }
+  std::vector<Sim3d> nodes = truth;
+  nodes[3].translation += Eigen::Vector3d(0.1, 0, 0);  // fixed and wrong: the chain bends to it
+  nodes[5].translation += Eigen::Vector3d(0, 0.1, 0);  // free: pulled back
+  const std::vector<bool> fixed = {true, false, false, true, false, false};
+  ASSERT_TRUE(OptimisePoseGraph(edges, PoseGraphOptions(), &nodes, fixed).ok());
+  EXPECT_EQ((nodes[3].translation - truth[3].translation - Eigen::Vector3d(0.1, 0, 0)).norm(), 0.0);
+  EXPECT_EQ((nodes[0].translation - truth[0].translation).norm(), 0.0);
+  // Node 5 hangs off node 4, which hangs off the moved node 3: it follows node 3's error.
+  EXPECT_LT((nodes[5].translation - truth[5].translation).norm(), 0.2);
+  EXPECT_FALSE(OptimisePoseGraph(edges, PoseGraphOptions(), &nodes, std::vector<bool>(3, false)).ok());
 }
 
 TEST(PoseGraphTest, BadInputIsAnError) {

@@ -361,6 +361,13 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   k.rgb = first.rgb;
   keyframes.push_back(k);
   current_depth = std::move(depth);
+  if (!RefreshTracker().ok()) {
+    // Not initialised after all: no keyframe (the next attempt makes keyframe 0 again).
+    keyframes.pop_back();
+    current_depth.reset();
+    *why = "too few points with depth for the tracker in the first keyframe";
+    return false;
+  }
   for (size_t i = 0; i < init_frames.size(); ++i) {
     FrameRecord& f = frames[static_cast<size_t>(init_frames[i].frame_id)];
     f.frame_from_keyframe = poses[i];
@@ -378,7 +385,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   PRISM_LOG(INFO) << "slam: initialised on frames " << first.frame_id << ".." << init_frames.back().frame_id
                   << ", parallax " << parallax << " px, " << points.size() << " points, converged "
                   << 100 * converged << "%";
-  return RefreshTracker().ok();
+  return true;
 }
 
 Status SlamSystem::Impl::RefreshTracker() {
@@ -565,6 +572,7 @@ bool SlamSystem::Impl::AlignKeyframes(int j, int k, Sim3d* j_from_k, std::string
       if (idk > 0) ratios.push_back((1.0 / idk) / p.z());
     }
   }
+  // Every second pixel in x and y was tried: a quarter of the matches a full scan would find.
   if (static_cast<int>(ratios.size()) < options.loop_min_depth_matches / 4)
     return (*why = "depths overlap on " + std::to_string(ratios.size()) + " points", false);
   std::nth_element(ratios.begin(), ratios.begin() + static_cast<std::ptrdiff_t>(ratios.size() / 2), ratios.end());
@@ -687,9 +695,11 @@ std::vector<SlamKeyframe> SlamSystem::TakeFinishedKeyframes() {
 }
 
 std::vector<SlamKeyframe> SlamSystem::Finish() {
-  if (impl_->current_depth) {
+  if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
     impl_->current_depth->Regularise();
     impl_->FinishCurrent();
+    // The last keyframe may close a loop too.
+    if (impl_->options.loop_closure) impl_->CloseLoops(static_cast<int>(impl_->keyframes.size()) - 1);
   }
   return TakeFinishedKeyframes();
 }

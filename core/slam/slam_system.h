@@ -80,8 +80,8 @@ struct SlamOptions {
   // loop_max_candidates older keyframes, at least loop_min_keyframe_gap keyframes older, whose camera
   // centre is within loop_max_distance_fraction of its mean depth and whose optical axis is within
   // loop_max_angle_deg. The two alignments must agree within loop_max_rotation_inconsistency_deg, and
-  // at least loop_min_depth_matches of their depths must overlap (the ratio of the keyframes' depth
-  // units is their median ratio).
+  // at least loop_min_depth_matches of their depths must overlap (counted over every pixel; the ratio
+  // of the keyframes' depth units is their median ratio).
   bool loop_closure = true;
   int loop_min_keyframe_gap = 8;
   double loop_max_distance_fraction = 0.35;
