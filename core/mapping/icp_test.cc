@@ -228,7 +228,7 @@ TEST_F(IcpSyntheticTest, ThreadsShareOneTarget) {
   ASSERT_TRUE(AlignIcp(k.cloud, *target, Rigid3d(), options, &reference).ok());
   constexpr int kThreads = 4;
   std::vector<Rigid3d> results(kThreads);
-  std::vector<bool> ok(kThreads, false);
+  std::vector<char> ok(kThreads, 0);  // not vector<bool>: its elements share words, a data race (TSan)
   std::vector<std::thread> threads;
   for (int t = 0; t < kThreads; ++t) {
     threads.emplace_back([&, t] { ok[t] = AlignIcp(k.cloud, *target, Rigid3d(), options, &results[t]).ok(); });
