@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <ostream>
 #include <string>
 #include <vector>
 
@@ -50,6 +51,8 @@ struct SlamCase {
   double max_depth_median_rel_error;
   int min_loop_closures = 0;
 };
+
+void PrintTo(const SlamCase& c, std::ostream* os) { *os << c.preset << ", " << c.frames << " frames"; }
 
 class SlamSystemPresetTest : public ::testing::TestWithParam<SlamCase> {};
 
