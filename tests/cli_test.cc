@@ -114,15 +114,19 @@ TEST_F(CliTest, NormalsAgainstItselfIsZeroAndRotatedByFiveDegreesIsFive) {
   fs::create_directories(P("rotated"));
   for (size_t i = 0; i < seq.frames.size(); i += 6) {
     cv::Mat n = seq.ReadNormals(i).value();
-    n.forEach<cv::Vec3f>([&](cv::Vec3f& v, const int*) {
-      if (v[0] == 0 && v[1] == 0 && v[2] == 0) return;
+    // A plain loop, not cv::Mat::forEach: OpenCV joins its TBB workers inside uninstrumented libraries,
+    // so under TSan every pixel written in the lambda looked like a race with WriteNormalPng's reads.
+    for (auto it = n.begin<cv::Vec3f>(); it != n.end<cv::Vec3f>(); ++it) {
+      cv::Vec3f& v = *it;
+      if (v[0] == 0 && v[1] == 0 && v[2] == 0) continue;
       // Rotate by 5 degrees about an axis perpendicular to the normal: the angle is exactly 5.
-      const Eigen::Vector3f n(v[0], v[1], v[2]);
-      Eigen::Vector3f axis = n.cross(Eigen::Vector3f::UnitX());
-      if (axis.norm() < 1e-3f) axis = n.cross(Eigen::Vector3f::UnitY());
-      const Eigen::Vector3f w = Eigen::AngleAxisf(5.0f * static_cast<float>(M_PI) / 180.f, axis.normalized()) * n;
+      const Eigen::Vector3f normal(v[0], v[1], v[2]);
+      Eigen::Vector3f axis = normal.cross(Eigen::Vector3f::UnitX());
+      if (axis.norm() < 1e-3f) axis = normal.cross(Eigen::Vector3f::UnitY());
+      const Eigen::Vector3f w =
+          Eigen::AngleAxisf(5.0f * static_cast<float>(M_PI) / 180.f, axis.normalized()) * normal;
       v = cv::Vec3f(w.x(), w.y(), w.z());
-    });
+    }
     ASSERT_TRUE(WriteNormalPng(P("rotated/") + fs::path(seq.frames[i].normal_file).filename().string(), n).ok());
   }
   r = Execute(Bin("prism-eval") + " normals --sequence " + Seq() + " --normals " + P("rotated") + " --object-only");
