@@ -20,7 +20,12 @@ test -f "$EXAMPLE/CMakeLists.txt"
 if grep -E '#include ["<](zmq|google/protobuf|core/)' "$WORK/prefix/include/prism/client/client.h"; then
   echo "the public header includes an internal dependency"; exit 1
 fi
-cmake -S "$EXAMPLE" -B "$WORK/example-build" -G Ninja -DCMAKE_PREFIX_PATH="$WORK/prefix" > "$WORK/configure.log"
+# In a sanitizer build the SDK is instrumented, so its consumer must be too (PRISM_SANITIZE, set by
+# CTest from the build's option).
+SANITIZE_FLAGS=""
+if [ -n "${PRISM_SANITIZE:-}" ]; then SANITIZE_FLAGS="-fsanitize=$PRISM_SANITIZE"; fi
+cmake -S "$EXAMPLE" -B "$WORK/example-build" -G Ninja -DCMAKE_PREFIX_PATH="$WORK/prefix" \
+  -DCMAKE_CXX_FLAGS="$SANITIZE_FLAGS" -DCMAKE_EXE_LINKER_FLAGS="$SANITIZE_FLAGS" > "$WORK/configure.log"
 cmake --build "$WORK/example-build" > "$WORK/build.log"
 "$BUILD/bin/prism-server" --bind 'tcp://127.0.0.1:*' --data-dir "$WORK/data" --metrics off > "$WORK/server.json" 2> "$WORK/server.log" &
 SERVER_PID=$!
