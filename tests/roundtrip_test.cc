@@ -10,12 +10,11 @@
 
 #include <gtest/gtest.h>
 
-#include <Eigen/SVD>
-
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
 #include "tests/server_process.h"
+#include "tests/sim3_from_trajectory.h"
 #include "tests/test_process.h"
 
 namespace prism {
@@ -77,55 +76,21 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
   // session (lost ones would be left out of trajectory.txt).
   EXPECT_GE(JsonNumber(r.out, "refined_poses"), 1) << r.out;
   ASSERT_EQ(est->size(), static_cast<size_t>(kFrames));
-  // Sim(3) from the trajectory: rotation from the camera orientations (a sideways path is nearly a
-  // line, which leaves a positions-only alignment free to turn about it), then scale and translation
-  // from the camera centres.
-  std::vector<Eigen::Vector3d> source, target;
-  Eigen::Matrix3d rotation_sum = Eigen::Matrix3d::Zero();
-  for (const TimedPose& p : *est)
-    for (const TimedPose& g : seq->groundtruth)
-      if (std::abs(g.timestamp_s - p.timestamp_s) < 1e-3) {
-        source.push_back(p.world_from_camera.translation);
-        target.push_back(g.world_from_camera.translation);
-        rotation_sum += g.world_from_camera.RotationMatrix() * p.world_from_camera.RotationMatrix().transpose();
-      }
-  ASSERT_EQ(source.size(), est->size());
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(rotation_sum, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d rotation = svd.matrixU() * svd.matrixV().transpose();
-  if (rotation.determinant() < 0) {
-    Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
-    d(2, 2) = -1;
-    rotation = svd.matrixU() * d * svd.matrixV().transpose();
-  }
-  Eigen::Vector3d mean_source = Eigen::Vector3d::Zero(), mean_target = Eigen::Vector3d::Zero();
-  for (size_t i = 0; i < source.size(); ++i) {
-    mean_source += source[i] / source.size();
-    mean_target += target[i] / source.size();
-  }
-  double num = 0, den = 0;
-  for (size_t i = 0; i < source.size(); ++i) {
-    num += (rotation * (source[i] - mean_source)).dot(target[i] - mean_target);
-    den += (source[i] - mean_source).squaredNorm();
-  }
-  ASSERT_GT(den, 0);
-  const double scale = num / den;
-  ASSERT_GT(scale, 0);
-  const StatusOr<Sim3d> gt_from_est =
-      Sim3d(scale, Eigen::Quaterniond(rotation), mean_target - scale * (rotation * mean_source));
-  double sq = 0, path = 0;
-  for (size_t i = 0; i < source.size(); ++i) {
-    sq += ((*gt_from_est) * source[i] - target[i]).squaredNorm();
-    if (i) path += (target[i] - target[i - 1]).norm();
-  }
-  const double ate = std::sqrt(sq / source.size());
-  std::cout << "round trip: ATE " << ate << " m over a " << path << " m path, Sim(3) scale " << gt_from_est->scale
-            << ", " << source.size() << " tracked frames\n";
+  // Sim(3) from the trajectory (tests/sim3_from_trajectory.h): rotation from the camera orientations,
+  // then scale and translation from the camera centres.
+  const test::TrajectoryAlignment alignment = test::AlignTrajectory(*est, seq->groundtruth);
+  ASSERT_TRUE(alignment.ok);
+  ASSERT_EQ(alignment.pairs, est->size());
+  const Sim3d& gt_from_est = alignment.gt_from_est;
+  const double ate = alignment.ate_rmse_m, path = alignment.path_m;
+  std::cout << "round trip: ATE " << ate << " m over a " << path << " m path, Sim(3) scale " << gt_from_est.scale
+            << ", " << alignment.pairs << " tracked frames\n";
 
   // The map in the ground-truth frame, scored on the object.
   StatusOr<PointCloud> map = ReadPointCloudPly(P("out/map.ply"));
   ASSERT_TRUE(map.ok()) << map.status();
   ASSERT_GT(map->size(), 1000u);
-  for (Eigen::Vector3f& p : map->positions) p = ((*gt_from_est) * p.cast<double>()).cast<float>();
+  for (Eigen::Vector3f& p : map->positions) p = (gt_from_est * p.cast<double>()).cast<float>();
   map->normals.clear();
   ASSERT_TRUE(WritePointCloudPly(P("aligned.ply"), *map).ok());
   r = Execute(Bin("prism-eval") + " cloud --object-only --sequence " + P("seq") + " --cloud " + P("aligned.ply"));
