@@ -43,7 +43,7 @@ options:
                         0 keeps all): flying pixels along silhouettes
   --position-weight W   fusion: weight of the SLAM positions against the normals (FusionOptions)
   --fusion-passes N     fusion: solve passes with normal correction in between (default 2)
-  --correction-sigma PX fusion: scale of the normal correction's low-pass filter (default 16)
+  --correction-sigma PX fusion: scale of the normal correction's low-pass filter (default 8)
   --no-icp              merge keyframe clouds at their poses without ICP
   --max-icp-correction-m M, --max-icp-correction-deg D
                         largest ICP correction applied (default 0.01 m, 1 deg); larger ones,

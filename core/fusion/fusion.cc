@@ -230,7 +230,9 @@ void BuildStencil(const FusionInput& input, const cv::Mat& normals, const cv::Ma
     median_var = v[v.size() / 2];
   }
   const double density = unknowns > 0 ? static_cast<double>(samples) / unknowns : 1.0;
-  const float position_weight = static_cast<float>(options.position_weight / std::max(density, 1e-6));
+  // Passes that solve with corrected normals get the positions' low frequencies through them too.
+  const double pass_scale = previous != nullptr && options.normal_correction ? options.corrected_pass_position_scale : 1.0;
+  const float position_weight = static_cast<float>(pass_scale * options.position_weight / std::max(density, 1e-6));
   const float prior_weight = static_cast<float>(options.prior_weight);
   // Test (a): |log(A) - log(B)| > max_depth_jump <=> A / B outside [1 / e^t, e^t].
   const float max_ratio = static_cast<float>(std::exp(options.max_depth_jump));
@@ -902,6 +904,9 @@ Status FusionOptions::Check() const {
     e << "FusionOptions.prior_weight = " << prior_weight << "; violated: in [0, 1]";
   else if (!(position_weight > 0 || prior_weight > 0))
     e << "FusionOptions.position_weight and prior_weight are both 0; violated: one > 0";
+  else if (!(corrected_pass_position_scale > 0 && corrected_pass_position_scale <= 1))
+    e << "FusionOptions.corrected_pass_position_scale = " << corrected_pass_position_scale
+      << "; violated: in (0, 1]";
   else if (preconditioner != FusionPreconditioner::kJacobi && preconditioner != FusionPreconditioner::kMultigrid)
     e << "FusionOptions.preconditioner = " << static_cast<int>(preconditioner) << "; violated: kJacobi or kMultigrid";
   else if (max_solver_iterations < 1 || max_solver_iterations > 100000)

@@ -43,7 +43,8 @@
 // tests missed) and (b) with normal_correction, uses Nehab's corrected normals: the input normals'
 // low frequencies (edge-aware low-pass of correction_sigma_px) replaced by those of the previous fused
 // surface, by rotating each normal with the rotation taking its low-passed direction to the fused
-// surface's. Then it solves again, warm-started.
+// surface's, and (c) then weights the positions by corrected_pass_position_scale. Then it solves
+// again, warm-started.
 #pragma once
 
 #include <cstdint>
@@ -109,6 +110,15 @@ struct FusionOptions {
   // against 16 it cut the fused depth error on the bunny 5.2 -> 2.9 mm, torus 2.4 -> 2.1 mm,
   // DiLiGenT ball 48 -> 47 mm, and raised it on the multi-coloured sphere 3.5 -> 4.1 mm.
   double correction_sigma_px = 8.0;
+  // position_weight is multiplied by this in the passes that solve with corrected normals, in (0, 1].
+  // Those normals already carry the SLAM depth's low frequencies (from the previous pass), so full
+  // position rows there mostly add the samples' per-pixel noise: on grazing parts of a surface, where
+  // a tangent row constrains the depth along the ray only like cos^2(slant), isolated noisy samples
+  // dent the surface (uniform sphere at slant 50-65 deg: fused normals 6.8 deg, PS 0.9-1.2 deg).
+  // 0.5 from `fusion_sweep --ps --settings default` and prism-fuse on the dense-stage presets: fused
+  // normals on the same pixels against 1.0: uniform sphere 1.22 -> 0.98 deg, multi-coloured sphere
+  // 3.05 -> 2.85, bunny 5.11 -> 4.88; fused depth 0.81 -> 0.76, 1.82 -> 1.86, 1.89 -> 2.05 mm.
+  double corrected_pass_position_scale = 0.5;
   // Solve passes (see the file comment), in [1, 10].
   int passes = 2;
   // Row blocks processed concurrently on the given ThreadPool (0 = all of the pool's threads).
