@@ -26,6 +26,28 @@ using test::JsonNumber;
 using test::ProcessResult;
 using test::ServerProcess;
 
+// Sanitizer builds (PRISM_SANITIZED_BUILD, set by tests/CMakeLists.txt from PRISM_SANITIZE): the
+// dense stage runs several times slower under TSan/ASan than prism-client's credit wait (20 s), its
+// close wait (300 s) and the server's idle timeout (30 s) allow, so only there these waits are
+// stretched. The frames and every assertion stay the same; in other builds no flag is added.
+#ifdef PRISM_SANITIZED_BUILD
+constexpr int kSanitizerWaitScale = 20;
+#else
+constexpr int kSanitizerWaitScale = 1;
+#endif
+// Extra prism-server and prism-client flags for the stretched waits (none in plain builds).
+std::vector<std::string> ServerWaitFlags() {
+  if (kSanitizerWaitScale == 1) return {};
+  return {"--idle-timeout-ms", std::to_string(30000 * kSanitizerWaitScale)};
+}
+std::string ClientWaitFlags() {
+  if (kSanitizerWaitScale == 1) return "";
+  return " --timeout-ms " + std::to_string(20000 * kSanitizerWaitScale) + " --close-timeout-ms " +
+         std::to_string(300000 * kSanitizerWaitScale);
+}
+// How long ServerProcess::Stop waits for the server to exit after SIGTERM (its default is 20 s).
+constexpr int kServerStopTimeoutMs = 20000 * kSanitizerWaitScale;
+
 class RoundTripTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -47,10 +69,12 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
                             std::to_string(kFrames) + " --out " + P("seq"));
   if (r.exit_code != 0 && r.out.find("not found") != std::string::npos) GTEST_SKIP() << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  ServerProcess server(P("data"), {"--keyframe-queue", "16"}, P("server.log"));
+  std::vector<std::string> server_flags = {"--keyframe-queue", "16"};
+  for (const std::string& f : ServerWaitFlags()) server_flags.push_back(f);
+  ServerProcess server(P("data"), server_flags, P("server.log"));
   ASSERT_TRUE(server.ok());
-  r = Execute(Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") + " --out " +
-              P("out"));
+  r = Execute(Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") +
+              ClientWaitFlags() + " --out " + P("out"));
   ASSERT_EQ(r.exit_code, 0) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "poses"), kFrames) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "errors"), 0) << r.out;
@@ -65,7 +89,7 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
     const ProcessResult d = Execute("/usr/bin/draco_decoder -i " + first_drc + " -o " + P("chunk.ply"));
     EXPECT_EQ(d.exit_code, 0) << d.out;
   }
-  EXPECT_EQ(server.Stop(), 0);
+  EXPECT_EQ(server.Stop(kServerStopTimeoutMs), 0);
 
   // Align the streamed trajectory (metres per the session scale) to the ground truth.
   StatusOr<Sequence> seq = LoadSequence(P("seq"));
@@ -113,9 +137,12 @@ TEST_F(RoundTripTest, TwoConcurrentSessionsBothComplete) {
                             P("seq"));
   if (r.exit_code != 0 && r.out.find("not found") != std::string::npos) GTEST_SKIP() << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  ServerProcess server(P("data"), {"--max-sessions", "2"}, P("server.log"));
+  std::vector<std::string> server_flags = {"--max-sessions", "2"};
+  for (const std::string& f : ServerWaitFlags()) server_flags.push_back(f);
+  ServerProcess server(P("data"), server_flags, P("server.log"));
   ASSERT_TRUE(server.ok());
-  const std::string client = Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq");
+  const std::string client =
+      Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") + ClientWaitFlags();
   r = Execute("(" + client + " --out " + P("a") + " > " + P("a.json") + " 2>&1 & " + client + " --codec jpeg --out " +
               P("b") + " > " + P("b.json") + " 2>&1 & wait)");
   for (const char* name : {"a.json", "b.json"}) {
@@ -123,7 +150,7 @@ TEST_F(RoundTripTest, TwoConcurrentSessionsBothComplete) {
     EXPECT_EQ(JsonNumber(cat.out, "poses"), 24) << cat.out;
     EXPECT_NE(cat.out.find("\"reason\": \"closed by client\""), std::string::npos) << cat.out;
   }
-  EXPECT_EQ(server.Stop(), 0);
+  EXPECT_EQ(server.Stop(kServerStopTimeoutMs), 0);
 }
 
 }  // namespace
