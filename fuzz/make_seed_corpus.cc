@@ -12,6 +12,7 @@
 #include "core/codec/map_chunk_codec.h"
 #include "core/synth/presets.h"
 #include "fuzz/fuzz_input.h"
+#include "server/rig_wire.h"
 #include "prism/v1/session.pb.h"
 
 namespace {
@@ -38,26 +39,7 @@ v1::Envelope Open(int width, int height) {
   o->set_protocol_version(v1::PROTOCOL_VERSION_1);
   o->set_codec(v1::FRAME_CODEC_RAW);
   o->set_input_policy(v1::INPUT_POLICY_UPLOAD);
-  v1::CameraIntrinsics* c = o->mutable_calibration()->mutable_camera();
-  c->set_width(static_cast<uint32_t>(width));
-  c->set_height(static_cast<uint32_t>(height));
-  c->set_fx(rig.camera.fx);
-  c->set_fy(rig.camera.fy);
-  c->set_cx(rig.camera.cx);
-  c->set_cy(rig.camera.cy);
-  for (const Light& l : rig.lights) {
-    v1::LightCalibration* w = o->mutable_calibration()->add_lights();
-    w->set_name(l.name);
-    w->set_type(v1::LightCalibration::TYPE_POINT);
-    w->mutable_position_in_camera()->set_x(l.position_in_camera.x());
-    w->mutable_position_in_camera()->set_y(l.position_in_camera.y());
-    w->mutable_position_in_camera()->set_z(l.position_in_camera.z());
-    w->mutable_color()->set_x(l.color.x());
-    w->mutable_color()->set_y(l.color.y());
-    w->mutable_color()->set_z(l.color.z());
-    w->set_intensity(l.intensity);
-  }
-  for (int i = 0; i < 9; ++i) o->mutable_calibration()->add_crosstalk(rig.crosstalk(i / 3, i % 3));
+  RigToWire(rig, o->mutable_calibration());
   return env;
 }
 

@@ -1,5 +1,6 @@
 #include "server/server.h"
 #include "server/curve.h"
+#include "server/rig_wire.h"
 #include "server/session_store.h"
 
 #include <arpa/inet.h>
@@ -59,41 +60,6 @@ StatusOr<FrameCodec> FromWireCodec(v1::FrameCodec c) {
     case v1::FRAME_CODEC_RAW: return FrameCodec::kRaw;
     default: return InvalidArgumentError("frame codec " + std::to_string(static_cast<int>(c)) + " is not png, jpeg or raw");
   }
-}
-
-Eigen::Vector3d FromWire(const v1::Vector3& v) { return Eigen::Vector3d(v.x(), v.y(), v.z()); }
-
-StatusOr<RigCalibration> RigFromWire(const v1::RigCalibration& w) {
-  RigCalibration rig;
-  const v1::CameraIntrinsics& c = w.camera();
-  if (c.width() == 0 || c.height() == 0 || c.width() > 16384 || c.height() > 16384)
-    return InvalidArgumentError("calibration.camera: width and height must be in [1, 16384], got " +
-                                std::to_string(c.width()) + "x" + std::to_string(c.height()));
-  rig.camera.width = static_cast<int>(c.width());
-  rig.camera.height = static_cast<int>(c.height());
-  rig.camera.fx = c.fx();
-  rig.camera.fy = c.fy();
-  rig.camera.cx = c.cx();
-  rig.camera.cy = c.cy();
-  if (c.distortion_size() != 0 && c.distortion_size() != 5)
-    return InvalidArgumentError("calibration.camera.distortion needs 0 or 5 values, got " +
-                                std::to_string(c.distortion_size()));
-  for (int i = 0; i < c.distortion_size(); ++i) rig.camera.distortion[static_cast<size_t>(i)] = c.distortion(i);
-  if (w.lights_size() != 3) return InvalidArgumentError("calibration needs exactly 3 lights, got " + std::to_string(w.lights_size()));
-  for (int i = 0; i < 3; ++i) {
-    const v1::LightCalibration& l = w.lights(i);
-    Light& light = rig.lights[static_cast<size_t>(i)];
-    light.name = l.name();
-    light.type = l.type() == v1::LightCalibration::TYPE_DIRECTIONAL ? LightType::kDirectional : LightType::kPoint;
-    light.position_in_camera = FromWire(l.position_in_camera());
-    light.direction_in_camera = FromWire(l.direction_in_camera());
-    light.color = FromWire(l.color());
-    light.intensity = l.intensity();
-  }
-  if (w.crosstalk_size() != 9) return InvalidArgumentError("calibration.crosstalk needs 9 values, got " + std::to_string(w.crosstalk_size()));
-  for (int i = 0; i < 9; ++i) rig.crosstalk(i / 3, i % 3) = w.crosstalk(i);
-  if (Status s = rig.Check(); !s.ok()) return InvalidArgumentError("calibration: " + s.message());
-  return rig;
 }
 
 void ToWire(const Rigid3d& pose, v1::Pose* out) {

@@ -9,11 +9,8 @@
 //   - a soak: 8 concurrent sessions, session after session, for 3.5 minutes: RSS flat within 10%
 //     (median of the last minute vs the second), no errors.
 // Each prints its measurements (chunks lost, RSS before/after) for the report.
-#include <arpa/inet.h>
 #include <fcntl.h>
-#include <netinet/in.h>
 #include <signal.h>
-#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -36,6 +33,7 @@
 #include <zmq.hpp>
 
 #include "core/io/sequence.h"
+#include "server/rig_wire.h"
 #include "prism/v1/session.pb.h"
 #include "tests/server_process.h"
 #include "tests/test_process.h"
@@ -46,6 +44,7 @@ namespace fs = std::filesystem;
 using Clock = std::chrono::steady_clock;
 using test::Bin;
 using test::Execute;
+using test::HttpGet;
 using test::ProcessResult;
 using test::ServerProcess;
 
@@ -97,30 +96,6 @@ int WaitExit(pid_t pid, int timeout_ms) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
   return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
-
-std::string HttpGet(const std::string& url) {
-  const size_t host_begin = url.find("//") + 2, colon = url.rfind(':'), path = url.find('/', colon);
-  const std::string host = url.substr(host_begin, colon - host_begin);
-  const int port = std::stoi(url.substr(colon + 1, path == std::string::npos ? std::string::npos : path - colon - 1));
-  const std::string target = path == std::string::npos ? "/" : url.substr(path);
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_port = htons(static_cast<uint16_t>(port));
-  inet_pton(AF_INET, host.c_str(), &addr.sin_addr);
-  if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0) {
-    close(fd);
-    return "";
-  }
-  const std::string req = "GET " + target + " HTTP/1.0\r\n\r\n";
-  (void)!write(fd, req.data(), req.size());
-  std::string resp;
-  char buf[4096];
-  ssize_t n;
-  while ((n = read(fd, buf, sizeof(buf))) > 0) resp.append(buf, static_cast<size_t>(n));
-  close(fd);
-  return resp;
 }
 
 // The value of a Prometheus sample (NaN when absent).
@@ -330,30 +305,7 @@ class WireClient {
     o->set_codec(v1::FRAME_CODEC_PNG);
     o->set_input_policy(policy);
     o->set_initial_chunk_credits(chunk_credits);
-    v1::CameraIntrinsics* c = o->mutable_calibration()->mutable_camera();
-    c->set_width(static_cast<uint32_t>(rig.camera.width));
-    c->set_height(static_cast<uint32_t>(rig.camera.height));
-    c->set_fx(rig.camera.fx);
-    c->set_fy(rig.camera.fy);
-    c->set_cx(rig.camera.cx);
-    c->set_cy(rig.camera.cy);
-    for (double d : rig.camera.distortion) c->add_distortion(d);
-    for (const Light& l : rig.lights) {
-      v1::LightCalibration* w = o->mutable_calibration()->add_lights();
-      w->set_name(l.name);
-      w->set_type(l.type == LightType::kDirectional ? v1::LightCalibration::TYPE_DIRECTIONAL
-                                                    : v1::LightCalibration::TYPE_POINT);
-      auto set = [](const Eigen::Vector3d& v, v1::Vector3* out) {
-        out->set_x(v.x());
-        out->set_y(v.y());
-        out->set_z(v.z());
-      };
-      set(l.position_in_camera, w->mutable_position_in_camera());
-      set(l.direction_in_camera, w->mutable_direction_in_camera());
-      set(l.color, w->mutable_color());
-      w->set_intensity(l.intensity);
-    }
-    for (int i = 0; i < 9; ++i) o->mutable_calibration()->add_crosstalk(rig.crosstalk(i / 3, i % 3));
+    RigToWire(rig, o->mutable_calibration());
     return env;
   }
   static v1::Envelope Frame(const std::string& session, uint64_t seq, int64_t timestamp_ns) {
@@ -463,7 +415,8 @@ TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBou
   std::vector<double> latency_ms;
   size_t refused = 0, poses = 0;
   auto handle = [&](const v1::Envelope& m) {
-    if (m.has_pose_update()) {
+    // Refined poses (sent again after the session's pose-graph optimisation) are not new frames.
+    if (m.has_pose_update() && !m.pose_update().refined()) {
       ++poses;
       latency_ms.push_back(std::chrono::duration<double, std::milli>(
                                Clock::now() - sent[m.pose_update().frame_sequence_number()])

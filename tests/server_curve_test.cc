@@ -14,6 +14,7 @@
 
 #include <prism/client/client.h>
 
+#include "tests/client_rig.h"
 #include "tests/server_process.h"
 #include "tests/test_process.h"
 
@@ -24,18 +25,7 @@ using test::Bin;
 using test::Execute;
 using test::ProcessResult;
 using test::ServerProcess;
-
-client::Rig SmallRig() {
-  client::Rig rig;
-  rig.camera = {160, 120, 150, 150, 80, 60, {0, 0, 0, 0, 0}};
-  const double x[3] = {-0.2, 0.2, 0.0}, y[3] = {0.0, 0.0, -0.2};
-  for (int l = 0; l < 3; ++l) {
-    rig.lights[l].name = l == 0 ? "red" : l == 1 ? "green" : "blue";
-    rig.lights[l].position_in_camera = {x[l], y[l], 0.0};
-    rig.lights[l].color = {l == 0 ? 1.0 : 0.0, l == 1 ? 1.0 : 0.0, l == 2 ? 1.0 : 0.0};
-  }
-  return rig;
-}
+using test::SmallRig;
 
 std::string Key(const std::string& file, const std::string& which) {
   std::ifstream in(file);

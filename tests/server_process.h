@@ -1,9 +1,13 @@
 // A real prism-server process for the integration suites: started on tcp://127.0.0.1:* (a free port),
-// its endpoints read back from the JSON line it prints, stopped with SIGTERM.
+// its endpoints read back from the JSON line it prints, stopped with SIGTERM; and an HTTP GET for
+// its metrics endpoint.
 #pragma once
 
+#include <arpa/inet.h>
 #include <fcntl.h>
+#include <netinet/in.h>
 #include <signal.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -105,5 +109,31 @@ class ServerProcess {
   int exit_code_ = -1;
   std::string endpoint_, metrics_;
 };
+
+// The whole HTTP/1.0 response (status line, headers, body) to a GET of http://HOST:PORT/PATH; ""
+// when the connection fails.
+inline std::string HttpGet(const std::string& url) {
+  const size_t host_begin = url.find("//") + 2, colon = url.rfind(':'), path = url.find('/', colon);
+  const std::string host = url.substr(host_begin, colon - host_begin);
+  const int port = std::stoi(url.substr(colon + 1, path == std::string::npos ? std::string::npos : path - colon - 1));
+  const std::string target = path == std::string::npos ? "/" : url.substr(path);
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_port = htons(static_cast<uint16_t>(port));
+  inet_pton(AF_INET, host.c_str(), &addr.sin_addr);
+  if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0) {
+    close(fd);
+    return "";
+  }
+  const std::string req = "GET " + target + " HTTP/1.0\r\n\r\n";
+  (void)!write(fd, req.data(), req.size());
+  std::string resp;
+  char buf[4096];
+  ssize_t n;
+  while ((n = read(fd, buf, sizeof(buf))) > 0) resp.append(buf, static_cast<size_t>(n));
+  close(fd);
+  return resp;
+}
 
 }  // namespace prism::test

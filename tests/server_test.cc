@@ -1,9 +1,6 @@
 // prism-server as a real process on 127.0.0.1, driven by scripted DEALER clients speaking the wire
 // protocol directly (so malformed input can be sent) and by libprism_client: every bad input gets a
 // readable Error, and the server and the other sessions go on.
-#include <arpa/inet.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -20,12 +17,14 @@
 
 #include "core/codec/frame_codec.h"
 #include "core/synth/presets.h"
+#include "server/rig_wire.h"
 #include "prism/v1/session.pb.h"
 #include "tests/server_process.h"
 
 namespace prism {
 namespace {
 namespace fs = std::filesystem;
+using test::HttpGet;
 using test::ServerProcess;
 
 constexpr int kWidth = 160, kHeight = 120;
@@ -97,26 +96,7 @@ class RawClient {
     o->set_protocol_version(v1::PROTOCOL_VERSION_1);
     o->set_codec(v1::FRAME_CODEC_PNG);
     o->set_client_name("server_test");
-    v1::CameraIntrinsics* c = o->mutable_calibration()->mutable_camera();
-    c->set_width(kWidth);
-    c->set_height(kHeight);
-    c->set_fx(rig.camera.fx);
-    c->set_fy(rig.camera.fy);
-    c->set_cx(rig.camera.cx);
-    c->set_cy(rig.camera.cy);
-    for (const Light& l : rig.lights) {
-      v1::LightCalibration* w = o->mutable_calibration()->add_lights();
-      w->set_name(l.name);
-      w->set_type(v1::LightCalibration::TYPE_POINT);
-      w->mutable_position_in_camera()->set_x(l.position_in_camera.x());
-      w->mutable_position_in_camera()->set_y(l.position_in_camera.y());
-      w->mutable_position_in_camera()->set_z(l.position_in_camera.z());
-      w->mutable_color()->set_x(l.color.x());
-      w->mutable_color()->set_y(l.color.y());
-      w->mutable_color()->set_z(l.color.z());
-      w->set_intensity(l.intensity);
-    }
-    for (int i = 0; i < 9; ++i) o->mutable_calibration()->add_crosstalk(rig.crosstalk(i / 3, i % 3));
+    RigToWire(rig, o->mutable_calibration());
     return env;
   }
   static v1::Envelope FrameEnvelope(const std::string& session, uint64_t seq, v1::FrameCodec codec) {
@@ -143,30 +123,6 @@ std::string Png(int width, int height) {
   FrameEncodeOptions o;
   EXPECT_TRUE(EncodeFrame(rgb, o, &bytes).ok());
   return std::string(bytes.begin(), bytes.end());
-}
-
-std::string HttpGet(const std::string& url) {
-  const size_t host_begin = url.find("//") + 2, colon = url.rfind(':'), path = url.find('/', colon);
-  const std::string host = url.substr(host_begin, colon - host_begin);
-  const int port = std::stoi(url.substr(colon + 1, path == std::string::npos ? std::string::npos : path - colon - 1));
-  const std::string target = path == std::string::npos ? "/" : url.substr(path);
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_port = htons(static_cast<uint16_t>(port));
-  inet_pton(AF_INET, host.c_str(), &addr.sin_addr);
-  if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0) {
-    close(fd);
-    return "";
-  }
-  const std::string req = "GET " + target + " HTTP/1.0\r\n\r\n";
-  (void)!write(fd, req.data(), req.size());
-  std::string resp;
-  char buf[4096];
-  ssize_t n;
-  while ((n = read(fd, buf, sizeof(buf))) > 0) resp.append(buf, static_cast<size_t>(n));
-  close(fd);
-  return resp;
 }
 
 class ServerTest : public ::testing::Test {
