@@ -18,6 +18,15 @@ import numpy as np
 BUILD_DIR = None
 prism_client = None
 
+# Sanitizer builds (PRISM_SANITIZE, set by CTest from the build's option): the dense stage runs many
+# times slower there than the client's credit wait (10 s), its close wait (300 s) and the server's idle
+# timeout (30 s) allow, so only there these waits (and the server's stop wait) are stretched. The
+# frames and every assertion stay the same; in other builds no argument or flag is added.
+WAIT_SCALE = 20 if os.environ.get("PRISM_SANITIZE") else 1
+SESSION_WAIT = {} if WAIT_SCALE == 1 else {"timeout_ms": 10000 * WAIT_SCALE}
+CLOSE_WAIT = {} if WAIT_SCALE == 1 else {"timeout_ms": 300000 * WAIT_SCALE}
+SERVER_WAIT_FLAGS = [] if WAIT_SCALE == 1 else ["--idle-timeout-ms", str(30000 * WAIT_SCALE)]
+
 
 def binary(name):
     return os.path.join(BUILD_DIR, "bin", name)
@@ -36,14 +45,14 @@ class Server:
     def __init__(self, data_dir, *flags):
         self.log = open(os.path.join(data_dir + ".log"), "w")
         self.process = subprocess.Popen([binary("prism-server"), "--bind", "tcp://127.0.0.1:*", "--data-dir", data_dir,
-                                         "--metrics", "127.0.0.1:0", *flags], stdout=subprocess.PIPE,
+                                         "--metrics", "127.0.0.1:0", *flags, *SERVER_WAIT_FLAGS], stdout=subprocess.PIPE,
                                         stderr=self.log, text=True)
         line = json.loads(self.process.stdout.readline())
         self.endpoint, self.metrics = line["endpoint"], line["metrics"]
 
     def stop(self):
         self.process.terminate()
-        code = self.process.wait(timeout=30)
+        code = self.process.wait(timeout=30 * WAIT_SCALE)
         self.process.stdout.close()
         self.log.close()
         return code
@@ -83,10 +92,10 @@ class PythonClientTest(unittest.TestCase):
         self.addCleanup(server.cleanup)
         rig = prism_client.load_rig(os.path.join(self.seq, "camera.yaml"))
         self.assertEqual((rig.camera.width, rig.camera.height), (512, 512))
-        with prism_client.Session(server.endpoint, rig) as session:
+        with prism_client.Session(server.endpoint, rig, **SESSION_WAIT) as session:
             self.assertTrue(session.id)
             self.assertEqual(session.stream_folder(self.seq), self.frames)
-            summary = session.close()
+            summary = session.close(**CLOSE_WAIT)
             poses, cloud = session.poses(), session.map()
             all_poses = session.poses(tracked_only=False)
             keyframes = session.poses(tracked_only=False, keyframes_only=True)
@@ -171,10 +180,10 @@ class PythonClientTest(unittest.TestCase):
         self.assertEqual(frames[0][1].dtype, np.uint8)
         kinds = {}
         chunk = None
-        with prism_client.Session(server.endpoint, rig, codec="jpeg") as session:
+        with prism_client.Session(server.endpoint, rig, codec="jpeg", **SESSION_WAIT) as session:
             # A generator of numpy frames, as from a camera.
             self.assertEqual(session.stream((t, rgb) for t, rgb in frames[:20]), 20)
-            session.close()
+            session.close(**CLOSE_WAIT)
             while True:
                 event = session.poll(0)
                 if event is None:
