@@ -26,10 +26,10 @@ using test::JsonNumber;
 using test::ProcessResult;
 using test::ServerProcess;
 
-// Sanitizer builds (PRISM_SANITIZED_BUILD, set by tests/CMakeLists.txt from PRISM_SANITIZE): the
-// dense stage runs several times slower under TSan/ASan than prism-client's credit wait (20 s), its
-// close wait (300 s) and the server's idle timeout (30 s) allow, so only there these waits are
-// stretched. The frames and every assertion stay the same; in other builds no flag is added.
+// Sanitizer builds (PRISM_SANITIZED_BUILD, defined for every target with PRISM_SANITIZE): the dense
+// stage runs several times slower under TSan/ASan than prism-client's credit wait (20 s), its close
+// wait (300 s) and the server's idle timeout (30 s) allow, so only there these waits are stretched.
+// The frames and every assertion stay the same; in other builds no flag is added.
 #ifdef PRISM_SANITIZED_BUILD
 constexpr int kSanitizerWaitScale = 20;
 #else
