@@ -46,6 +46,7 @@ options:
                    every keyframe as it is finished and write map.ply and trajectory_metres.txt
                    (metres, by the session depth scale the dense stage estimates from the shading)
   --no-loop-closure  no loop-closure edges in the keyframe pose graph (SlamOptions::loop_closure)
+  --no-keyframe-adjustment  no windowed direct adjustment of the keyframes (SlamOptions::keyframe_adjustment)
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
@@ -110,6 +111,7 @@ int main(int argc, char** argv) {
   bool eval = true;
   bool dense = false;
   bool loop_closure = true;
+  bool keyframe_adjustment = true;
   DenseStageOptions dense_options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -123,6 +125,10 @@ int main(int argc, char** argv) {
     }
     if (a == "--dense") {
       dense = true;
+      continue;
+    }
+    if (a == "--no-keyframe-adjustment") {
+      keyframe_adjustment = false;
       continue;
     }
     if (a == "--no-loop-closure") {
@@ -155,6 +161,7 @@ int main(int argc, char** argv) {
   ThreadPool pool(threads);
   SlamOptions options;
   options.loop_closure = loop_closure;
+  options.keyframe_adjustment = keyframe_adjustment;
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);
   if (!slam.ok()) return Fail(slam.status().ToString());
 
@@ -253,6 +260,7 @@ int main(int argc, char** argv) {
   json << std::setprecision(6) << "{\n  \"frames\": " << results.size() << ",\n  \"keyframes\": " << keyframes.size()
        << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
        << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
+       << ",\n  \"keyframe_adjustments\": " << (*slam)->num_keyframe_adjustments()
        << ",\n  \"semidense_points\": " << cloud.size()
        << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n);
   if (dense_stage) {

@@ -53,6 +53,12 @@ Status SlamOptions::Check() const {
   for (double sigma : {odometry_rotation_sigma, odometry_translation_sigma, odometry_log_scale_sigma, loop_rotation_sigma,
                        loop_translation_sigma, loop_log_scale_sigma})
     if (!(sigma > 0)) return InvalidArgumentError("SlamOptions: pose-graph sigmas must be > 0");
+  if (!(max_step_rotation_deg > 0) || !(max_step_translation_fraction > 0))
+    return InvalidArgumentError("SlamOptions: max_step_rotation_deg and max_step_translation_fraction must be > 0");
+  if (keyframe_window < 3) return InvalidArgumentError("SlamOptions: keyframe_window must be >= 3");
+  if (keyframe_window_cell_px < 4) return InvalidArgumentError("SlamOptions: keyframe_window_cell_px must be >= 4");
+  if (keyframe_window_min_points < 10) return InvalidArgumentError("SlamOptions: keyframe_window_min_points must be >= 10");
+  PRISM_RETURN_IF_ERROR(keyframe_window_ba.Check());
   return Status::Ok();
 }
 
@@ -74,6 +80,7 @@ struct SlamSystem::Impl {
   std::unique_ptr<Tracker> loop_tracker;
   std::vector<PoseGraphEdge> graph_edges;
   int loop_closures = 0;
+  int keyframe_adjustments = 0;
   // Tracks the initialisation frames on the first, rough depth: a looser residual limit.
   std::unique_ptr<Tracker> init_tracker;
 
@@ -84,6 +91,7 @@ struct SlamSystem::Impl {
     Sim3d world_from_keyframe;
     cv::Mat rgb;
     InverseDepthMap final_depth;  // set when finished
+    cv::Mat grey_j;               // shading-normalised grey, for the keyframe adjustment (on demand)
     bool finished = false;
     bool handed_out = false;
   };
@@ -126,6 +134,14 @@ struct SlamSystem::Impl {
   void CloseLoops(int index);
   bool AlignKeyframes(int j, int k, Sim3d* j_from_k, std::string* why);
   Rigid3d WorldFromFrame(const FrameRecord& f) const;
+  // Whether a tracked frame_from_keyframe is within SlamOptions::max_step_* of the prediction.
+  bool PlausibleStep(const Rigid3d& tracked, const Rigid3d& predicted, double mean_inverse_depth) const {
+    const double rotation_deg = RotationAngle(tracked.rotation * predicted.rotation.inverse()) * kRadToDeg;
+    const double translation = (tracked.translation - predicted.translation).norm() * mean_inverse_depth;
+    return rotation_deg <= options.max_step_rotation_deg && translation <= options.max_step_translation_fraction;
+  }
+  // The windowed keyframe adjustment (SlamOptions::keyframe_adjustment) after a new keyframe.
+  void AdjustKeyframeWindow();
   // The pose of the most recent tracked frame (identity before any).
   Rigid3d LastGoodWorldFromCamera() const;
 };
@@ -328,10 +344,21 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
     }
     Rigid3d prev, prev2;
     for (size_t i = 1; i < init_frames.size(); ++i) {
-      Rigid3d guess = i == 1 ? Rigid3d() : (prev * prev2.Inverse()) * prev;
-      if (pass == 1) guess = poses[i];
-      if (i + 1 == init_frames.size() && pass == 0) guess = last_guess;
- StatusOr<TrackingResult> tr = init->Track(init_frames[i].rgb, guess);
+      // Constant velocity (pass 1 starts from pass 0's first pose); the last frame of pass 0 starts from
+      // the essential-matrix pose.
+      Rigid3d guess = i == 1 ? (pass == 1 ? poses[1] : Rigid3d()) : (prev * prev2.Inverse()) * prev;
+      const bool from_essential = pass == 0 && i + 1 == init_frames.size();
+      if (from_essential) guess = last_guess;
+      StatusOr<TrackingResult> tr = init->Track(init_frames[i].rgb, guess);
+      const double mean_idepth = depth->MeanInverseDepth();
+      if (tr.ok() && tr->ok && !from_essential && !PlausibleStep(tr->frame_from_keyframe, guess, mean_idepth)) {
+        StatusOr<TrackingResult> retry = init->Track(init_frames[i].rgb, prev);
+        if (!(retry.ok() && retry->ok && PlausibleStep(retry->frame_from_keyframe, guess, mean_idepth))) {
+          *why = "tracking the initialisation frames failed: implausible jump at buffered frame " + std::to_string(i);
+          return false;
+        }
+        tr = retry;
+      }
       if (!tr.ok() || !tr->ok) {
         *why = "tracking the initialisation frames failed" + (tr.ok() ? ": " + tr->lost_reason : std::string());
         return false;
@@ -343,6 +370,15 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
         cv::Mat j, mean;
         KeyframeDepth::NormalisedGrey(init_frames[i].rgb, options.depth, &j, &mean);
         depth->Update(j, poses[i], pool);
+        // Keep the tracker's copy of the refined depth fresh, as during tracking (on the rough first depth
+        // the residuals grew from frame to frame until one frame jumped).
+        if (i % static_cast<size_t>(options.tracker_refresh_frames) == 0 && i + 1 < init_frames.size()) {
+          depth->Regularise();
+          if (!init->SetKeyframe(first.rgb, depth->ToInverseDepthMap(1, 0.5)).ok()) {
+            *why = "too few points to track on the first keyframe";
+            return false;
+          }
+        }
       }
     }
     if (pass == 0) depth->Regularise();
@@ -410,9 +446,21 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
   Rigid3d guess = has_last ? last_frame_from_kf : Rigid3d();
   if (has_last && has_prev) guess = (last_frame_from_kf * prev_frame_from_kf.Inverse()) * last_frame_from_kf;
   PRISM_ASSIGN_OR_RETURN(TrackingResult tr, tracker->Track(rgb, guess));
-  if (!tr.ok && has_last) {
+  const double mean_idepth_now = current_depth->MeanInverseDepth();
+  const bool implausible = tr.ok && has_last && !PlausibleStep(tr.frame_from_keyframe, guess, mean_idepth_now);
+  if ((!tr.ok || implausible) && has_last) {
     PRISM_ASSIGN_OR_RETURN(TrackingResult retry, tracker->Track(rgb, last_frame_from_kf));
-    if (retry.ok) tr = retry;
+    if (retry.ok && PlausibleStep(retry.frame_from_keyframe, guess, mean_idepth_now)) {
+      tr = retry;
+    } else if (implausible) {
+      std::ostringstream m;
+      m << "implausible jump from the predicted pose ("
+        << RotationAngle(tr.frame_from_keyframe.rotation * guess.rotation.inverse()) * kRadToDeg << " deg, "
+        << (tr.frame_from_keyframe.translation - guess.translation).norm() * mean_idepth_now
+        << " of the mean depth)";
+      tr.ok = false;
+      tr.lost_reason = m.str();
+    }
   }
   int kf_index = static_cast<int>(keyframes.size()) - 1;
   if (!tr.ok) {
@@ -429,7 +477,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
       rec.frame_from_keyframe = reloc_pose;
       rec.result.keyframe_id = reloc_kf;
       rec.result.state = SlamState::kTracking;
-      rec.result.message = "relocalised against keyframe " + std::to_string(reloc_kf);
+      rec.result.message = "relocalised against keyframe " + std::to_string(reloc_kf) + " after " + tr.lost_reason;
       rec.result.world_from_camera = WorldFromFrame(rec);
       frames.push_back(rec);
       const Status made = MakeKeyframe(frame_id, timestamp, rgb, reloc_kf, reloc_pose, source);
@@ -483,6 +531,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     const Status made = MakeKeyframe(frame_id, timestamp, rgb, kf_index, tr.frame_from_keyframe, *current_depth);
     if (made.ok()) {
       frames.back().result.new_keyframe = true;
+      if (options.keyframe_adjustment) AdjustKeyframeWindow();
     } else {
       // Keep tracking against the current keyframe; restore the tracker's copy.
       frames.back().result.message = "no new keyframe: " + std::string(made.message());
@@ -649,6 +698,95 @@ void SlamSystem::Impl::CloseLoops(int index) {
                   << " iterations";
 }
 
+void SlamSystem::Impl::AdjustKeyframeWindow() {
+  const int n = static_cast<int>(keyframes.size());
+  const int first = std::max(0, n - options.keyframe_window);
+  if (n - first < 3 || !current_depth) return;
+  const PinholeCamera& cam = rig.camera;
+  DirectBaProblem problem;
+  problem.camera = cam;
+  std::vector<InverseDepthMap> maps;
+  for (int k = first; k < n; ++k) {
+    Keyframe& kf = keyframes[static_cast<size_t>(k)];
+    problem.world_from_keyframe.push_back(kf.world_from_keyframe);
+    if (kf.grey_j.empty()) {
+      cv::Mat mean;
+      KeyframeDepth::NormalisedGrey(kf.rgb, options.depth, &kf.grey_j, &mean);
+    }
+    problem.grey_j.push_back(kf.grey_j);
+    // The newest keyframe's depth is the one propagated into it.
+    maps.push_back(kf.finished ? kf.final_depth : current_depth->ToInverseDepthMap());
+  }
+  // Points: per cell, the strongest gradient with a converged inverse depth.
+  const int cell = options.keyframe_window_cell_px;
+  for (int k = 0; k < n - first; ++k) {
+    const cv::Mat& d = maps[static_cast<size_t>(k)].inverse_depth;
+    const cv::Mat& var = maps[static_cast<size_t>(k)].variance;
+    const cv::Mat& j = problem.grey_j[static_cast<size_t>(k)];
+    if (d.empty()) continue;
+    for (int cy = 4; cy + cell <= cam.height - 4; cy += cell) {
+      for (int cx = 4; cx + cell <= cam.width - 4; cx += cell) {
+        int bx = -1, by = -1;
+        float best = 0;
+        for (int y = cy; y < cy + cell; ++y) {
+          for (int x = cx; x < cx + cell; ++x) {
+            const float r = d.at<float>(y, x);
+            if (!(r > 0)) continue;
+            if (!var.empty() && !(std::sqrt(var.at<float>(y, x)) <= options.tracking_max_relative_sigma * r)) continue;
+            const float gx = 0.5f * (j.at<float>(y, x + 1) - j.at<float>(y, x - 1));
+            const float gy = 0.5f * (j.at<float>(y + 1, x) - j.at<float>(y - 1, x));
+            if (gx * gx + gy * gy > best) best = gx * gx + gy * gy, bx = x, by = y;
+          }
+        }
+        if (bx < 0) continue;
+        DirectBaPoint p;
+        p.host = k;
+        p.u = static_cast<float>(bx);
+        p.v = static_cast<float>(by);
+        p.inverse_depth = d.at<float>(by, bx);
+        p.intensity = j.at<float>(by, bx);
+        problem.points.push_back(p);
+      }
+    }
+  }
+  if (static_cast<int>(problem.points.size()) < options.keyframe_window_min_points) return;
+  std::vector<float> initial_inverse_depth;
+  initial_inverse_depth.reserve(problem.points.size());
+  for (const DirectBaPoint& p : problem.points) initial_inverse_depth.push_back(p.inverse_depth);
+  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(options.keyframe_window_ba, &problem);
+  if (!summary.ok()) {
+    PRISM_LOG(WARNING) << "slam: keyframe adjustment: " << summary.status();
+    return;
+  }
+  // Each adjusted keyframe keeps its depth map; its depth unit follows the adjusted inverse depths of the
+  // points it hosts (median ratio).
+  for (int k = first + 1; k < n; ++k) {
+    Sim3d pose = problem.world_from_keyframe[static_cast<size_t>(k - first)];
+    std::vector<double> ratios;
+    for (size_t i = 0; i < problem.points.size(); ++i) {
+      const DirectBaPoint& p = problem.points[i];
+      if (p.host == k - first && p.ok) ratios.push_back(initial_inverse_depth[i] / p.inverse_depth);
+    }
+    if (ratios.size() >= 20) {
+      std::nth_element(ratios.begin(), ratios.begin() + ratios.size() / 2, ratios.end());
+      pose.scale *= ratios[ratios.size() / 2];
+    }
+    keyframes[static_cast<size_t>(k)].world_from_keyframe = pose;
+  }
+  // The odometry edges follow (a later loop closure starts from the adjusted chain), as do the frames.
+  for (PoseGraphEdge& e : graph_edges) {
+    if (e.to - e.from != 1 || e.to <= first) continue;
+    e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
+                     keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
+  }
+  for (FrameRecord& f : frames)
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id > first) f.result.world_from_camera = WorldFromFrame(f);
+  ++keyframe_adjustments;
+  PRISM_LOG(DEBUG) << "slam: keyframe adjustment " << first << ".." << n - 1 << ": " << problem.points.size()
+                   << " points, " << summary->residuals << " residuals, RMS " << summary->initial_rms << " -> "
+                   << summary->final_rms << " in " << summary->iterations << " iterations";
+}
+
 bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index) {
   // The last good pose, and the keyframes nearest to it (finished ones have their final depth).
   const Rigid3d last_world_from_camera = LastGoodWorldFromCamera();
@@ -739,6 +877,8 @@ PointCloud SlamSystem::SemiDenseCloud() const {
 int SlamSystem::num_keyframes() const { return static_cast<int>(impl_->keyframes.size()); }
 
 int SlamSystem::num_loop_closures() const { return impl_->loop_closures; }
+
+int SlamSystem::num_keyframe_adjustments() const { return impl_->keyframe_adjustments; }
 
 std::vector<Sim3d> SlamSystem::KeyframePoses() const {
   std::vector<Sim3d> out;

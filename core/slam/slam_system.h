@@ -25,6 +25,7 @@
 #include "core/io/calibration_io.h"
 #include "core/io/inverse_depth.h"
 #include "core/slam/depth_filter.h"
+#include "core/slam/keyframe_ba.h"
 #include "core/slam/tracker.h"
 #include "core/util/status.h"
 
@@ -35,9 +36,13 @@ class ThreadPool;
 struct SlamOptions {
   // The tracker tracks the local-mean normalised image, which already cancels brightness gain; a free
   // gain lets a wrong pose "explain" the image with a near-zero contrast, so it is off by default here.
+  // Its residual limit is looser than the tracker's default: on the boxes preset (sharp box edges, cast
+  // shadows) good frames reach an inlier RMS of 25-29 grey levels, and each such frame became a
+  // relocalisation (a new keyframe seeded at 5% depth uncertainty) that broke the scale.
   TrackerOptions tracker = [] {
     TrackerOptions t;
     t.estimate_affine_brightness = false;
+    t.max_residual_rms = 40.0;
     return t;
   }();
   DepthFilterOptions depth;
@@ -71,6 +76,13 @@ struct SlamOptions {
   // relative standard deviation, >= 1 and > 0.
   int tracking_min_observations = 2;
   double tracking_max_relative_sigma = 0.1;
+  // A tracked pose further than this from the constant-velocity prediction (rotation in degrees;
+  // translation as a fraction of the keyframe's mean depth) is a wrong minimum: the frame is tracked
+  // again from the last pose, and counts as lost when that is implausible too. The same test guards the
+  // tracking of the buffered initialisation frames (on the armadillo preset one of them jumped by 24
+  // degrees with every residual test passed, and the frames after it followed). > 0.
+  double max_step_rotation_deg = 10.0;
+  double max_step_translation_fraction = 0.2;
   // Relocalisation tries at most this many keyframes, nearest to the last good pose first, >= 1.
   int relocalise_max_keyframes = 5;
   // After this many consecutive lost frames the system tries to relocalise against every keyframe,
@@ -93,6 +105,17 @@ struct SlamOptions {
   // keyframe's depth units), log-scale; odometry edges and loop edges.
   double odometry_rotation_sigma = 0.002, odometry_translation_sigma = 0.005, odometry_log_scale_sigma = 0.01;
   double loop_rotation_sigma = 0.002, loop_translation_sigma = 0.005, loop_log_scale_sigma = 0.005;
+  // Windowed direct bundle adjustment of keyframes (keyframe_ba.h): after each new keyframe, the poses of
+  // the last keyframe_window keyframes and the inverse depths of points taken from their depth maps (one
+  // per keyframe_window_cell_px cell: the strongest gradient with a converged depth) are adjusted on
+  // the photometric error between keyframes. Each adjusted keyframe's depth unit (its Sim(3) scale) is
+  // then re-fitted to its points' adjusted depths. Keyframes are ~12% of the scene depth apart, so this
+  // constrains their relative poses and scale far better than frame-to-keyframe tracking does.
+  bool keyframe_adjustment = true;
+  int keyframe_window = 6;              // >= 3
+  int keyframe_window_cell_px = 12;     // >= 4
+  int keyframe_window_min_points = 40;  // fewer points: no adjustment, >= 10
+  DirectBaOptions keyframe_window_ba;
   Status Check() const;
 };
 
@@ -153,6 +176,8 @@ class SlamSystem {
   std::vector<Sim3d> KeyframePoses() const;
   // Loop-closure edges added to the pose graph so far.
   int num_loop_closures() const;
+  // Keyframe-window adjustments applied so far (SlamOptions::keyframe_adjustment).
+  int num_keyframe_adjustments() const;
 
  private:
   struct Impl;

@@ -1,0 +1,349 @@
+#include "core/slam/keyframe_ba.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include <Eigen/Cholesky>
+#include <Eigen/Geometry>
+#include <opencv2/imgproc.hpp>
+
+namespace prism {
+namespace {
+
+Eigen::Matrix3d Skew(const Eigen::Vector3d& v) {
+  Eigen::Matrix3d m;
+  m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
+  return m;
+}
+
+Eigen::Quaterniond ExpRotation(const Eigen::Vector3d& w) {
+  const double angle = w.norm();
+  if (angle < 1e-12) return Eigen::Quaterniond(1, 0.5 * w.x(), 0.5 * w.y(), 0.5 * w.z()).normalized();
+  return Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle));
+}
+
+double HuberCost(double e, double delta) { return e <= delta ? 0.5 * e * e : delta * (e - 0.5 * delta); }
+
+// Bilinear sample of a CV_32F image and its gradient (central differences of the bilinear surface);
+// false within 2 pixels of the border.
+bool SampleWithGradient(const cv::Mat& img, double x, double y, double* value, Eigen::Vector2d* grad) {
+  if (!(x >= 1 && y >= 1 && x < img.cols - 2 && y < img.rows - 2)) return false;
+  const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+  const double fx = x - x0, fy = y - y0;
+  auto at = [&](int yy, int xx) { return static_cast<double>(img.at<float>(yy, xx)); };
+  auto bil = [&](int yy, int xx) {
+    return (1 - fx) * (1 - fy) * at(yy, xx) + fx * (1 - fy) * at(yy, xx + 1) + (1 - fx) * fy * at(yy + 1, xx) +
+           fx * fy * at(yy + 1, xx + 1);
+  };
+  *value = bil(y0, x0);
+  // Central differences of the bilinear surface, sampled at the neighbours.
+  const double gx = 0.5 * (bil(y0, x0 + 1) - bil(y0, x0 - 1));
+  const double gy = 0.5 * (bil(y0 + 1, x0) - bil(y0 - 1, x0));
+  *grad = Eigen::Vector2d(gx, gy);
+  return true;
+}
+
+}  // namespace
+
+Status DirectBaOptions::Check() const {
+  std::ostringstream e;
+  if (max_iterations < 1 || max_iterations > 100)
+    e << "DirectBaOptions.max_iterations = " << max_iterations << "; violated: in [1, 100]";
+  else if (!(huber > 0))
+    e << "DirectBaOptions.huber = " << huber << "; violated: > 0";
+  else if (!(outlier > huber))
+    e << "DirectBaOptions.outlier = " << outlier << "; violated: > huber";
+  else if (pyramid_levels < 1 || pyramid_levels > 5)
+    e << "DirectBaOptions.pyramid_levels = " << pyramid_levels << "; violated: in [1, 5]";
+  else if (border_px < 2)
+    e << "DirectBaOptions.border_px = " << border_px << "; violated: >= 2";
+  else if (!(function_tolerance > 0))
+    e << "DirectBaOptions.function_tolerance = " << function_tolerance << "; violated: > 0";
+  if (e.str().empty()) return Status::Ok();
+  return InvalidArgumentError(e.str());
+}
+
+StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  if (problem == nullptr) return InvalidArgumentError("AdjustKeyframeWindowDirect: problem is null");
+  const int num_kf = static_cast<int>(problem->world_from_keyframe.size());
+  if (num_kf < 2) return InvalidArgumentError("AdjustKeyframeWindowDirect: needs >= 2 keyframes");
+  if (static_cast<int>(problem->grey_j.size()) != num_kf)
+    return InvalidArgumentError("AdjustKeyframeWindowDirect: one grey image per keyframe expected");
+  const PinholeCamera& cam = problem->camera;
+  if (cam.HasDistortion()) return InvalidArgumentError("AdjustKeyframeWindowDirect: camera has distortion");
+  for (const cv::Mat& g : problem->grey_j)
+    if (g.type() != CV_32F || g.cols != cam.width || g.rows != cam.height)
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: grey images must be CV_32F of the camera's size");
+  for (const DirectBaPoint& p : problem->points)
+    if (p.host < 0 || p.host >= num_kf || !(p.inverse_depth > 0))
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: point with a bad host or inverse depth");
+
+  struct Pose {
+    Eigen::Matrix3d rotation;
+    Eigen::Vector3d centre;
+    double scale;
+  };
+  std::vector<Pose> poses(static_cast<size_t>(num_kf));
+  for (int k = 0; k < num_kf; ++k) {
+    const Sim3d& s = problem->world_from_keyframe[static_cast<size_t>(k)];
+    poses[static_cast<size_t>(k)] = {s.rotation.toRotationMatrix(), s.translation, s.scale};
+  }
+  const int num_points = static_cast<int>(problem->points.size());
+  std::vector<double> rho(static_cast<size_t>(num_points));
+  std::vector<Eigen::Vector3d> ray(static_cast<size_t>(num_points));
+  for (int i = 0; i < num_points; ++i) {
+    const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+    rho[static_cast<size_t>(i)] = p.inverse_depth;
+    ray[static_cast<size_t>(i)] = cam.Unproject(Eigen::Vector2d(p.u, p.v));
+  }
+  Eigen::Vector3d baseline = poses[1].centre - poses[0].centre;
+  const double baseline_norm = baseline.norm();
+  baseline = baseline_norm > 0 ? Eigen::Vector3d(baseline / baseline_norm) : Eigen::Vector3d::UnitX();
+  const Eigen::Vector3d centre1_initial = poses[1].centre;
+  const int dim = 6 * (num_kf - 1);
+  // Stiff against the photometric rows (gradient^2 f^2 / z^2 per residual, many residuals).
+  const double gauge_weight = 1e10 * cam.fx * cam.fx / std::max(1e-12, baseline_norm * baseline_norm);
+  const double border = options.border_px;
+  // active[point * num_kf + target]
+  std::vector<uint8_t> active(static_cast<size_t>(num_points) * num_kf, 1);
+
+  // Point in target t's camera, and the pieces for the Jacobians.
+  auto project = [&](const std::vector<Pose>& ps, int i, double r, int t, Eigen::Vector3d* pt) {
+    const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+    const Pose& h = ps[static_cast<size_t>(p.host)];
+    const Eigen::Vector3d x = h.centre + h.scale * (h.rotation * (ray[static_cast<size_t>(i)] / r));
+    *pt = ps[static_cast<size_t>(t)].rotation.transpose() * (x - ps[static_cast<size_t>(t)].centre);
+    return pt->z() > 1e-9;
+  };
+  // Image pyramid (2x2 box averages) for a wider convergence basin: coarse to fine.
+  const int levels = options.pyramid_levels;
+  std::vector<std::vector<cv::Mat>> pyramid(static_cast<size_t>(levels));
+  pyramid[0] = problem->grey_j;
+  for (int l = 1; l < levels; ++l)
+    for (const cv::Mat& g : pyramid[static_cast<size_t>(l - 1)]) {
+      cv::Mat half;
+      cv::resize(g, half, cv::Size(g.cols / 2, g.rows / 2), 0, 0, cv::INTER_AREA);
+      pyramid[static_cast<size_t>(l)].push_back(half);
+    }
+  PinholeCamera lcam = cam;
+  const std::vector<cv::Mat>* limg = &pyramid[0];
+  std::vector<float> lint(static_cast<size_t>(num_points));
+  for (int i = 0; i < num_points; ++i) lint[static_cast<size_t>(i)] = problem->points[static_cast<size_t>(i)].intensity;
+
+  auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq) {
+    double cost = 0;
+    *count = 0;
+    *sq = 0;
+    for (int i = 0; i < num_points; ++i) {
+      const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+      if (!(rs[static_cast<size_t>(i)] > 0) || std::isnan(lint[static_cast<size_t>(i)])) continue;
+      for (int t = 0; t < num_kf; ++t) {
+        if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
+        Eigen::Vector3d pt;
+        if (!project(ps, i, rs[static_cast<size_t>(i)], t, &pt)) continue;
+        const Eigen::Vector2d px = lcam.Project(pt);
+        if (!lcam.InImage(px, border)) continue;
+        double value;
+        Eigen::Vector2d g;
+        if (!SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g)) continue;
+        const double e = std::abs(value - lint[static_cast<size_t>(i)]);
+        cost += HuberCost(e, options.huber);
+        *sq += e * e;
+        ++*count;
+      }
+    }
+    const double along = baseline.dot(ps[1].centre - centre1_initial);
+    return cost + 0.5 * gauge_weight * along * along;
+  };
+
+  DirectBaSummary summary;
+  int count = 0;
+  double sq = 0;
+  evaluate(poses, rho, &count, &sq);
+  summary.initial_rms = count > 0 ? std::sqrt(sq / count) : 0;
+
+  // Per point: the Hessian of its inverse depth, its gradient, and its coupling with the poses.
+  std::vector<double> hpp(static_cast<size_t>(num_points)), bp(static_cast<size_t>(num_points));
+  std::vector<Eigen::VectorXd> hcp(static_cast<size_t>(num_points), Eigen::VectorXd::Zero(dim));
+  for (int level = levels - 1; level >= 0; --level) {
+    const double f = std::ldexp(1.0, -level);
+    lcam = cam;
+    lcam.width = cam.width >> level;
+    lcam.height = cam.height >> level;
+    lcam.fx = cam.fx * f;
+    lcam.fy = cam.fy * f;
+    lcam.cx = (cam.cx + 0.5) * f - 0.5;
+    lcam.cy = (cam.cy + 0.5) * f - 0.5;
+    limg = &pyramid[static_cast<size_t>(level)];
+    for (int i = 0; i < num_points; ++i) {
+      const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+      double value = p.intensity;
+      Eigen::Vector2d g;
+      if (level > 0 && !SampleWithGradient((*limg)[static_cast<size_t>(p.host)], (p.u + 0.5) * f - 0.5,
+                                           (p.v + 0.5) * f - 0.5, &value, &g))
+        value = std::numeric_limits<double>::quiet_NaN();
+      lint[static_cast<size_t>(i)] = static_cast<float>(value);
+    }
+  const int rounds = level == 0 ? 2 : 1;
+  for (int round = 0; round < rounds; ++round) {
+    double lambda = 1e-3;
+    double cost = evaluate(poses, rho, &count, &sq);
+    for (int it = 0; it < options.max_iterations; ++it) {
+      ++summary.iterations;
+      Eigen::MatrixXd hcc = Eigen::MatrixXd::Zero(dim, dim);
+      Eigen::VectorXd bc = Eigen::VectorXd::Zero(dim);
+      std::fill(hpp.begin(), hpp.end(), 0.0);
+      std::fill(bp.begin(), bp.end(), 0.0);
+      for (int i = 0; i < num_points; ++i) {
+        const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+        const double r = rho[static_cast<size_t>(i)];
+        Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+        hc.setZero();
+        if (r > 0 && !std::isnan(lint[static_cast<size_t>(i)])) {
+          const Pose& h = poses[static_cast<size_t>(p.host)];
+          const Eigen::Vector3d q = ray[static_cast<size_t>(i)] / r;  // host camera, host units
+          for (int t = 0; t < num_kf; ++t) {
+            if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
+            const Pose& tp = poses[static_cast<size_t>(t)];
+            Eigen::Vector3d pt;
+            if (!project(poses, i, r, t, &pt)) continue;
+            const Eigen::Vector2d px = lcam.Project(pt);
+            if (!lcam.InImage(px, border)) continue;
+            double value;
+            Eigen::Vector2d g;
+            if (!SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g)) continue;
+            const double res = value - lint[static_cast<size_t>(i)];
+            const double e = std::abs(res);
+            const double w = e <= options.huber ? 1.0 : options.huber / e;
+            const double iz = 1.0 / pt.z();
+            Eigen::Matrix<double, 2, 3> du_dp;
+            du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
+            const Eigen::RowVector3d j_pt = g.transpose() * du_dp;  // d residual / d point in target
+            const Eigen::Matrix3d rt_t = tp.rotation.transpose();
+            // Target pose: right rotation perturbation and centre.
+            Eigen::Matrix<double, 1, 6> j_target;
+            j_target.head<3>() = j_pt * Skew(pt);
+            j_target.tail<3>() = -j_pt * rt_t;
+            // Host pose: x = c_h + s_h R_h exp(w) q.
+            Eigen::Matrix<double, 1, 6> j_host;
+            j_host.head<3>() = -j_pt * rt_t * h.scale * h.rotation * Skew(q);
+            j_host.tail<3>() = j_pt * rt_t;
+            const double j_rho = j_pt * (rt_t * (h.scale * (h.rotation * (-ray[static_cast<size_t>(i)] / (r * r)))));
+            hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
+            bp[static_cast<size_t>(i)] += w * j_rho * res;
+            const int kh = p.host, kt = t;
+            if (kt > 0) {
+              const int o = 6 * (kt - 1);
+              hcc.block<6, 6>(o, o) += w * j_target.transpose() * j_target;
+              bc.segment<6>(o) += w * j_target.transpose() * res;
+              hc.segment<6>(o) += w * j_target.transpose() * j_rho;
+            }
+            if (kh > 0) {
+              const int o = 6 * (kh - 1);
+              hcc.block<6, 6>(o, o) += w * j_host.transpose() * j_host;
+              bc.segment<6>(o) += w * j_host.transpose() * res;
+              hc.segment<6>(o) += w * j_host.transpose() * j_rho;
+            }
+            if (kh > 0 && kt > 0) {
+              const int oh = 6 * (kh - 1), ot = 6 * (kt - 1);
+              hcc.block<6, 6>(oh, ot) += w * j_host.transpose() * j_target;
+              hcc.block<6, 6>(ot, oh) += w * j_target.transpose() * j_host;
+            }
+          }
+        }
+      }
+      hcc.block<3, 3>(3, 3) += gauge_weight * baseline * baseline.transpose();
+      bc.segment<3>(3) += gauge_weight * baseline * baseline.dot(poses[1].centre - centre1_initial);
+
+      bool accepted = false;
+      for (int attempt = 0; attempt < 8 && !accepted; ++attempt) {
+        Eigen::MatrixXd s = hcc;
+        Eigen::VectorXd b = bc;
+        std::vector<double> hinv(static_cast<size_t>(num_points), 0.0);
+        for (int i = 0; i < num_points; ++i) {
+          const double h = hpp[static_cast<size_t>(i)] * (1 + lambda);
+          if (!(h > 1e-12)) continue;
+          hinv[static_cast<size_t>(i)] = 1.0 / h;
+          const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+          s.noalias() -= hc * hc.transpose() * hinv[static_cast<size_t>(i)];
+          b.noalias() -= hc * (hinv[static_cast<size_t>(i)] * bp[static_cast<size_t>(i)]);
+        }
+        for (int d = 0; d < dim; ++d) s(d, d) += lambda * std::max(1e-6, hcc(d, d));
+        const Eigen::VectorXd dc = s.ldlt().solve(-b);
+        if (!dc.allFinite()) {
+          lambda *= 10;
+          continue;
+        }
+        std::vector<Pose> np = poses;
+        for (int k = 1; k < num_kf; ++k) {
+          const Eigen::Matrix<double, 6, 1> d = dc.segment<6>(6 * (k - 1));
+          np[static_cast<size_t>(k)].rotation = poses[static_cast<size_t>(k)].rotation * ExpRotation(d.head<3>()).toRotationMatrix();
+          np[static_cast<size_t>(k)].centre = poses[static_cast<size_t>(k)].centre + d.tail<3>();
+        }
+        std::vector<double> nr = rho;
+        for (int i = 0; i < num_points; ++i) {
+          if (hinv[static_cast<size_t>(i)] == 0) continue;
+          const double d = -hinv[static_cast<size_t>(i)] * (bp[static_cast<size_t>(i)] + hcp[static_cast<size_t>(i)].dot(dc));
+          // Keep the inverse depth positive (a step to <= 0 is halved towards it).
+          nr[static_cast<size_t>(i)] = rho[static_cast<size_t>(i)] + d > 0.2 * rho[static_cast<size_t>(i)]
+                                           ? rho[static_cast<size_t>(i)] + d
+                                           : 0.2 * rho[static_cast<size_t>(i)];
+        }
+        int nc = 0;
+        double nsq = 0;
+        const double ncost = evaluate(np, nr, &nc, &nsq);
+        if (ncost < cost) {
+          const double decrease = (cost - ncost) / std::max(1e-300, cost);
+          poses.swap(np);
+          rho.swap(nr);
+          cost = ncost;
+          lambda = std::max(1e-7, lambda / 3);
+          accepted = true;
+          if (decrease < options.function_tolerance) it = options.max_iterations;
+        } else {
+          lambda *= 5;
+        }
+      }
+      if (!accepted) break;
+    }
+    if (round + 1 == rounds) break;
+    // Drop residuals above the outlier threshold, then solve again.
+    for (int i = 0; i < num_points; ++i) {
+      const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+      for (int t = 0; t < num_kf; ++t) {
+        if (t == p.host) continue;
+        Eigen::Vector3d pt;
+        if (!project(poses, i, rho[static_cast<size_t>(i)], t, &pt)) continue;
+        const Eigen::Vector2d px = lcam.Project(pt);
+        double value;
+        Eigen::Vector2d g;
+        if (!lcam.InImage(px, border) ||
+            !SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g))
+          continue;
+        if (std::abs(value - lint[static_cast<size_t>(i)]) > options.outlier) active[static_cast<size_t>(i) * num_kf + t] = 0;
+      }
+    }
+  }
+  }
+  evaluate(poses, rho, &count, &sq);
+  summary.final_rms = count > 0 ? std::sqrt(sq / count) : 0;
+  summary.residuals = count;
+  for (int k = 1; k < num_kf; ++k) {
+    Sim3d& out = problem->world_from_keyframe[static_cast<size_t>(k)];
+    out.rotation = Eigen::Quaterniond(poses[static_cast<size_t>(k)].rotation).normalized();
+    out.translation = poses[static_cast<size_t>(k)].centre;
+  }
+  for (int i = 0; i < num_points; ++i) {
+    DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+    p.inverse_depth = static_cast<float>(rho[static_cast<size_t>(i)]);
+    int inl = 0;
+    for (int t = 0; t < num_kf; ++t) inl += t != p.host && active[static_cast<size_t>(i) * num_kf + t];
+    p.ok = inl > 0 && rho[static_cast<size_t>(i)] > 0;
+  }
+  return summary;
+}
+
+}  // namespace prism

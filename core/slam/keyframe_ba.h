@@ -1,0 +1,81 @@
+// Windowed direct (photometric) bundle adjustment of the most recent keyframes, after DSO (Engel,
+// Koltun, Cremers 2018), used by SlamSystem after each new keyframe.
+//
+// Why: frame-to-keyframe tracking and the small-baseline depth filter feed each other, and the scale
+// drifts from keyframe to keyframe (on the dark-room presets typically 1-2% per keyframe, up to 10%).
+// Keyframes are about 12% of the scene depth apart, so the same surface points seen in several
+// keyframes constrain their relative poses far better than consecutive frames do.
+//
+// Each point is a pixel of a host keyframe with an inverse depth in the host's units; its residuals are
+// the differences between the host's shading-normalised grey level (KeyframeDepth::NormalisedGrey) and
+// each other keyframe's at the pixel it projects to (bilinear). Unknowns: the keyframe poses and every
+// point's inverse depth; Levenberg-Marquardt with Huber weights, the points eliminated by the Schur
+// complement (one unknown each). After a first solve, residuals above `outlier` are dropped and the
+// problem is solved again.
+//
+// Gauge (7 degrees of freedom, monocular): the first keyframe is held fixed, and the second may not move
+// along the line between the two camera centres (which fixes the scale).
+//
+// Measured against ground truth (prism-synth, starting from the true poses and depths): the adjustment
+// moves the keyframes by 2-4% of their spacing and changes their scale by ~1%, because the normalised
+// grey level still changes with the co-moving lights between keyframes. That is the accuracy limit of
+// this model.
+#pragma once
+
+#include <vector>
+
+#include <Eigen/Core>
+#include <opencv2/core.hpp>
+
+#include "core/geometry/camera.h"
+#include "core/geometry/rigid3.h"
+#include "core/util/status.h"
+
+namespace prism {
+
+struct DirectBaPoint {
+  int host = 0;             // index into DirectBaProblem::world_from_keyframe
+  float u = 0, v = 0;       // pixel in the host
+  float inverse_depth = 0;  // 1 / z in the host's units, > 0; in: initial value, out: adjusted
+  float intensity = 0;      // the host's normalised grey level at (u, v)
+  bool ok = true;           // out: kept at least one residual and a positive inverse depth
+};
+
+struct DirectBaProblem {
+  PinholeCamera camera;  // no distortion
+  // world_from_keyframe; the scale is the keyframe's depth unit and is held fixed. In: initial values,
+  // out: adjusted ([0] unchanged; see the gauge above).
+  std::vector<Sim3d> world_from_keyframe;
+  std::vector<cv::Mat> grey_j;  // CV_32F of the camera's size, one per keyframe
+  std::vector<DirectBaPoint> points;
+};
+
+struct DirectBaOptions {
+  // Pyramid levels, coarse to fine (one solve per coarser level, two at full resolution), in [1, 5].
+  // Coarser levels widen the convergence basin but bias the result (measured in SlamSystem: 3 levels
+  // gave a worse trajectory error than 1 on 6 of 9 presets; its starts are close).
+  int pyramid_levels = 1;
+  // Levenberg-Marquardt iterations per solve, in [1, 100].
+  int max_iterations = 10;
+  // Huber threshold on the grey-level residual, > 0.
+  double huber = 8.0;
+  // Residuals above this are dropped after the first solve, > huber.
+  double outlier = 30.0;
+  // Projections closer than this to the image border are skipped, pixels, >= 2.
+  int border_px = 3;
+  // A solve stops when the cost decreases by less than this fraction, > 0.
+  double function_tolerance = 1e-5;
+  Status Check() const;
+};
+
+struct DirectBaSummary {
+  int iterations = 0;
+  int residuals = 0;                      // used in the final solve
+  double initial_rms = 0, final_rms = 0;  // grey levels, over the residuals used
+};
+
+// Fails on invalid options, fewer than 2 keyframes, a grey image of the wrong size or type, a point with
+// an out-of-range host or a non-positive inverse depth, or a camera with distortion.
+StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem);
+
+}  // namespace prism

@@ -1,0 +1,197 @@
+#include "core/slam/keyframe_ba.h"
+
+#include <cmath>
+#include <cstdio>
+#include <random>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "core/slam/depth_filter.h"
+#include "core/synth/presets.h"
+#include "core/synth/renderer.h"
+#include "core/synth/trajectory.h"
+#include "core/util/thread_pool.h"
+
+namespace prism {
+namespace {
+
+// Four keyframes 12 frames apart on a prism-synth preset (about the spacing SlamSystem makes), with
+// ground-truth poses (metres) and points taken from the ground-truth depth.
+struct Window {
+  DirectBaProblem truth;
+  bool ok = false;
+  std::string why;
+};
+
+Window MakeWindow(const std::string& preset) {
+  Window w;
+  synth::PresetOptions o;
+  o.frames = 60;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, o);
+  if (!setup.ok()) {
+    w.why = setup.status().ToString();
+    return w;
+  }
+  const Trajectory traj = synth::MakeTrajectory(setup->trajectory);
+  ThreadPool pool;
+  w.truth.camera = setup->rig.camera;
+  const DepthFilterOptions depth_options;
+  for (int k = 0; k < 4; ++k) {
+    const int frame = 12 + 12 * k;
+    const synth::RenderedFrame f = synth::RenderFrame(setup->scene, setup->rig, traj[frame].world_from_camera,
+                                                      setup->render, 1000003ull + frame, &pool);
+    const Rigid3d& pose = traj[frame].world_from_camera;
+    w.truth.world_from_keyframe.push_back(Sim3d(1.0, pose.rotation, pose.translation));
+    cv::Mat j, mean;
+    KeyframeDepth::NormalisedGrey(f.rgb, depth_options, &j, &mean);
+    w.truth.grey_j.push_back(j);
+    // One point per 12x12 cell: the strongest gradient with a surface.
+    for (int cy = 4; cy + 12 <= j.rows - 4; cy += 12) {
+      for (int cx = 4; cx + 12 <= j.cols - 4; cx += 12) {
+        int bx = -1, by = -1;
+        float best = 36.0f;  // gradient^2 floor: flat or dark cells give no point
+        for (int y = cy; y < cy + 12; ++y) {
+          for (int x = cx; x < cx + 12; ++x) {
+            if (!(f.depth.at<float>(y, x) > 0) || mean.at<float>(y, x) < depth_options.min_local_mean) continue;
+            const float gx = 0.5f * (j.at<float>(y, x + 1) - j.at<float>(y, x - 1));
+            const float gy = 0.5f * (j.at<float>(y + 1, x) - j.at<float>(y - 1, x));
+            if (gx * gx + gy * gy > best) best = gx * gx + gy * gy, bx = x, by = y;
+          }
+        }
+        if (bx < 0) continue;
+        DirectBaPoint p;
+        p.host = k;
+        p.u = static_cast<float>(bx);
+        p.v = static_cast<float>(by);
+        p.inverse_depth = 1.0f / f.depth.at<float>(by, bx);
+        p.intensity = j.at<float>(by, bx);
+        w.truth.points.push_back(p);
+      }
+    }
+  }
+  w.ok = true;
+  return w;
+}
+
+double Spacing(const DirectBaProblem& p) {
+  return (p.world_from_keyframe[1].translation - p.world_from_keyframe[0].translation).norm();
+}
+
+// Largest camera-centre error of keyframes 2.. against the truth, as a fraction of the keyframe spacing.
+double CentreError(const DirectBaProblem& p, const DirectBaProblem& truth) {
+  double worst = 0;
+  for (size_t k = 2; k < p.world_from_keyframe.size(); ++k)
+    worst = std::max(worst, (p.world_from_keyframe[k].translation - truth.world_from_keyframe[k].translation).norm() /
+                                Spacing(truth));
+  return worst;
+}
+
+// Keyframe 3's distance from keyframe 0 over the truth's: the scale the window carries forward.
+double ScaleRatio(const DirectBaProblem& p, const DirectBaProblem& truth) {
+  return (p.world_from_keyframe[3].translation - p.world_from_keyframe[0].translation).norm() /
+         (truth.world_from_keyframe[3].translation - truth.world_from_keyframe[0].translation).norm();
+}
+
+// Tolerances from measurement (printed). From the truth, the adjustment moves keyframes 2-3 by 1-5% of
+// the keyframe spacing and changes the scale by up to 1.2%: the normalised grey level still changes
+// with the co-moving lights between keyframes, so the photometric minimum is near, not at, the truth.
+// From a start 3% short in scale and 5% of the spacing sideways it lowers the photometric error but
+// does not find the truth again (the scale stays 2-4% short, the centres 8-12% of the spacing off): on
+// these dark-room images the scale is only weakly observable in the photometric error between
+// keyframes. SlamSystem uses the adjustment for the small corrections it makes (see the README).
+constexpr double kMaxCentreErrorFromTruth = 0.08;  // of the spacing
+constexpr double kMaxScaleErrorFromTruth = 0.015;
+constexpr double kMaxCentreErrorGrowth = 0.03;     // of the spacing, from the perturbed start
+
+class KeyframeBaPresetTest : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(KeyframeBaPresetTest, StaysNearTheTruthAndLowersTheErrorFromAPerturbedStart) {
+  const Window w = MakeWindow(GetParam());
+  if (!w.ok) GTEST_SKIP() << "preset unavailable: " << w.why;
+  ASSERT_GT(w.truth.points.size(), 500u);
+
+  DirectBaProblem from_truth = w.truth;
+  StatusOr<DirectBaSummary> s0 = AdjustKeyframeWindowDirect(DirectBaOptions(), &from_truth);
+  ASSERT_TRUE(s0.ok()) << s0.status();
+  const double truth_drift = CentreError(from_truth, w.truth);
+  std::printf("%s from the truth: centre error %.4f of the spacing, scale %.4f, RMS %.2f -> %.2f\n",
+              GetParam().c_str(), truth_drift, ScaleRatio(from_truth, w.truth), s0->initial_rms, s0->final_rms);
+  EXPECT_LE(truth_drift, kMaxCentreErrorFromTruth);
+  EXPECT_NEAR(ScaleRatio(from_truth, w.truth), 1.0, kMaxScaleErrorFromTruth);
+  EXPECT_LT(s0->final_rms, s0->initial_rms);
+
+  // Keyframes 2 and 3 moved 3% towards keyframe 0 (scale drift) and 5% of the spacing sideways, rotated
+  // by 0.2 deg; every inverse depth 5% off at random.
+  DirectBaProblem start = w.truth;
+  const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
+  const Eigen::Vector3d side = (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
+  for (int k = 2; k < 4; ++k) {
+    Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
+    p.translation = c0 + 0.97 * (p.translation - c0) + side;
+    p.rotation = p.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.2 * M_PI / 180, Eigen::Vector3d::UnitX()));
+  }
+  std::mt19937 rng(7);
+  std::normal_distribution<float> noise(0.0f, 0.05f);
+  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  const double start_error = CentreError(start, w.truth);
+  StatusOr<DirectBaSummary> s1 = AdjustKeyframeWindowDirect(DirectBaOptions(), &start);
+  ASSERT_TRUE(s1.ok()) << s1.status();
+  const double end_error = CentreError(start, w.truth);
+  std::printf("%s perturbed: centre error %.4f -> %.4f of the spacing, scale 0.97 -> %.4f, RMS %.2f -> %.2f\n",
+              GetParam().c_str(), start_error, end_error, ScaleRatio(start, w.truth), s1->initial_rms, s1->final_rms);
+  EXPECT_LE(end_error, start_error + kMaxCentreErrorGrowth);
+  EXPECT_LT(s1->final_rms, s1->initial_rms);
+  // The gauge: keyframe 0 does not move, keyframe 1 not along the baseline.
+  EXPECT_LT((start.world_from_keyframe[0].translation - c0).norm(), 1e-12);
+  const Eigen::Vector3d b = (w.truth.world_from_keyframe[1].translation - c0).normalized();
+  EXPECT_LT(std::abs(b.dot(start.world_from_keyframe[1].translation - w.truth.world_from_keyframe[1].translation)),
+            1e-6 * Spacing(w.truth));
+}
+
+INSTANTIATE_TEST_SUITE_P(Presets, KeyframeBaPresetTest,
+                         ::testing::Values("sphere-multicolor-sideways", "bunny-uniform-sideways",
+                                           "relief-uniform-sideways", "boxes-multicolor-forward"),
+                         [](const ::testing::TestParamInfo<std::string>& info) {
+                           std::string n = info.param;
+                           for (char& c : n)
+                             if (c == '-') c = '_';
+                           return n;
+                         });
+
+TEST(KeyframeBa, RejectsBadInput) {
+  DirectBaProblem p;
+  p.camera = PinholeCamera::FromFov(64, 48, 60.0);
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), nullptr).ok());
+  p.world_from_keyframe.resize(1);
+  p.grey_j.assign(1, cv::Mat::zeros(48, 64, CV_32F));
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "one keyframe";
+  p.world_from_keyframe.resize(2);
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "one grey image for two keyframes";
+  p.grey_j.assign(2, cv::Mat::zeros(48, 64, CV_32F));
+  p.world_from_keyframe[1].translation = Eigen::Vector3d(0.1, 0, 0);
+  EXPECT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "no points is allowed";
+  p.grey_j[1] = cv::Mat::zeros(48, 64, CV_8U);
+  StatusOr<DirectBaSummary> wrong_type = AdjustKeyframeWindowDirect(DirectBaOptions(), &p);
+  EXPECT_FALSE(wrong_type.ok());
+  p.grey_j[1] = cv::Mat::zeros(48, 64, CV_32F);
+  DirectBaPoint bad;
+  bad.host = 5;
+  bad.inverse_depth = 1;
+  p.points.push_back(bad);
+  StatusOr<DirectBaSummary> bad_host = AdjustKeyframeWindowDirect(DirectBaOptions(), &p);
+  EXPECT_FALSE(bad_host.ok());
+  p.points[0].host = 0;
+  p.points[0].inverse_depth = 0;
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "inverse depth 0";
+  DirectBaOptions o;
+  o.outlier = o.huber;
+  EXPECT_FALSE(o.Check().ok());
+  o = DirectBaOptions();
+  o.border_px = 1;
+  EXPECT_FALSE(o.Check().ok());
+}
+
+}  // namespace
+}  // namespace prism
