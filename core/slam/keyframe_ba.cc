@@ -268,11 +268,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           if (!(h > 1e-12)) continue;
           hinv[static_cast<size_t>(i)] = 1.0 / h;
           const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-          s.noalias() -= hc * hc.transpose() * hinv[static_cast<size_t>(i)];
+          s.selfadjointView<Eigen::Lower>().rankUpdate(hc, -hinv[static_cast<size_t>(i)]);
           b.noalias() -= hc * (hinv[static_cast<size_t>(i)] * bp[static_cast<size_t>(i)]);
         }
         for (int d = 0; d < dim; ++d) s(d, d) += lambda * std::max(1e-6, hcc(d, d));
-        const Eigen::VectorXd dc = s.ldlt().solve(-b);
+        const Eigen::VectorXd dc = s.selfadjointView<Eigen::Lower>().ldlt().solve(-b);
         if (!dc.allFinite()) {
           lambda *= 10;
           continue;
