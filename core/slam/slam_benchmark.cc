@@ -1,8 +1,9 @@
 // The SLAM at 512x512 on this machine: build/bin/slam_benchmark
 //   BM_DepthUpdate: one stereo update of a keyframe's depth filter from a tracked frame (the mapping
 //                   work per frame), on 1 thread.
-//   BM_SlamSequence: the whole SlamSystem (initialisation, tracking, depth filter, keyframes) over
-//                    150 frames of a preset; the per-frame time is the "ms_per_frame" counter.
+//   BM_SlamSequence: the whole SlamSystem (initialisation, tracking, depth filter, keyframes, keyframe
+//                    adjustment) over 150 frames of a preset; the per-frame time is the "ms_per_frame"
+//                    counter (with and without the keyframe adjustment on the bunny).
 #include <map>
 #include <memory>
 #include <string>
@@ -78,16 +79,18 @@ BENCHMARK_CAPTURE(BM_DepthUpdate, bunny, std::string("bunny-multicolor-forward")
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 
-void BM_SlamSequence(benchmark::State& state, const std::string& preset) {
+void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment) {
   const Frames* f = GetFrames(preset);
   if (!f) {
     state.SkipWithError("preset unavailable");
     return;
   }
   ThreadPool pool(static_cast<int>(state.range(0)));
-  int lost = 0;
+  int lost = 0, keyframes = 0;
   for (auto _ : state) {
-    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(f->setup.rig, SlamOptions(), &pool);
+    SlamOptions options;
+    options.keyframe_adjustment = keyframe_adjustment;
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(f->setup.rig, options, &pool);
     if (!slam.ok()) {
       state.SkipWithError(slam.status().ToString().c_str());
       return;
@@ -101,13 +104,15 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset) {
       lost += r->state == SlamState::kLost;
       benchmark::DoNotOptimize((*slam)->TakeFinishedKeyframes());
     }
+    keyframes = (*slam)->num_keyframes();
   }
   state.counters["ms_per_frame"] = benchmark::Counter(
       static_cast<double>(f->frames.size()) * state.iterations(),
       benchmark::Counter::kIsRate | benchmark::Counter::kInvert, benchmark::Counter::kIs1000);
   state.counters["lost_frames"] = lost;
+  state.counters["keyframes"] = keyframes;
 }
-BENCHMARK_CAPTURE(BM_SlamSequence, bunny, std::string("bunny-multicolor-forward"))
+BENCHMARK_CAPTURE(BM_SlamSequence, bunny, std::string("bunny-multicolor-forward"), true)
     ->Arg(1)
     ->Arg(2)
     ->Unit(benchmark::kMillisecond)
@@ -115,7 +120,16 @@ BENCHMARK_CAPTURE(BM_SlamSequence, bunny, std::string("bunny-multicolor-forward"
     ->UseRealTime()
     ->Repetitions(3)
     ->ReportAggregatesOnly(true);
-BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sideways"))
+// Without the keyframe adjustment: the difference is its cost.
+BENCHMARK_CAPTURE(BM_SlamSequence, bunny_no_keyframe_adjustment, std::string("bunny-multicolor-forward"), false)
+    ->Arg(1)
+    ->Arg(2)
+    ->Unit(benchmark::kMillisecond)
+    ->Iterations(1)
+    ->UseRealTime()
+    ->Repetitions(3)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sideways"), true)
     ->Arg(2)
     ->Unit(benchmark::kMillisecond)
     ->Iterations(1)
