@@ -702,6 +702,9 @@ void SlamSystem::Impl::AdjustKeyframeWindow() {
   const int n = static_cast<int>(keyframes.size());
   const int first = std::max(0, n - options.keyframe_window);
   if (n - first < 3 || !current_depth) return;
+  // Keyframes that left the window are not adjusted again: drop their normalised images (1 MB each at
+  // 512x512, which would otherwise grow with the session).
+  for (int k = 0; k < first; ++k) keyframes[static_cast<size_t>(k)].grey_j.release();
   const PinholeCamera& cam = rig.camera;
   DirectBaProblem problem;
   problem.camera = cam;
