@@ -37,6 +37,12 @@ Sim3d Sim3d::Inverse() const {
   return Sim3d(1.0 / scale, inv, -(inv * translation) / scale);
 }
 
+Eigen::Quaterniond ExpSo3(const Eigen::Vector3d& w) {
+  const double angle = w.norm();
+  if (angle < 1e-12) return Eigen::Quaterniond(1, 0.5 * w.x(), 0.5 * w.y(), 0.5 * w.z()).normalized();
+  return Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle));
+}
+
 double RotationAngle(const Eigen::Quaterniond& q) {
   const Eigen::Quaterniond n = q.normalized();
   const double v = n.vec().norm();

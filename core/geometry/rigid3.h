@@ -48,6 +48,9 @@ struct Sim3d {
 // Angle of a rotation in radians, in [0, pi].
 double RotationAngle(const Eigen::Quaterniond& q);
 
+// Rotation of the rotation vector w (axis * angle in radians), the exponential map of SO(3).
+Eigen::Quaterniond ExpSo3(const Eigen::Vector3d& w);
+
 // Rotation whose z axis points from `eye` to `target`, with x roughly perpendicular to `up`
 // (OpenCV camera: x right, y down, z forward). Returns world_from_camera.
 Rigid3d LookAt(const Eigen::Vector3d& eye, const Eigen::Vector3d& target, const Eigen::Vector3d& up);

@@ -18,12 +18,6 @@ Eigen::Matrix3d Skew(const Eigen::Vector3d& v) {
   return m;
 }
 
-Eigen::Quaterniond ExpRotation(const Eigen::Vector3d& w) {
-  const double angle = w.norm();
-  if (angle < 1e-12) return Eigen::Quaterniond(1, 0.5 * w.x(), 0.5 * w.y(), 0.5 * w.z()).normalized();
-  return Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle));
-}
-
 double HuberCost(double e, double delta) { return e <= delta ? 0.5 * e * e : delta * (e - 0.5 * delta); }
 
 // Bilinear sample of a CV_32F image and its gradient (central differences of the bilinear surface);
@@ -280,7 +274,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         std::vector<Pose> np = poses;
         for (int k = 1; k < num_kf; ++k) {
           const Eigen::Matrix<double, 6, 1> d = dc.segment<6>(6 * (k - 1));
-          np[static_cast<size_t>(k)].rotation = poses[static_cast<size_t>(k)].rotation * ExpRotation(d.head<3>()).toRotationMatrix();
+          np[static_cast<size_t>(k)].rotation = poses[static_cast<size_t>(k)].rotation * ExpSo3(d.head<3>()).toRotationMatrix();
           np[static_cast<size_t>(k)].centre = poses[static_cast<size_t>(k)].centre + d.tail<3>();
         }
         std::vector<double> nr = rho;

@@ -74,6 +74,37 @@ struct DirectBaSummary {
   double initial_rms = 0, final_rms = 0;  // grey levels, over the residuals used
 };
 
+// Points of one keyframe for the adjustment: in each cell x cell block (4 pixels from the border), the
+// pixel with the strongest squared gradient of grey_j (central differences) above min_gradient_squared
+// among those with inverse_depth > 0 that usable(x, y) accepts. grey_j and inverse_depth: CV_32F of the
+// same size.
+template <typename Usable>
+void SelectCellPoints(const cv::Mat& grey_j, const cv::Mat& inverse_depth, int host, int cell,
+                      float min_gradient_squared, Usable usable, std::vector<DirectBaPoint>* points) {
+  for (int cy = 4; cy + cell <= grey_j.rows - 4; cy += cell) {
+    for (int cx = 4; cx + cell <= grey_j.cols - 4; cx += cell) {
+      int bx = -1, by = -1;
+      float best = min_gradient_squared;
+      for (int y = cy; y < cy + cell; ++y) {
+        for (int x = cx; x < cx + cell; ++x) {
+          if (!(inverse_depth.at<float>(y, x) > 0) || !usable(x, y)) continue;
+          const float gx = 0.5f * (grey_j.at<float>(y, x + 1) - grey_j.at<float>(y, x - 1));
+          const float gy = 0.5f * (grey_j.at<float>(y + 1, x) - grey_j.at<float>(y - 1, x));
+          if (gx * gx + gy * gy > best) best = gx * gx + gy * gy, bx = x, by = y;
+        }
+      }
+      if (bx < 0) continue;
+      DirectBaPoint p;
+      p.host = host;
+      p.u = static_cast<float>(bx);
+      p.v = static_cast<float>(by);
+      p.inverse_depth = inverse_depth.at<float>(by, bx);
+      p.intensity = grey_j.at<float>(by, bx);
+      points->push_back(p);
+    }
+  }
+}
+
 // Fails on invalid options, fewer than 2 keyframes, a grey image of the wrong size or type, a point with
 // an out-of-range host or a non-positive inverse depth, or a camera with distortion.
 StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem);

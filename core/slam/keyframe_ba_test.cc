@@ -47,29 +47,15 @@ Window MakeWindow(const std::string& preset) {
     cv::Mat j, mean;
     KeyframeDepth::NormalisedGrey(f.rgb, depth_options, &j, &mean);
     w.truth.grey_j.push_back(j);
-    // One point per 12x12 cell: the strongest gradient with a surface.
-    for (int cy = 4; cy + 12 <= j.rows - 4; cy += 12) {
-      for (int cx = 4; cx + 12 <= j.cols - 4; cx += 12) {
-        int bx = -1, by = -1;
-        float best = 36.0f;  // gradient^2 floor: flat or dark cells give no point
-        for (int y = cy; y < cy + 12; ++y) {
-          for (int x = cx; x < cx + 12; ++x) {
-            if (!(f.depth.at<float>(y, x) > 0) || mean.at<float>(y, x) < depth_options.min_local_mean) continue;
-            const float gx = 0.5f * (j.at<float>(y, x + 1) - j.at<float>(y, x - 1));
-            const float gy = 0.5f * (j.at<float>(y + 1, x) - j.at<float>(y - 1, x));
-            if (gx * gx + gy * gy > best) best = gx * gx + gy * gy, bx = x, by = y;
-          }
-        }
-        if (bx < 0) continue;
-        DirectBaPoint p;
-        p.host = k;
-        p.u = static_cast<float>(bx);
-        p.v = static_cast<float>(by);
-        p.inverse_depth = 1.0f / f.depth.at<float>(by, bx);
-        p.intensity = j.at<float>(by, bx);
-        w.truth.points.push_back(p);
-      }
-    }
+    // One point per 12x12 cell: the strongest gradient with a surface (as SlamSystem picks them).
+    cv::Mat inverse_depth = cv::Mat::zeros(f.depth.size(), CV_32F);
+    for (int y = 0; y < f.depth.rows; ++y)
+      for (int x = 0; x < f.depth.cols; ++x)
+        if (f.depth.at<float>(y, x) > 0) inverse_depth.at<float>(y, x) = 1.0f / f.depth.at<float>(y, x);
+    const float min_mean = static_cast<float>(depth_options.min_local_mean);
+    // Gradient^2 floor 36: flat or dark cells give no point.
+    SelectCellPoints(j, inverse_depth, k, 12, 36.0f, [&](int x, int y) { return mean.at<float>(y, x) >= min_mean; },
+                     &w.truth.points);
   }
   w.ok = true;
   return w;

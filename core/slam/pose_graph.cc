@@ -23,12 +23,6 @@ Eigen::Vector3d LogSo3(const Eigen::Quaterniond& q) {
   return angle * axis;
 }
 
-Eigen::Quaterniond ExpSo3(const Eigen::Vector3d& w) {
-  const double angle = w.norm();
-  if (angle < 1e-12) return Eigen::Quaterniond(1, 0.5 * w.x(), 0.5 * w.y(), 0.5 * w.z()).normalized();
-  return Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle));
-}
-
 // T * Exp(delta), delta = (rotation, translation, log-scale).
 Sim3d Retract(const Sim3d& t, const Vector7d& delta) {
   const Sim3d d(std::exp(delta(6)), ExpSo3(delta.head<3>()), delta.segment<3>(3));

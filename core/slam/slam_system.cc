@@ -721,36 +721,16 @@ void SlamSystem::Impl::AdjustKeyframeWindow() {
     maps.push_back(kf.finished ? kf.final_depth : current_depth->ToInverseDepthMap());
   }
   // Points: per cell, the strongest gradient with a converged inverse depth.
-  const int cell = options.keyframe_window_cell_px;
   for (int k = 0; k < n - first; ++k) {
     const cv::Mat& d = maps[static_cast<size_t>(k)].inverse_depth;
     const cv::Mat& var = maps[static_cast<size_t>(k)].variance;
-    const cv::Mat& j = problem.grey_j[static_cast<size_t>(k)];
     if (d.empty()) continue;
-    for (int cy = 4; cy + cell <= cam.height - 4; cy += cell) {
-      for (int cx = 4; cx + cell <= cam.width - 4; cx += cell) {
-        int bx = -1, by = -1;
-        float best = 0;
-        for (int y = cy; y < cy + cell; ++y) {
-          for (int x = cx; x < cx + cell; ++x) {
-            const float r = d.at<float>(y, x);
-            if (!(r > 0)) continue;
-            if (!var.empty() && !(std::sqrt(var.at<float>(y, x)) <= options.tracking_max_relative_sigma * r)) continue;
-            const float gx = 0.5f * (j.at<float>(y, x + 1) - j.at<float>(y, x - 1));
-            const float gy = 0.5f * (j.at<float>(y + 1, x) - j.at<float>(y - 1, x));
-            if (gx * gx + gy * gy > best) best = gx * gx + gy * gy, bx = x, by = y;
-          }
-        }
-        if (bx < 0) continue;
-        DirectBaPoint p;
-        p.host = k;
-        p.u = static_cast<float>(bx);
-        p.v = static_cast<float>(by);
-        p.inverse_depth = d.at<float>(by, bx);
-        p.intensity = j.at<float>(by, bx);
-        problem.points.push_back(p);
-      }
-    }
+    const double max_sigma = options.tracking_max_relative_sigma;
+    SelectCellPoints(problem.grey_j[static_cast<size_t>(k)], d, k, options.keyframe_window_cell_px, 0.0f,
+                     [&](int x, int y) {
+                       return var.empty() || std::sqrt(var.at<float>(y, x)) <= max_sigma * d.at<float>(y, x);
+                     },
+                     &problem.points);
   }
   if (static_cast<int>(problem.points.size()) < options.keyframe_window_min_points) return;
   std::vector<float> initial_inverse_depth;
