@@ -31,6 +31,7 @@ cv::Mat ToGrey8(const cv::Mat& rgb) {
 
 Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(tracker.Check());
+  PRISM_RETURN_IF_ERROR(wide_baseline_tracker.Check());
   PRISM_RETURN_IF_ERROR(depth.Check());
   if (!(keyframe_distance_fraction > 0)) return InvalidArgumentError("SlamOptions: keyframe_distance_fraction must be > 0");
   if (!(keyframe_min_visible_fraction >= 0 && keyframe_min_visible_fraction <= 1))
@@ -157,9 +158,14 @@ StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& r
   impl->pool = pool;
   PRISM_ASSIGN_OR_RETURN(Tracker t, Tracker::Create(rig, options.tracker));
   impl->tracker = std::make_unique<Tracker>(std::move(t));
-  PRISM_ASSIGN_OR_RETURN(Tracker r, Tracker::Create(rig, options.tracker));
+  // The wide-baseline tracker's extra level is dropped on images too small for it (coarsest side >= 8).
+  TrackerOptions wide = options.wide_baseline_tracker;
+  while (wide.pyramid_levels > options.tracker.pyramid_levels &&
+         std::min(rig.camera.width, rig.camera.height) >> (wide.pyramid_levels - 1) < 8)
+    --wide.pyramid_levels;
+  PRISM_ASSIGN_OR_RETURN(Tracker r, Tracker::Create(rig, wide));
   impl->reloc_tracker = std::make_unique<Tracker>(std::move(r));
-  PRISM_ASSIGN_OR_RETURN(Tracker l, Tracker::Create(rig, options.tracker));
+  PRISM_ASSIGN_OR_RETURN(Tracker l, Tracker::Create(rig, wide));
   impl->loop_tracker = std::make_unique<Tracker>(std::move(l));
   TrackerOptions init_options = options.tracker;
   init_options.max_residual_rms *= options.init_residual_factor;
