@@ -248,7 +248,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
     return true;
   };
 
-  std::vector<float> errors;
+  std::vector<float> errors, samples;
   for (int y = y0; y < y1; ++y) {
     const uint8_t* cand = candidate_.ptr<uint8_t>(y);
     const float* gxr = grad_x_.ptr<float>(y);
@@ -302,21 +302,40 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
         len = static_cast<float>(max_search);
       }
       ++stats->searched;
-      const int n = static_cast<int>(std::floor(len)) + 1;
+      // The patch's samples lie on the frame's epipolar line too (the keyframe's epipolar line maps onto
+      // it, so m is parallel to e), mu apart. The search steps by |mu|, so that each position shares four
+      // of its five samples with the previous one (as in LSD-SLAM): one bilinear sample per position.
+      const float mu = m.dot(e);
+      const float step = std::abs(mu);
+      float kq[2 * kPatchHalf + 1];  // the keyframe patch in the order of increasing line parameter
+      for (int i = 0; i <= 2 * kPatchHalf; ++i) kq[i] = mu > 0 ? kp[i] : kp[2 * kPatchHalf - i];
+      // Positions s in [0, n + 1] at line parameter (s - 1) * step from `start` (a neighbour on each
+      // side of the segment for the parabola); sample k at (k - 1 - kPatchHalf) * step, so position s
+      // uses samples s .. s + 2 kPatchHalf.
+      const int n = static_cast<int>(std::floor(len / step)) + 1;
+      const int num_samples = n + 2 + 2 * kPatchHalf;
+      constexpr float kOutside = -1e30f;
+      samples.resize(static_cast<size_t>(num_samples));
+      for (int k = 0; k < num_samples; ++k) {
+        const Eigen::Vector2f q = start + (static_cast<float>(k - 1 - kPatchHalf) * step) * e;
+        samples[static_cast<size_t>(k)] = Inside(frame, q.x(), q.y(), 0) ? SampleBilinear(frame, q.x(), q.y()) : kOutside;
+      }
       errors.assign(n + 2, std::numeric_limits<float>::infinity());
       int best = -1;
       float best_err = std::numeric_limits<float>::infinity();
-      // Sample positions: start + (s - 1 + offset) * e for s in [0, n + 1], so errors has a neighbour
-      // on each side of the segment for the parabola.
       for (int s = 0; s < n + 2; ++s) {
-        const Eigen::Vector2f q = start + (s - 1.0f) * e;
-        const Eigen::Vector2f q0 = q - kPatchHalf * m, q1 = q + kPatchHalf * m;
-        if (!Inside(frame, q0.x(), q0.y(), 0) || !Inside(frame, q1.x(), q1.y(), 0)) continue;
         float err = 0;
-        for (int i = -kPatchHalf; i <= kPatchHalf; ++i) {
-          const float d = SampleBilinear(frame, q.x() + i * m.x(), q.y() + i * m.y()) - kp[i + kPatchHalf];
+        bool inside = true;
+        for (int i = 0; i <= 2 * kPatchHalf; ++i) {
+          const float v = samples[static_cast<size_t>(s + i)];
+          if (v == kOutside) {
+            inside = false;
+            break;
+          }
+          const float d = v - kq[i];
           err += d * d;
         }
+        if (!inside) continue;
         errors[s] = err;
         if (s >= 1 && s <= n && err < best_err) best_err = err, best = s;
       }
@@ -326,7 +345,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       }
       float second = std::numeric_limits<float>::infinity();
       for (int s = 1; s <= n; ++s)
-        if (std::abs(s - best) > 2) second = std::min(second, errors[s]);
+        if (static_cast<float>(std::abs(s - best)) * step > 2.0f) second = std::min(second, errors[s]);
       if (second < ratio * best_err) {
         ++stats->no_match;
         continue;
@@ -343,7 +362,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
         if (std::abs(den_x) * fx > std::abs(den_y) * fy) return (a.x() - qx * a.z()) / den_x;
         return (a.y() - qy * a.z()) / den_y;
       };
-      const Eigen::Vector2f qb = start + (best - 1.0f + offset) * e;
+      const Eigen::Vector2f qb = start + ((best - 1.0f + offset) * step) * e;
       const float rho_obs = rho_at(qb);
       const float alpha = std::abs(rho_at(qb + 0.5f * e) - rho_at(qb - 0.5f * e));
       if (!(rho_obs > 0) || !std::isfinite(alpha)) {

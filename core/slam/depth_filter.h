@@ -31,8 +31,11 @@ struct DepthFilterOptions {
   // Minimum |cos| between the gradient direction and the epipolar line; below it the match is too
   // ambiguous along the line, in [0, 1).
   double min_gradient_line_cosine = 0.3;
-  // Epipolar search: the 5 samples (spacing 1 px) of a patch are compared by SSD on J; a match is
-  // accepted when its mean squared difference per sample is below this (J grey levels^2), > 0 ...
+  // Epipolar search: the 5 samples of a keyframe patch (1 px apart along the epipolar line) against
+  // 5 samples along the frame's epipolar line, as far apart as the keyframe's pixel step maps to there,
+  // the search stepping by that distance (each position shares 4 samples with the previous one); SSD on
+  // J. A match is accepted when its mean squared difference per sample is below this (J grey
+  // levels^2), > 0 ...
   double max_match_error = 300.0;
   // ... and the best match outside +-2 px of it is at least this factor worse, >= 1.
   double min_match_ratio = 1.5;

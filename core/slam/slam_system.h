@@ -41,9 +41,9 @@ struct SlamOptions {
   // relocalisation (a new keyframe seeded at 5% depth uncertainty) that broke the scale.
   // The dark-room presets are dim (the ground is lit to 15-40 grey levels) and their texture soft, so
   // both the tracker and the depth filter take darker, weaker-gradient pixels than their own defaults:
-  // on 9 presets x 3 seeds this took the runs within 1% of the path from 13 to 20 of 27 (geometric mean
-  // of the ATE 1.46 -> 0.78%), the semi-dense coverage from ~5% to ~15% of the image, and the SLAM time
-  // per frame from 19 to 36 ms on one thread (the depth filter's stereo searches).
+  // on 9 presets x 3 seeds this took the runs within 1% of the path from 13 to 17 of 27 (geometric mean
+  // of the ATE 1.46 -> 0.82%) and the semi-dense coverage from ~5% to ~15% of the image; the SLAM time
+  // per frame went from 19 to 30 ms on one thread (the depth filter's stereo searches).
   TrackerOptions tracker = [] {
     TrackerOptions t;
     t.estimate_affine_brightness = false;

@@ -1,6 +1,7 @@
 // Frame-to-keyframe tracking at 512x512: build/bin/tracker_benchmark
 #include <benchmark/benchmark.h>
 
+#include "core/slam/slam_system.h"
 #include "core/slam/tracker.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
@@ -9,8 +10,10 @@
 namespace prism {
 namespace {
 
+// slam_options: the tracker settings SlamSystem uses (SlamOptions::tracker: darker, weaker pixels)
+// instead of the tracker's own defaults.
 void BM_Track(benchmark::State& state, const std::string& preset, int gap,
-              ShadingModel shading_model = ShadingModel::kLocalMeanNormalisation) {
+              ShadingModel shading_model = ShadingModel::kLocalMeanNormalisation, bool slam_options = false) {
   synth::PresetOptions o;
   o.frames = 60;
   StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, o);
@@ -27,7 +30,7 @@ void BM_Track(benchmark::State& state, const std::string& preset, int gap,
   for (int y = 0; y < key.depth.rows; ++y)
     for (int x = 0; x < key.depth.cols; ++x)
       if (key.depth.at<float>(y, x) > 0) depth.inverse_depth.at<float>(y, x) = 1.0f / key.depth.at<float>(y, x);
-  TrackerOptions options;
+  TrackerOptions options = slam_options ? SlamOptions().tracker : TrackerOptions();
   options.shading_model = shading_model;
   StatusOr<Tracker> tracker = Tracker::Create(setup->rig, options);
   if (!tracker.ok() || !tracker->SetKeyframe(key.rgb, depth).ok()) {
@@ -49,6 +52,16 @@ BENCHMARK_CAPTURE(BM_Track, multicolor_sphere_gap5, std::string("sphere-multicol
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 BENCHMARK_CAPTURE(BM_Track, bunny_gap1, std::string("bunny-multicolor-forward"), 1)
+    ->Unit(benchmark::kMillisecond)
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_Track, bunny_gap1_slam_options, std::string("bunny-multicolor-forward"), 1,
+                  ShadingModel::kLocalMeanNormalisation, true)
+    ->Unit(benchmark::kMillisecond)
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_Track, multicolor_sphere_gap1_slam_options, std::string("sphere-multicolor-sideways"), 1,
+                  ShadingModel::kLocalMeanNormalisation, true)
     ->Unit(benchmark::kMillisecond)
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
