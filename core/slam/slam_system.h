@@ -72,8 +72,10 @@ struct SlamOptions {
     return d;
   }();
   // A new keyframe is made when the camera's translation from the current keyframe exceeds this
-  // fraction of the keyframe's mean depth, > 0 ...
-  double keyframe_distance_fraction = 0.12;
+  // fraction of the keyframe's mean depth, > 0 ... (0.09 against 0.12, with the adjustment's cells and
+  // iterations below: 19 against 17 of 27 preset runs within 1% of the path, geometric mean 0.82 ->
+  // 0.72%, the 60-frame bunny 5.2 -> 1.2%, at the same time per frame; KITTI 06 3.7 -> 5.4%)
+  double keyframe_distance_fraction = 0.09;
   // ... or when fewer than this fraction of the keyframe's points are visible, in [0, 1] ...
   double keyframe_min_visible_fraction = 0.6;
   // ... or the rotation from the keyframe exceeds this many degrees, > 0.
@@ -134,13 +136,19 @@ struct SlamOptions {
   // the last keyframe_window keyframes and the inverse depths of points taken from their depth maps (one
   // per keyframe_window_cell_px cell: the strongest gradient with a converged depth) are adjusted on
   // the photometric error between keyframes. Each adjusted keyframe's depth unit (its Sim(3) scale) is
-  // then re-fitted to its points' adjusted depths. Keyframes are ~12% of the scene depth apart, so this
-  // constrains their relative poses and scale far better than frame-to-keyframe tracking does.
+  // then re-fitted to its points' adjusted depths. Keyframes are ~9% of the scene depth apart, so this
+  // constrains their relative poses and scale far better than frame-to-keyframe tracking does. With
+  // keyframes closer together the adjustment runs more often: 16 px cells and 6 iterations keep its
+  // share of the time per frame as before.
   bool keyframe_adjustment = true;
   int keyframe_window = 6;              // >= 3
-  int keyframe_window_cell_px = 12;     // >= 4
+  int keyframe_window_cell_px = 16;     // >= 4
   int keyframe_window_min_points = 40;  // fewer points: no adjustment, >= 10
-  DirectBaOptions keyframe_window_ba;
+  DirectBaOptions keyframe_window_ba = [] {
+    DirectBaOptions b;
+    b.max_iterations = 6;
+    return b;
+  }();
   Status Check() const;
 };
 
