@@ -5,6 +5,9 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
 #include <netinet/in.h>
 #include <sys/eventfd.h>
 #include <sys/socket.h>
@@ -865,6 +868,13 @@ struct Server::Impl {
       if (s->finished && (s->pending_chunks.empty() || stalled)) {
         PersistAndSummarise(s);
         it = sessions.erase(it);
+#if defined(__GLIBC__)
+        // A session's buffers (frames, keyframe images, depth maps, clouds) were allocated by several
+        // threads, in several malloc arenas; glibc keeps their freed pages, and on the soak (8 sessions at a
+        // time for 3.5 min) the RSS crept up by 11% (716 MiB at the end, 682 MiB idle after). Hand them
+        // back when a session ends. With MALLOC_ARENA_MAX=2 instead it stayed flat (+3.5%).
+        malloc_trim(0);
+#endif
       } else {
         ++it;
       }

@@ -307,6 +307,8 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       // of its five samples with the previous one (as in LSD-SLAM): one bilinear sample per position.
       const float mu = m.dot(e);
       const float step = std::abs(mu);
+      // |mu| equals |m| (>= 0.4) up to rounding; the guard bounds the positions (len / step) for any input.
+      if (!(step >= 0.25f)) continue;
       float kq[2 * kPatchHalf + 1];  // the keyframe patch in the order of increasing line parameter
       for (int i = 0; i <= 2 * kPatchHalf; ++i) kq[i] = mu > 0 ? kp[i] : kp[2 * kPatchHalf - i];
       // Positions s in [0, n + 1] at line parameter (s - 1) * step from `start` (a neighbour on each
@@ -318,7 +320,8 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       samples.resize(static_cast<size_t>(num_samples));
       for (int k = 0; k < num_samples; ++k) {
         const Eigen::Vector2f q = start + (static_cast<float>(k - 1 - kPatchHalf) * step) * e;
-        samples[static_cast<size_t>(k)] = Inside(frame, q.x(), q.y(), 0) ? SampleBilinear(frame, q.x(), q.y()) : kOutside;
+        samples[static_cast<size_t>(k)] =
+            Inside(frame, q.x(), q.y(), 0) ? SampleBilinear(frame, q.x(), q.y()) : kOutside;
       }
       errors.assign(n + 2, std::numeric_limits<float>::infinity());
       int best = -1;
