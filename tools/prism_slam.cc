@@ -47,6 +47,8 @@ options:
                    (metres, by the session depth scale the dense stage estimates from the shading)
   --no-loop-closure  no loop-closure edges in the keyframe pose graph (SlamOptions::loop_closure)
   --no-keyframe-adjustment  no windowed direct adjustment of the keyframes (SlamOptions::keyframe_adjustment)
+  --no-repropagation  a new keyframe keeps the depth propagated along the tracked pose
+                   (SlamOptions::repropagate_after_adjustment)
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
@@ -112,6 +114,7 @@ int main(int argc, char** argv) {
   bool dense = false;
   bool loop_closure = true;
   bool keyframe_adjustment = true;
+  bool repropagate = true;
   DenseStageOptions dense_options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -129,6 +132,10 @@ int main(int argc, char** argv) {
     }
     if (a == "--no-keyframe-adjustment") {
       keyframe_adjustment = false;
+      continue;
+    }
+    if (a == "--no-repropagation") {
+      repropagate = false;
       continue;
     }
     if (a == "--no-loop-closure") {
@@ -162,6 +169,7 @@ int main(int argc, char** argv) {
   SlamOptions options;
   options.loop_closure = loop_closure;
   options.keyframe_adjustment = keyframe_adjustment;
+  options.repropagate_after_adjustment = repropagate;
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);
   if (!slam.ok()) return Fail(slam.status().ToString());
 

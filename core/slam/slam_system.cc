@@ -98,6 +98,10 @@ struct SlamSystem::Impl {
   };
   std::vector<Keyframe> keyframes;
   std::unique_ptr<KeyframeDepth> current_depth;  // of keyframes.back() while tracking
+  // The depth the newest keyframe was propagated from (keyframe previous_depth_kf), kept until the
+  // keyframe adjustment that follows it has run (AdjustKeyframeWindow re-propagates from it).
+  std::unique_ptr<KeyframeDepth> previous_depth;
+  int previous_depth_kf = -1;
   int frames_since_keyframe = 0;
 
   struct FrameRecord {
@@ -143,6 +147,8 @@ struct SlamSystem::Impl {
   }
   // The windowed keyframe adjustment (SlamOptions::keyframe_adjustment) after a new keyframe.
   void AdjustKeyframeWindow();
+  // After an adjustment: the newest keyframe's depth propagated again, along the adjusted pose.
+  void RepropagateNewestKeyframe();
   // The pose of the most recent tracked frame (identity before any).
   Rigid3d LastGoodWorldFromCamera() const;
 };
@@ -576,6 +582,12 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   edge.log_scale_sigma = options.odometry_log_scale_sigma;
   graph_edges.push_back(edge);
   keyframes.push_back(std::move(k));
+  previous_depth.reset();
+  previous_depth_kf = -1;
+  if (current_depth && &source == current_depth.get()) {
+    previous_depth = std::move(current_depth);
+    previous_depth_kf = reference_kf;
+  }
   current_depth = std::make_unique<KeyframeDepth>(std::move(kd));
   frames_since_keyframe = 0;
   if (options.loop_closure && keyframes.size() >= 2) CloseLoops(static_cast<int>(keyframes.size()) - 2);
@@ -768,12 +780,43 @@ void SlamSystem::Impl::AdjustKeyframeWindow() {
     e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
                      keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
   }
+  if (options.repropagate_after_adjustment) RepropagateNewestKeyframe();
   for (FrameRecord& f : frames)
     if (f.result.state == SlamState::kTracking && f.result.keyframe_id > first) f.result.world_from_camera = WorldFromFrame(f);
   ++keyframe_adjustments;
   PRISM_LOG(DEBUG) << "slam: keyframe adjustment " << first << ".." << n - 1 << ": " << problem.points.size()
                    << " points, " << summary->residuals << " residuals, RMS " << summary->initial_rms << " -> "
                    << summary->final_rms << " in " << summary->iterations << " iterations";
+}
+
+void SlamSystem::Impl::RepropagateNewestKeyframe() {
+  const int n = static_cast<int>(keyframes.size());
+  std::unique_ptr<KeyframeDepth> source = std::move(previous_depth);
+  if (!source || previous_depth_kf != n - 2 || n < 2) return;
+  Keyframe& reference = keyframes[static_cast<size_t>(n - 2)];
+  Keyframe& newest = keyframes[static_cast<size_t>(n - 1)];
+  // The adjusted relative pose, in the reference keyframe's depth units.
+  const Sim3d& a = reference.world_from_keyframe;
+  const Sim3d& b = newest.world_from_keyframe;
+  const Eigen::Quaterniond a_inv = a.rotation.conjugate();
+  const Rigid3d reference_from_newest(a_inv * b.rotation, a_inv * (b.translation - a.translation) / a.scale);
+  StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(newest.rgb, rig.camera, options.depth);
+  if (!kd.ok()) return;
+  kd->PropagateFrom(*source, reference_from_newest.Inverse(), options.new_pixel_relative_sigma);
+  if (!tracker->SetKeyframe(newest.rgb, kd->ToInverseDepthMap(options.tracking_min_observations,
+                                                              options.tracking_max_relative_sigma))
+           .ok()) {
+    // Keep the depth propagated along the tracked pose; restore the tracker's copy of it.
+    if (!RefreshTracker().ok()) {
+      PRISM_LOG(WARNING) << "slam: tracker refresh failed after re-propagation";
+    }
+    return;
+  }
+  current_depth = std::make_unique<KeyframeDepth>(std::move(kd).value());
+  newest.world_from_keyframe.scale = a.scale;
+  for (PoseGraphEdge& e : graph_edges) {
+    if (e.from == n - 2 && e.to == n - 1) e.from_from_to = a.Inverse() * newest.world_from_keyframe;
+  }
 }
 
 bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index) {

