@@ -584,7 +584,8 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   keyframes.push_back(std::move(k));
   previous_depth.reset();
   previous_depth_kf = -1;
-  if (current_depth && &source == current_depth.get()) {
+  if (options.keyframe_adjustment && options.repropagate_after_adjustment && current_depth &&
+      &source == current_depth.get()) {
     previous_depth = std::move(current_depth);
     previous_depth_kf = reference_kf;
   }
