@@ -132,6 +132,13 @@ struct SlamSystem::Impl {
   Status MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
                       const Rigid3d& frame_from_reference, const KeyframeDepth& source);
   Status RefreshTracker();
+  // Hands `depth` (of the keyframe image `rgb`) to the frame tracker, with the SlamOptions::tracking_*
+  // thresholds.
+  Status SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDepth& depth);
+  // A new keyframe depth for `rgb`, propagated from `source` along this_from_source, once the frame
+  // tracker has accepted it (FailedPrecondition otherwise; the tracker's keyframe is then unusable).
+  StatusOr<KeyframeDepth> PropagateForTracking(const cv::Mat& rgb, const KeyframeDepth& source,
+                                               const Rigid3d& this_from_source);
   bool Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index);
   void FinishCurrent();
   // Loop closure for finished keyframe `index` (see SlamOptions::loop_closure); re-optimises the pose
@@ -436,8 +443,19 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   return true;
 }
 
-Status SlamSystem::Impl::RefreshTracker() {
-  return tracker->SetKeyframe(keyframes.back().rgb, current_depth->ToInverseDepthMap(options.tracking_min_observations, options.tracking_max_relative_sigma));
+Status SlamSystem::Impl::RefreshTracker() { return SetTrackerKeyframe(keyframes.back().rgb, *current_depth); }
+
+Status SlamSystem::Impl::SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDepth& depth) {
+  return tracker->SetKeyframe(rgb, depth.ToInverseDepthMap(options.tracking_min_observations,
+                                                           options.tracking_max_relative_sigma));
+}
+
+StatusOr<KeyframeDepth> SlamSystem::Impl::PropagateForTracking(const cv::Mat& rgb, const KeyframeDepth& source,
+                                                               const Rigid3d& this_from_source) {
+  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, KeyframeDepth::Create(rgb, rig.camera, options.depth));
+  kd.PropagateFrom(source, this_from_source, options.new_pixel_relative_sigma);
+  if (!SetTrackerKeyframe(rgb, kd).ok()) return FailedPreconditionError("too few points with depth in the new keyframe");
+  return kd;
 }
 
 Rigid3d SlamSystem::Impl::WorldFromFrame(const FrameRecord& f) const {
@@ -558,13 +576,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
 
 Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
                                       const Rigid3d& frame_from_reference, const KeyframeDepth& source) {
-  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, KeyframeDepth::Create(rgb, rig.camera, options.depth));
-  kd.PropagateFrom(source, frame_from_reference, options.new_pixel_relative_sigma);
   // The tracker must accept it before it becomes the keyframe.
-  if (!tracker->SetKeyframe(rgb, kd.ToInverseDepthMap(options.tracking_min_observations,
-                                                      options.tracking_max_relative_sigma)).ok()) {
-    return FailedPreconditionError("too few points with depth in the new keyframe");
-  }
+  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, PropagateForTracking(rgb, source, frame_from_reference));
   FinishCurrent();  // the keyframe being replaced (uses current_depth before it is replaced)
   Keyframe k;
   k.id = static_cast<int>(keyframes.size());
@@ -801,12 +814,8 @@ void SlamSystem::Impl::RepropagateNewestKeyframe() {
   const Sim3d& b = newest.world_from_keyframe;
   const Eigen::Quaterniond a_inv = a.rotation.conjugate();
   const Rigid3d reference_from_newest(a_inv * b.rotation, a_inv * (b.translation - a.translation) / a.scale);
-  StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(newest.rgb, rig.camera, options.depth);
-  if (!kd.ok()) return;
-  kd->PropagateFrom(*source, reference_from_newest.Inverse(), options.new_pixel_relative_sigma);
-  if (!tracker->SetKeyframe(newest.rgb, kd->ToInverseDepthMap(options.tracking_min_observations,
-                                                              options.tracking_max_relative_sigma))
-           .ok()) {
+  StatusOr<KeyframeDepth> kd = PropagateForTracking(newest.rgb, *source, reference_from_newest.Inverse());
+  if (!kd.ok()) {
     // Keep the depth propagated along the tracked pose; restore the tracker's copy of it.
     if (!RefreshTracker().ok()) {
       PRISM_LOG(WARNING) << "slam: tracker refresh failed after re-propagation";
