@@ -49,6 +49,7 @@ options:
   --no-keyframe-adjustment  no windowed direct adjustment of the keyframes (SlamOptions::keyframe_adjustment)
   --no-repropagation  a new keyframe keeps the depth propagated along the tracked pose
                    (SlamOptions::repropagate_after_adjustment)
+  --no-final-adjustment  no adjustment of all keyframes at the end (SlamOptions::final_adjustment)
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
@@ -115,6 +116,7 @@ int main(int argc, char** argv) {
   bool loop_closure = true;
   bool keyframe_adjustment = true;
   bool repropagate = true;
+  bool final_adjustment = true;
   DenseStageOptions dense_options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -136,6 +138,10 @@ int main(int argc, char** argv) {
     }
     if (a == "--no-repropagation") {
       repropagate = false;
+      continue;
+    }
+    if (a == "--no-final-adjustment") {
+      final_adjustment = false;
       continue;
     }
     if (a == "--no-loop-closure") {
@@ -170,6 +176,7 @@ int main(int argc, char** argv) {
   options.loop_closure = loop_closure;
   options.keyframe_adjustment = keyframe_adjustment;
   options.repropagate_after_adjustment = repropagate;
+  options.final_adjustment = final_adjustment;
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);
   if (!slam.ok()) return Fail(slam.status().ToString());
 
@@ -215,7 +222,10 @@ int main(int argc, char** argv) {
       keyframes.push_back(std::move(k));
     }
   }
-  for (SlamKeyframe& k : (*slam)->Finish()) {
+  const auto finish_start = std::chrono::steady_clock::now();
+  std::vector<SlamKeyframe> last_keyframes = (*slam)->Finish();
+  const double finish_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - finish_start).count();
+  for (SlamKeyframe& k : last_keyframes) {
     run_dense(k);
     keyframes.push_back(std::move(k));
   }
@@ -270,7 +280,8 @@ int main(int argc, char** argv) {
        << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
        << ",\n  \"keyframe_adjustments\": " << (*slam)->num_keyframe_adjustments()
        << ",\n  \"semidense_points\": " << cloud.size()
-       << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n);
+       << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n)
+       << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds;
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
          << ",\n  \"dense_failed_keyframes\": " << dense_failed

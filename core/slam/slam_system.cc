@@ -60,6 +60,9 @@ Status SlamOptions::Check() const {
   if (keyframe_window_cell_px < 4) return InvalidArgumentError("SlamOptions: keyframe_window_cell_px must be >= 4");
   if (keyframe_window_min_points < 10) return InvalidArgumentError("SlamOptions: keyframe_window_min_points must be >= 10");
   PRISM_RETURN_IF_ERROR(keyframe_window_ba.Check());
+  if (final_adjustment_max_keyframes < 3)
+    return InvalidArgumentError("SlamOptions: final_adjustment_max_keyframes must be >= 3");
+  PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
   return Status::Ok();
 }
 
@@ -152,8 +155,9 @@ struct SlamSystem::Impl {
     const double translation = (tracked.translation - predicted.translation).norm() * mean_inverse_depth;
     return rotation_deg <= options.max_step_rotation_deg && translation <= options.max_step_translation_fraction;
   }
-  // The windowed keyframe adjustment (SlamOptions::keyframe_adjustment) after a new keyframe.
-  void AdjustKeyframeWindow();
+  // The direct adjustment of keyframes first..newest (keyframe_ba.h): after a new keyframe over the
+  // window (SlamOptions::keyframe_adjustment), at Finish over the final window (final_adjustment).
+  void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
   // After an adjustment: the newest keyframe's depth propagated again, along the adjusted pose.
   void RepropagateNewestKeyframe();
   // The pose of the most recent tracked frame (identity before any).
@@ -561,7 +565,9 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     const Status made = MakeKeyframe(frame_id, timestamp, rgb, kf_index, tr.frame_from_keyframe, *current_depth);
     if (made.ok()) {
       frames.back().result.new_keyframe = true;
-      if (options.keyframe_adjustment) AdjustKeyframeWindow();
+      if (options.keyframe_adjustment)
+        AdjustKeyframes(std::max(0, static_cast<int>(keyframes.size()) - options.keyframe_window),
+                        options.keyframe_window_ba, /*at_finish=*/false);
     } else {
       // Keep tracking against the current keyframe; restore the tracker's copy.
       frames.back().result.message = "no new keyframe: " + std::string(made.message());
@@ -730,12 +736,12 @@ void SlamSystem::Impl::CloseLoops(int index) {
                   << " iterations";
 }
 
-void SlamSystem::Impl::AdjustKeyframeWindow() {
+void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish) {
   const int n = static_cast<int>(keyframes.size());
-  const int first = std::max(0, n - options.keyframe_window);
   if (n - first < 3 || !current_depth) return;
-  // Keyframes that left the window are not adjusted again: drop their normalised images (1 MB each at
-  // 512x512, which would otherwise grow with the session).
+  // Keyframes that left the window are not adjusted again (until the final adjustment, which makes them
+  // again): drop their normalised images (1 MB each at 512x512, which would otherwise grow with the
+  // session).
   for (int k = 0; k < first; ++k) keyframes[static_cast<size_t>(k)].grey_j.release();
   const PinholeCamera& cam = rig.camera;
   DirectBaProblem problem;
@@ -768,7 +774,9 @@ void SlamSystem::Impl::AdjustKeyframeWindow() {
   std::vector<float> initial_inverse_depth;
   initial_inverse_depth.reserve(problem.points.size());
   for (const DirectBaPoint& p : problem.points) initial_inverse_depth.push_back(p.inverse_depth);
-  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(options.keyframe_window_ba, &problem);
+  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(ba_options, &problem);
+  if (at_finish)
+    for (Keyframe& kf : keyframes) kf.grey_j.release();
   if (!summary.ok()) {
     PRISM_LOG(WARNING) << "slam: keyframe adjustment: " << summary.status();
     return;
@@ -794,11 +802,11 @@ void SlamSystem::Impl::AdjustKeyframeWindow() {
     e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
                      keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
   }
-  if (options.repropagate_after_adjustment) RepropagateNewestKeyframe();
+  if (options.repropagate_after_adjustment && !at_finish) RepropagateNewestKeyframe();
   for (FrameRecord& f : frames)
     if (f.result.state == SlamState::kTracking && f.result.keyframe_id > first) f.result.world_from_camera = WorldFromFrame(f);
   ++keyframe_adjustments;
-  PRISM_LOG(DEBUG) << "slam: keyframe adjustment " << first << ".." << n - 1 << ": " << problem.points.size()
+  PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1 << ": " << problem.points.size()
                    << " points, " << summary->residuals << " residuals, RMS " << summary->initial_rms << " -> "
                    << summary->final_rms << " in " << summary->iterations << " iterations";
 }
@@ -878,6 +886,10 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
   if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
     impl_->current_depth->Regularise();
     impl_->FinishCurrent();
+    const SlamOptions& o = impl_->options;
+    if (o.keyframe_adjustment && o.final_adjustment &&
+        static_cast<int>(impl_->keyframes.size()) <= o.final_adjustment_max_keyframes)
+      impl_->AdjustKeyframes(0, o.final_adjustment_ba, /*at_finish=*/true);
     // The last keyframe may close a loop too.
     if (impl_->options.loop_closure) impl_->CloseLoops(static_cast<int>(impl_->keyframes.size()) - 1);
   }
