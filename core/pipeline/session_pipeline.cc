@@ -39,7 +39,11 @@ StatusOr<std::unique_ptr<SessionPipeline>> SessionPipeline::Create(const RigCali
   PRISM_RETURN_IF_ERROR(rig.Check());
   if (workers == nullptr || !sink) return InvalidArgumentError("SessionPipeline needs dense workers and an event sink");
   std::unique_ptr<SessionPipeline> p(new SessionPipeline(rig, options, workers, std::move(sink)));
-  PRISM_ASSIGN_OR_RETURN(p->slam_, SlamSystem::Create(rig, options.slam));
+  // The final adjustment runs after the last keyframes are handed to the dense stage (SlamLoop), so the
+  // map does not wait for it.
+  SlamOptions slam_options = options.slam;
+  slam_options.final_adjustment = false;
+  PRISM_ASSIGN_OR_RETURN(p->slam_, SlamSystem::Create(rig, slam_options));
   PRISM_ASSIGN_OR_RETURN(p->dense_, DenseStage::Create(rig, options.dense, workers->pool()));
   p->slam_thread_ = std::thread([raw = p.get()] { raw->SlamLoop(); });
   return p;
@@ -201,6 +205,7 @@ void SessionPipeline::SlamLoop() {
   if (!aborted_ && !failed_) {
     try {
       for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
+      if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
       EmitRefinedPoses();
     } catch (const std::exception& ex) {
       Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));

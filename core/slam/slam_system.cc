@@ -85,6 +85,7 @@ struct SlamSystem::Impl {
   std::vector<PoseGraphEdge> graph_edges;
   int loop_closures = 0;
   int keyframe_adjustments = 0;
+  bool final_adjustment_done = false;  // SlamSystem::AdjustAllKeyframes ran
   // Tracks the initialisation frames on the first, rough depth: a looser residual limit.
   std::unique_ptr<Tracker> init_tracker;
 
@@ -886,14 +887,22 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
   if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
     impl_->current_depth->Regularise();
     impl_->FinishCurrent();
-    const SlamOptions& o = impl_->options;
-    if (o.keyframe_adjustment && o.final_adjustment &&
-        static_cast<int>(impl_->keyframes.size()) <= o.final_adjustment_max_keyframes)
-      impl_->AdjustKeyframes(0, o.final_adjustment_ba, /*at_finish=*/true);
     // The last keyframe may close a loop too.
     if (impl_->options.loop_closure) impl_->CloseLoops(static_cast<int>(impl_->keyframes.size()) - 1);
   }
-  return TakeFinishedKeyframes();
+  std::vector<SlamKeyframe> last = TakeFinishedKeyframes();
+  if (impl_->options.final_adjustment) AdjustAllKeyframes();
+  return last;
+}
+
+void SlamSystem::AdjustAllKeyframes() {
+  Impl& m = *impl_;
+  const int n = static_cast<int>(m.keyframes.size());
+  if (m.final_adjustment_done || !m.options.keyframe_adjustment || n > m.options.final_adjustment_max_keyframes ||
+      m.keyframes.empty() || !m.keyframes.back().finished)
+    return;
+  m.final_adjustment_done = true;
+  m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
 }
 
 std::vector<SlamFrameResult> SlamSystem::Trajectory() const {

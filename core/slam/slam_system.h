@@ -219,8 +219,15 @@ class SlamSystem {
   // Keyframes whose depth maps are final (the system has moved on to a newer keyframe), oldest first;
   // each is returned once.
   std::vector<SlamKeyframe> TakeFinishedKeyframes();
-  // Ends the sequence: the current keyframe is finished too and returned with any not yet taken.
+  // Ends the sequence: the current keyframe is finished too and returned with any not yet taken. With
+  // SlamOptions::final_adjustment it then runs AdjustAllKeyframes.
   std::vector<SlamKeyframe> Finish();
+  // The final adjustment (SlamOptions::final_adjustment): after Finish, the direct adjustment of every
+  // keyframe at once, when there are at most final_adjustment_max_keyframes (else nothing). Moves the
+  // keyframes' poses and depth units (KeyframePoses, Trajectory), not the keyframes handed over. For a
+  // caller that hands the last keyframes on first (the server's session pipeline: the map is done
+  // without waiting for it) with final_adjustment off; runs once (later calls do nothing).
+  void AdjustAllKeyframes();
 
   // Every processed frame's result, in order (poses of frames tracked against keyframes moved by the
   // pose graph are updated).
