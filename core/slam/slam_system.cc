@@ -157,7 +157,7 @@ struct SlamSystem::Impl {
     return rotation_deg <= options.max_step_rotation_deg && translation <= options.max_step_translation_fraction;
   }
   // The direct adjustment of keyframes first..newest (keyframe_ba.h): after a new keyframe over the
-  // window (SlamOptions::keyframe_adjustment), at Finish over the final window (final_adjustment).
+  // window (SlamOptions::keyframe_adjustment), after Finish over all keyframes (final_adjustment).
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
   // After an adjustment: the newest keyframe's depth propagated again, along the adjusted pose.
   void RepropagateNewestKeyframe();
@@ -740,8 +740,8 @@ void SlamSystem::Impl::CloseLoops(int index) {
 void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish) {
   const int n = static_cast<int>(keyframes.size());
   if (n - first < 3 || !current_depth) return;
-  // Keyframes that left the window are not adjusted again (until the final adjustment, which makes them
-  // again): drop their normalised images (1 MB each at 512x512, which would otherwise grow with the
+  // Keyframes that left the window are not adjusted again until the final adjustment (which recomputes
+  // them): drop their normalised images (1 MB each at 512x512, which would otherwise grow with the
   // session).
   for (int k = 0; k < first; ++k) keyframes[static_cast<size_t>(k)].grey_j.release();
   const PinholeCamera& cam = rig.camera;
@@ -807,8 +807,8 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   for (FrameRecord& f : frames)
     if (f.result.state == SlamState::kTracking && f.result.keyframe_id > first) f.result.world_from_camera = WorldFromFrame(f);
   ++keyframe_adjustments;
-  PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1 << ": " << problem.points.size()
-                   << " points, " << summary->residuals << " residuals, RMS " << summary->initial_rms << " -> "
+  PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1
+                   << ": " << problem.points.size() << " points, " << summary->residuals << " residuals, RMS " << summary->initial_rms << " -> "
                    << summary->final_rms << " in " << summary->iterations << " iterations";
 }
 
