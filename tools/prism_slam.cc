@@ -113,41 +113,31 @@ int main(int argc, char** argv) {
   int threads = 0;
   bool eval = true;
   bool dense = false;
-  bool loop_closure = true;
-  bool keyframe_adjustment = true;
-  bool repropagate = true;
-  bool final_adjustment = true;
+  SlamOptions options;
   DenseStageOptions dense_options;
+  // Switches without a value: the flag sets its bool to the given value.
+  const struct {
+    const char* flag;
+    bool* target;
+    bool value;
+  } kSwitches[] = {
+      {"--no-eval", &eval, false},
+      {"--dense", &dense, true},
+      {"--no-keyframe-adjustment", &options.keyframe_adjustment, false},
+      {"--no-repropagation", &options.repropagate_after_adjustment, false},
+      {"--no-final-adjustment", &options.final_adjustment, false},
+      {"--no-loop-closure", &options.loop_closure, false},
+  };
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
       std::cout << kUsage;
       return 0;
     }
-    if (a == "--no-eval") {
-      eval = false;
-      continue;
-    }
-    if (a == "--dense") {
-      dense = true;
-      continue;
-    }
-    if (a == "--no-keyframe-adjustment") {
-      keyframe_adjustment = false;
-      continue;
-    }
-    if (a == "--no-repropagation") {
-      repropagate = false;
-      continue;
-    }
-    if (a == "--no-final-adjustment") {
-      final_adjustment = false;
-      continue;
-    }
-    if (a == "--no-loop-closure") {
-      loop_closure = false;
-      continue;
-    }
+    bool is_switch = false;
+    for (const auto& sw : kSwitches)
+      if (a == sw.flag) *sw.target = sw.value, is_switch = true;
+    if (is_switch) continue;
     if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
     const std::string v = argv[++i];
     char* end = nullptr;
@@ -172,11 +162,6 @@ int main(int argc, char** argv) {
   if (ec) return Fail("cannot create '" + out_dir + "/keyframes': " + ec.message());
 
   ThreadPool pool(threads);
-  SlamOptions options;
-  options.loop_closure = loop_closure;
-  options.keyframe_adjustment = keyframe_adjustment;
-  options.repropagate_after_adjustment = repropagate;
-  options.final_adjustment = final_adjustment;
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);
   if (!slam.ok()) return Fail(slam.status().ToString());
 
