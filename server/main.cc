@@ -5,6 +5,7 @@
 #include <iostream>
 #include <string>
 
+#include "core/slam/slam_config.h"
 #include "core/util/logging.h"
 #include "server/curve.h"
 #include "server/server.h"
@@ -83,6 +84,13 @@ int main(int argc, char** argv) {
   prism::StatusOr<std::unique_ptr<Server>> server = Server::Create(options);
   if (!server.ok()) return Fail(server.status().ToString());
   g_server = server->get();
+  // What a session's SLAM runs with beyond the defaults (core/slam/slam_config.h keys).
+  std::string slam_changed = prism::FormatSlamConfig(options.pipeline.slam, /*only_changed=*/true);
+  slam_changed = slam_changed.substr(slam_changed.find('\n') + 1);
+  if (!slam_changed.empty()) slam_changed.pop_back();  // the last '\n' (the log adds one)
+  if (!slam_changed.empty()) {
+    PRISM_LOG(INFO) << "prism-server: SLAM options (others at their defaults):\n" << slam_changed;
+  }
   struct sigaction sa {};
   sa.sa_handler = OnSignal;
   sigemptyset(&sa.sa_mask);

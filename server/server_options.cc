@@ -3,6 +3,8 @@
 #include <cstdlib>
 #include <fstream>
 
+#include "core/slam/slam_config.h"
+
 namespace prism::server {
 namespace {
 
@@ -48,6 +50,9 @@ const char* ServerOptionsHelp() {
   shutdown-deadline-ms MS on SIGTERM, time to finish queued work before stopping (default 10000)
   curve-keys FILE         CURVE: this server's key pair (from `prism-server keygen`); default off = plain TCP
   allowed-clients FILE    CURVE: client public keys admitted, one per line (required with curve-keys)
+  slam-config FILE        SLAM options for every session, one 'key = value' per line (core/slam/slam_config.h;
+                          the same keys as prism-slam --slam-config and its slam_config.txt)
+  slam.KEY VALUE          one SLAM option, e.g. slam.loop_closure false or slam.tracker.min_gradient 5
 )";
 }
 
@@ -87,6 +92,8 @@ Status ServerOptions::Check() const {
 }
 
 Status ApplyServerOption(const std::string& key_in, const std::string& value, ServerOptions* o) {
+  // SLAM options: the keys of core/slam/slam_config.h, shared with prism-slam.
+  if (key_in.rfind("slam.", 0) == 0) return SetSlamOption(key_in.substr(5), value, &o->pipeline.slam);
   std::string key = key_in;
   for (char& c : key)
     if (c == '_') c = '-';
@@ -116,6 +123,7 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   else if (key == "voxel-m") { if (!is_double) return bad(); o->pipeline.dense.map.voxel_m = d; }
   else if (key == "curve-keys") o->curve_keys = value;
   else if (key == "allowed-clients") o->allowed_clients = value;
+  else if (key == "slam-config") return ApplySlamConfigFile(value, &o->pipeline.slam);
   else if (key == "shutdown-deadline-ms") { if (!is_int) return bad(); o->shutdown_deadline_ms = static_cast<int>(i); }
   else if (key == "input-policy") {
     if (value == "live") o->pipeline.input_policy = OverflowPolicy::kDropOldest;

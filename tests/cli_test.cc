@@ -2,6 +2,8 @@
 // sequence evaluated against itself gives zeros, against a perturbed copy gives the perturbation.
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <sstream>
 #include <string>
 
 #include <gtest/gtest.h>
@@ -196,6 +198,73 @@ TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
     r = Execute(cmd);
     EXPECT_NE(r.exit_code, 0) << cmd;
     EXPECT_FALSE(r.out.empty()) << cmd;
+  }
+  fs::remove_all(dir);
+}
+
+// One SLAM configuration for every entry point (core/slam/slam_config.h): prism-slam takes a config
+// file and --set, writes every option it ran with to slam_config.txt, and that file run again gives the
+// same trajectory; the settings take effect (fewer keyframes at a larger keyframe distance); bad keys,
+// values and files are refused with the reason; prism-server reads the same keys.
+TEST(SlamCliTest, OneSlamConfigForEveryEntryPoint) {
+  const fs::path dir = fs::temp_directory_path() / ("prism_slam_config_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  auto slurp = [](const fs::path& p) {
+    std::ifstream in(p);
+    std::ostringstream s;
+    s << in.rdbuf();
+    return s.str();
+  };
+  const std::string seq = (dir / "seq").string();
+  ProcessResult r = Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --frames 60 --size 256x256 --out " + seq);
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  const std::string slam = Bin("prism-slam") + " --no-eval --sequence " + seq + " --out ";
+
+  r = Execute(slam + (dir / "default").string());
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  const double default_keyframes = JsonNumber(r.out, "keyframes");
+  const std::string default_config = slurp(dir / "default" / "slam_config.txt");
+  EXPECT_NE(default_config.find("\nkeyframe_distance_fraction = 0.09\n"), std::string::npos) << default_config;
+
+  {
+    std::ofstream cfg(dir / "my.cfg");
+    cfg << "# wider keyframe spacing\nkeyframe_distance_fraction = 0.18\nloop-closure = off\n";
+  }
+  r = Execute(slam + (dir / "a").string() + " --slam-config " + (dir / "my.cfg").string() +
+              " --set tracker.min_gradient=5 --no-final-adjustment");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_LT(JsonNumber(r.out, "keyframes"), default_keyframes) << "the keyframe distance took effect";
+  const std::string written = slurp(dir / "a" / "slam_config.txt");
+  for (const char* line : {"\nkeyframe_distance_fraction = 0.18\n", "\nloop_closure = false\n",
+                           "\ntracker.min_gradient = 5\n", "\nfinal_adjustment = false\n"})
+    EXPECT_NE(written.find(line), std::string::npos) << line << " in\n" << written;
+  // The written file reproduces the run.
+  r = Execute(slam + (dir / "b").string() + " --slam-config " + (dir / "a" / "slam_config.txt").string());
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(slurp(dir / "b" / "slam_config.txt"), written);
+  EXPECT_EQ(slurp(dir / "b" / "trajectory.txt"), slurp(dir / "a" / "trajectory.txt"));
+
+  const std::pair<std::string, std::string> bad[] = {
+      {" --set tracker.min_gradiant=5", "nearest: 'tracker.min_gradient'"},
+      {" --set keyframe_window=three", "bad value 'three'"},
+      {" --set keyframe_window=2", "keyframe_window must be >= 3"},
+      {" --set loop_closure", "--set expects KEY=VALUE"},
+      {" --slam-config " + (dir / "none.cfg").string(), "cannot read SLAM config"},
+  };
+  for (const auto& [args, expect] : bad) {
+    r = Execute(slam + (dir / "bad").string() + args);
+    EXPECT_NE(r.exit_code, 0) << args;
+    EXPECT_NE(r.out.find(expect), std::string::npos) << args << ": " << r.out;
+  }
+  // prism-server: the same keys as slam.KEY; it refuses bad ones before it listens.
+  for (const auto& [args, expect] : std::vector<std::pair<std::string, std::string>>{
+           {" --slam.tracker.min_gradiant 5", "nearest: 'tracker.min_gradient'"},
+           {" --slam.keyframe_window 2", "keyframe_window must be >= 3"},
+           {" --slam-config " + (dir / "none.cfg").string(), "cannot read SLAM config"}}) {
+    r = Execute(Bin("prism-server") + " --data-dir " + (dir / "data").string() + args);
+    EXPECT_EQ(r.exit_code, 2) << args << ": " << r.out;
+    EXPECT_NE(r.out.find(expect), std::string::npos) << args << ": " << r.out;
   }
   fs::remove_all(dir);
 }

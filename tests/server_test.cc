@@ -5,7 +5,9 @@
 
 #include <chrono>
 #include <filesystem>
+#include <fstream>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <thread>
 #include <tuple>
@@ -143,6 +145,24 @@ class ServerTest : public ::testing::Test {
   }
   fs::path dir_;
 };
+
+// SLAM options given as slam.KEY (core/slam/slam_config.h, the keys prism-slam reads) reach the
+// server, which logs every one that differs from the defaults once it listens.
+TEST_F(ServerTest, SlamOptionsOnTheCommandLineAreTakenAndLogged) {
+  {
+    std::ofstream cfg(dir_ / "slam.cfg");
+    cfg << "tracker.min_gradient = 5\n";
+  }
+  auto server = Start({"--slam.keyframe_distance_fraction", "0.18", "--slam.loop-closure", "false", "--slam-config",
+                       (dir_ / "slam.cfg").string()});
+  ASSERT_TRUE(server->ok());
+  std::ifstream log(dir_ / "server.log");
+  std::ostringstream text;
+  text << log.rdbuf();
+  for (const char* line : {"\nkeyframe_distance_fraction = 0.18", "\nloop_closure = false", "\ntracker.min_gradient = 5"})
+    EXPECT_NE(text.str().find(line), std::string::npos) << line << " in\n" << text.str();
+  EXPECT_EQ(text.str().find("\nkeyframe_window = "), std::string::npos) << "only the options that differ are logged";
+}
 
 TEST_F(ServerTest, BadVersionAndMalformedMessagesGetErrorsAndTheServerGoesOn) {
   auto server = Start();

@@ -17,6 +17,7 @@
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
 #include "core/pipeline/dense_stage.h"
+#include "core/slam/slam_config.h"
 #include "core/slam/slam_system.h"
 #include "core/util/thread_pool.h"
 
@@ -35,6 +36,7 @@ Writes to DIR:
   keyframes/       per keyframe <id>_idepth.tiff and <id>_variance.tiff (32-bit float, 0 = none)
                    and keyframes.txt (id frame_id timestamp scale tx ty tz qx qy qz qw)
   semidense.ply    the semi-dense points of all keyframes, world frame, with colours
+  slam_config.txt  every SLAM option as used (core/slam/slam_config.h; re-readable by --slam-config)
   summary.json     frames, keyframes, states, timing; with ground truth in the sequence also the ATE
                    (Sim(3)-aligned, also as % of the path) and the keyframe depth error (printed too)
 
@@ -45,11 +47,15 @@ options:
   --dense          also run the dense stage (photometric stereo, fusion, ICP map; core/pipeline) on
                    every keyframe as it is finished and write map.ply and trajectory_metres.txt
                    (metres, by the session depth scale the dense stage estimates from the shading)
-  --no-loop-closure  no loop-closure edges in the keyframe pose graph (SlamOptions::loop_closure)
-  --no-keyframe-adjustment  no windowed direct adjustment of the keyframes (SlamOptions::keyframe_adjustment)
+  --slam-config FILE  SLAM options from FILE, one 'key = value' per line (core/slam/slam_config.h); the
+                   same keys as prism-server's slam.KEY and the written slam_config.txt
+  --set KEY=VALUE  one SLAM option, e.g. --set tracker.min_gradient=5 (applied in command-line order
+                   with --slam-config and the switches below)
+  --no-loop-closure  no loop-closure edges in the keyframe pose graph (= --set loop_closure=false)
+  --no-keyframe-adjustment  no windowed direct adjustment of the keyframes (= --set keyframe_adjustment=false)
   --no-repropagation  a new keyframe keeps the depth propagated along the tracked pose
-                   (SlamOptions::repropagate_after_adjustment)
-  --no-final-adjustment  no adjustment of all keyframes at the end (SlamOptions::final_adjustment)
+                   (= --set repropagate_after_adjustment=false)
+  --no-final-adjustment  no adjustment of all keyframes at the end (= --set final_adjustment=false)
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
@@ -148,18 +154,31 @@ int main(int argc, char** argv) {
     else if (a == "--out") out_dir = v;
     else if (a == "--position-weight" && is_num && num >= 0) dense_options.fusion.position_weight = num;
     else if (a == "--min-brightness" && is_num && num >= 0 && num <= 255) dense_options.min_brightness = num;
-    else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
+    else if (a == "--slam-config") {
+      if (Status st = ApplySlamConfigFile(v, &options); !st.ok()) return Fail(st.ToString());
+    } else if (a == "--set") {
+      const size_t eq = v.find('=');
+      if (eq == std::string::npos) return Fail("--set expects KEY=VALUE, got '" + v + "'");
+      if (Status st = SetSlamOption(v.substr(0, eq), v.substr(eq + 1), &options); !st.ok()) return Fail(st.ToString());
+    } else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
     else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
   }
   if (sequence_dir.empty() == kitti_dir.empty() || out_dir.empty())
     return Fail("--out and one of --sequence or --kitti are required (see --help)");
+  if (Status st = options.Check(); !st.ok()) return Fail("SLAM options: " + st.ToString());
   StatusOr<Sequence> seq = kitti_dir.empty() ? LoadSequence(sequence_dir) : LoadKitti(kitti_dir);
   if (!seq.ok()) return Fail(seq.status().ToString());
   if (!seq->has_calibration) return Fail("sequence has no camera.yaml (the camera calibration is needed)");
   std::error_code ec;
   std::filesystem::create_directories(out_dir + "/keyframes", ec);
   if (ec) return Fail("cannot create '" + out_dir + "/keyframes': " + ec.message());
+
+  {
+    std::ofstream config(out_dir + "/slam_config.txt");
+    config << FormatSlamConfig(options);
+    if (!config) return Fail("cannot write '" + out_dir + "/slam_config.txt'");
+  }
 
   ThreadPool pool(threads);
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);

@@ -33,6 +33,8 @@ namespace prism {
 
 class ThreadPool;
 
+// Every field, nested ones included, has a text key in slam_config.cc (SlamOptionKeys): prism-slam and
+// prism-server read and write the options through it, so a new field needs its line there.
 struct SlamOptions {
   // The tracker tracks the local-mean normalised image, which already cancels brightness gain; a free
   // gain lets a wrong pose "explain" the image with a near-zero contrast, so it is off by default here.

@@ -1,0 +1,280 @@
+#include "core/slam/slam_config.h"
+
+#include <algorithm>
+#include <charconv>
+#include <cmath>
+#include <cstdlib>
+#include <fstream>
+#include <limits>
+#include <set>
+#include <sstream>
+#include <variant>
+
+namespace prism {
+namespace {
+
+using FieldPtr = std::variant<int*, double*, bool*, ShadingModel*>;
+
+struct Field {
+  std::string key;
+  FieldPtr ptr;
+};
+
+void AddTracker(const std::string& p, TrackerOptions& t, std::vector<Field>* f) {
+  f->push_back({p + "pyramid_levels", &t.pyramid_levels});
+  f->push_back({p + "min_gradient", &t.min_gradient});
+  f->push_back({p + "max_points_per_level", &t.max_points_per_level});
+  f->push_back({p + "max_iterations", &t.max_iterations});
+  f->push_back({p + "convergence_threshold", &t.convergence_threshold});
+  f->push_back({p + "image_noise_sigma", &t.image_noise_sigma});
+  f->push_back({p + "huber_threshold", &t.huber_threshold});
+  f->push_back({p + "inlier_threshold", &t.inlier_threshold});
+  f->push_back({p + "shading_model", &t.shading_model});
+  f->push_back({p + "normal_window_radius_px", &t.normal_window_radius_px});
+  f->push_back({p + "normal_max_depth_jump", &t.normal_max_depth_jump});
+  f->push_back({p + "normal_min_view_cosine", &t.normal_min_view_cosine});
+  f->push_back({p + "max_shading_ratio", &t.max_shading_ratio});
+  f->push_back({p + "local_mean_radius_px", &t.local_mean_radius_px});
+  f->push_back({p + "local_mean_floor", &t.local_mean_floor});
+  f->push_back({p + "min_local_mean", &t.min_local_mean});
+  f->push_back({p + "estimate_affine_brightness", &t.estimate_affine_brightness});
+  f->push_back({p + "affine_prior_a", &t.affine_prior_a});
+  f->push_back({p + "affine_prior_b", &t.affine_prior_b});
+  f->push_back({p + "min_visible_fraction", &t.min_visible_fraction});
+  f->push_back({p + "min_inlier_fraction", &t.min_inlier_fraction});
+  f->push_back({p + "max_affine_gain", &t.max_affine_gain});
+  f->push_back({p + "max_residual_rms", &t.max_residual_rms});
+}
+
+void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Field>* f) {
+  f->push_back({p + "min_gradient", &d.min_gradient});
+  f->push_back({p + "min_gradient_line_cosine", &d.min_gradient_line_cosine});
+  f->push_back({p + "max_match_error", &d.max_match_error});
+  f->push_back({p + "min_match_ratio", &d.min_match_ratio});
+  f->push_back({p + "max_search_px", &d.max_search_px});
+  f->push_back({p + "image_noise_sigma", &d.image_noise_sigma});
+  f->push_back({p + "epipolar_sigma_px", &d.epipolar_sigma_px});
+  f->push_back({p + "seed_max_relative_sigma", &d.seed_max_relative_sigma});
+  f->push_back({p + "outlier_sigmas", &d.outlier_sigmas});
+  f->push_back({p + "propagation_relative_sigma", &d.propagation_relative_sigma});
+  f->push_back({p + "local_mean_radius_px", &d.local_mean_radius_px});
+  f->push_back({p + "local_mean_floor", &d.local_mean_floor});
+  f->push_back({p + "min_local_mean", &d.min_local_mean});
+  f->push_back({p + "regularise_sigmas", &d.regularise_sigmas});
+  f->push_back({p + "min_neighbours", &d.min_neighbours});
+  f->push_back({p + "min_observations", &d.min_observations});
+  f->push_back({p + "max_relative_sigma", &d.max_relative_sigma});
+}
+
+void AddDirectBa(const std::string& p, DirectBaOptions& b, std::vector<Field>* f) {
+  f->push_back({p + "pyramid_levels", &b.pyramid_levels});
+  f->push_back({p + "max_iterations", &b.max_iterations});
+  f->push_back({p + "huber", &b.huber});
+  f->push_back({p + "outlier", &b.outlier});
+  f->push_back({p + "border_px", &b.border_px});
+  f->push_back({p + "function_tolerance", &b.function_tolerance});
+}
+
+// The fields of `o`, by key. Pointers into `o`: valid while it lives.
+std::vector<Field> Fields(SlamOptions& o) {
+  std::vector<Field> f;
+  f.push_back({"keyframe_distance_fraction", &o.keyframe_distance_fraction});
+  f.push_back({"keyframe_min_visible_fraction", &o.keyframe_min_visible_fraction});
+  f.push_back({"keyframe_max_rotation_deg", &o.keyframe_max_rotation_deg});
+  f.push_back({"init_min_frames", &o.init_min_frames});
+  f.push_back({"init_min_converged_fraction", &o.init_min_converged_fraction});
+  f.push_back({"init_min_parallax_fraction", &o.init_min_parallax_fraction});
+  f.push_back({"init_max_frames", &o.init_max_frames});
+  f.push_back({"init_residual_factor", &o.init_residual_factor});
+  f.push_back({"new_pixel_relative_sigma", &o.new_pixel_relative_sigma});
+  f.push_back({"tracker_refresh_frames", &o.tracker_refresh_frames});
+  f.push_back({"tracking_min_observations", &o.tracking_min_observations});
+  f.push_back({"tracking_max_relative_sigma", &o.tracking_max_relative_sigma});
+  f.push_back({"max_step_rotation_deg", &o.max_step_rotation_deg});
+  f.push_back({"max_step_translation_fraction", &o.max_step_translation_fraction});
+  f.push_back({"relocalise_max_keyframes", &o.relocalise_max_keyframes});
+  f.push_back({"relocalise_after_lost_frames", &o.relocalise_after_lost_frames});
+  f.push_back({"loop_closure", &o.loop_closure});
+  f.push_back({"loop_min_keyframe_gap", &o.loop_min_keyframe_gap});
+  f.push_back({"loop_max_distance_fraction", &o.loop_max_distance_fraction});
+  f.push_back({"loop_max_angle_deg", &o.loop_max_angle_deg});
+  f.push_back({"loop_max_candidates", &o.loop_max_candidates});
+  f.push_back({"loop_max_rotation_inconsistency_deg", &o.loop_max_rotation_inconsistency_deg});
+  f.push_back({"loop_min_depth_matches", &o.loop_min_depth_matches});
+  f.push_back({"odometry_rotation_sigma", &o.odometry_rotation_sigma});
+  f.push_back({"odometry_translation_sigma", &o.odometry_translation_sigma});
+  f.push_back({"odometry_log_scale_sigma", &o.odometry_log_scale_sigma});
+  f.push_back({"loop_rotation_sigma", &o.loop_rotation_sigma});
+  f.push_back({"loop_translation_sigma", &o.loop_translation_sigma});
+  f.push_back({"loop_log_scale_sigma", &o.loop_log_scale_sigma});
+  f.push_back({"keyframe_adjustment", &o.keyframe_adjustment});
+  f.push_back({"keyframe_window", &o.keyframe_window});
+  f.push_back({"keyframe_window_cell_px", &o.keyframe_window_cell_px});
+  f.push_back({"keyframe_window_min_points", &o.keyframe_window_min_points});
+  f.push_back({"repropagate_after_adjustment", &o.repropagate_after_adjustment});
+  f.push_back({"final_adjustment", &o.final_adjustment});
+  f.push_back({"final_adjustment_max_keyframes", &o.final_adjustment_max_keyframes});
+  AddTracker("tracker.", o.tracker, &f);
+  AddTracker("wide_baseline_tracker.", o.wide_baseline_tracker, &f);
+  AddDepthFilter("depth.", o.depth, &f);
+  AddDirectBa("keyframe_window_ba.", o.keyframe_window_ba, &f);
+  AddDirectBa("final_adjustment_ba.", o.final_adjustment_ba, &f);
+  return f;
+}
+
+constexpr const char* kShadingModelNames[] = {"none", "local_mean_normalisation", "predicted_shading"};
+
+std::string Trim(const std::string& s) {
+  const size_t b = s.find_first_not_of(" \t\r\n"), e = s.find_last_not_of(" \t\r\n");
+  return b == std::string::npos ? "" : s.substr(b, e - b + 1);
+}
+
+std::string NormaliseKey(std::string key) {
+  key = Trim(key);
+  std::replace(key.begin(), key.end(), '-', '_');
+  return key;
+}
+
+size_t EditDistance(const std::string& a, const std::string& b) {
+  std::vector<size_t> row(b.size() + 1);
+  for (size_t j = 0; j <= b.size(); ++j) row[j] = j;
+  for (size_t i = 1; i <= a.size(); ++i) {
+    size_t diagonal = row[0];
+    row[0] = i;
+    for (size_t j = 1; j <= b.size(); ++j) {
+      const size_t up = row[j];
+      row[j] = std::min({row[j] + 1, row[j - 1] + 1, diagonal + (a[i - 1] == b[j - 1] ? 0 : 1)});
+      diagonal = up;
+    }
+  }
+  return row[b.size()];
+}
+
+bool ParseIntValue(const std::string& s, int* out) {
+  long long v = 0;
+  const char* end = s.data() + s.size();
+  const auto [ptr, ec] = std::from_chars(s.data(), end, v);
+  if (ec != std::errc() || ptr != end || s.empty()) return false;
+  if (v < std::numeric_limits<int>::min() || v > std::numeric_limits<int>::max()) return false;
+  *out = static_cast<int>(v);
+  return true;
+}
+
+bool ParseDoubleValue(const std::string& s, double* out) {
+  if (s.empty()) return false;
+  char* end = nullptr;
+  const double v = std::strtod(s.c_str(), &end);
+  if (end != s.c_str() + s.size() || !std::isfinite(v)) return false;
+  *out = v;
+  return true;
+}
+
+bool ParseBoolValue(std::string s, bool* out) {
+  std::transform(s.begin(), s.end(), s.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  if (s == "true" || s == "1" || s == "yes" || s == "on") return (*out = true, true);
+  if (s == "false" || s == "0" || s == "no" || s == "off") return (*out = false, true);
+  return false;
+}
+
+std::string FormatDouble(double v) {
+  char buf[64];
+  const auto [ptr, ec] = std::to_chars(buf, buf + sizeof(buf), v);
+  return ec == std::errc() ? std::string(buf, ptr) : std::to_string(v);
+}
+
+std::string FormatValue(const FieldPtr& p) {
+  if (auto* i = std::get_if<int*>(&p)) return std::to_string(**i);
+  if (auto* d = std::get_if<double*>(&p)) return FormatDouble(**d);
+  if (auto* b = std::get_if<bool*>(&p)) return **b ? "true" : "false";
+  return kShadingModelNames[static_cast<int>(*std::get<ShadingModel*>(p))];
+}
+
+}  // namespace
+
+std::vector<std::string> SlamOptionKeys() {
+  SlamOptions o;
+  std::vector<std::string> keys;
+  for (const Field& f : Fields(o)) keys.push_back(f.key);
+  return keys;
+}
+
+Status SetSlamOption(const std::string& key_in, const std::string& value_in, SlamOptions* options) {
+  const std::string key = NormaliseKey(key_in), value = Trim(value_in);
+  std::vector<Field> fields = Fields(*options);
+  auto it = std::find_if(fields.begin(), fields.end(), [&](const Field& f) { return f.key == key; });
+  if (it == fields.end()) {
+    const Field* nearest = &fields.front();
+    for (const Field& f : fields)
+      if (EditDistance(key, f.key) < EditDistance(key, nearest->key)) nearest = &f;
+    return InvalidArgumentError("unknown SLAM option '" + key_in + "' (nearest: '" + nearest->key +
+                                "'; every key: prism-slam writes them to slam_config.txt)");
+  }
+  auto bad = [&](const std::string& expected) {
+    return InvalidArgumentError("SLAM option '" + key + "': bad value '" + value + "' (expected " + expected + ")");
+  };
+  if (auto* i = std::get_if<int*>(&it->ptr)) {
+    if (!ParseIntValue(value, *i)) return bad("an integer");
+  } else if (auto* d = std::get_if<double*>(&it->ptr)) {
+    if (!ParseDoubleValue(value, *d)) return bad("a finite number");
+  } else if (auto* b = std::get_if<bool*>(&it->ptr)) {
+    if (!ParseBoolValue(value, *b)) return bad("true or false");
+  } else {
+    ShadingModel* m = std::get<ShadingModel*>(it->ptr);
+    int index = -1;
+    for (int k = 0; k < 3; ++k)
+      if (value == kShadingModelNames[k]) index = k;
+    if (index < 0) return bad("none, local_mean_normalisation or predicted_shading");
+    *m = static_cast<ShadingModel>(index);
+  }
+  return Status::Ok();
+}
+
+Status ApplySlamConfig(const std::string& text, const std::string& source, SlamOptions* options) {
+  SlamOptions result = *options;
+  std::set<std::string> seen;
+  std::istringstream in(text);
+  std::string line;
+  int n = 0;
+  while (std::getline(in, line)) {
+    ++n;
+    const size_t hash = line.find('#');
+    if (hash != std::string::npos) line.resize(hash);
+    line = Trim(line);
+    if (line.empty()) continue;
+    const std::string where = source + ":" + std::to_string(n) + ": ";
+    const size_t eq = line.find('=');
+    if (eq == std::string::npos)
+      return InvalidArgumentError(where + "expected 'key = value', got '" + line + "'");
+    const std::string key = NormaliseKey(line.substr(0, eq));
+    if (!seen.insert(key).second) return InvalidArgumentError(where + "SLAM option '" + key + "' given twice");
+    if (Status s = SetSlamOption(key, line.substr(eq + 1), &result); !s.ok())
+      return InvalidArgumentError(where + s.message());
+  }
+  if (Status s = result.Check(); !s.ok()) return InvalidArgumentError(source + ": " + s.message());
+  *options = result;
+  return Status::Ok();
+}
+
+Status ApplySlamConfigFile(const std::string& path, SlamOptions* options) {
+  std::ifstream in(path);
+  if (!in) return NotFoundError("cannot read SLAM config '" + path + "'");
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (in.bad()) return NotFoundError("cannot read SLAM config '" + path + "'");
+  return ApplySlamConfig(text.str(), path, options);
+}
+
+std::string FormatSlamConfig(const SlamOptions& options, bool only_changed) {
+  SlamOptions copy = options, defaults;
+  const std::vector<Field> fields = Fields(copy), default_fields = Fields(defaults);
+  std::ostringstream out;
+  out << "# prism SLAM options; format and keys: core/slam/slam_config.h\n";
+  for (size_t i = 0; i < fields.size(); ++i) {
+    const std::string v = FormatValue(fields[i].ptr);
+    if (only_changed && v == FormatValue(default_fields[i].ptr)) continue;
+    out << fields[i].key << " = " << v << "\n";
+  }
+  return out.str();
+}
+
+}  // namespace prism
