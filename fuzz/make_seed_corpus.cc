@@ -1,5 +1,5 @@
 // Writes the fuzz targets' seed corpora from the real encoders and the wire contract (no binaries from
-// elsewhere): make_seed_corpus OUT_DIR -> OUT_DIR/{envelope,frame_decoder,draco_chunk}/seed_NNN.
+// elsewhere): make_seed_corpus OUT_DIR -> OUT_DIR/{envelope,frame_decoder,draco_chunk,slam_config}/seed_NNN.
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -10,6 +10,7 @@
 
 #include "core/codec/frame_codec.h"
 #include "core/codec/map_chunk_codec.h"
+#include "core/slam/slam_config.h"
 #include "core/synth/presets.h"
 #include "fuzz/fuzz_input.h"
 #include "server/rig_wire.h"
@@ -58,7 +59,7 @@ int main(int argc, char** argv) {
     return 2;
   }
   const fs::path out = argv[1];
-  for (const char* d : {"envelope", "frame_decoder", "draco_chunk"}) fs::create_directories(out / d);
+  for (const char* d : {"envelope", "frame_decoder", "draco_chunk", "slam_config"}) fs::create_directories(out / d);
 
   // Envelopes: every client message type, valid, with a routing id part first.
   int n = 0;
@@ -125,6 +126,16 @@ int main(int argc, char** argv) {
       Write(out / "draco_chunk", &n, std::string(chunk->bytes.begin(), chunk->bytes.end()));
     }
   }
-  std::printf("{\"envelope\": 6, \"frame_decoder\": 9, \"draco_chunk\": 6, \"out\": \"%s\"}\n", out.c_str());
+  // SLAM config texts: every key at its default, only changed keys, and a few lines with comments.
+  n = 0;
+  SlamOptions changed;
+  changed.loop_closure = false;
+  changed.tracker.shading_model = ShadingModel::kPredictedShading;
+  changed.depth.max_relative_sigma = 0.07;
+  Write(out / "slam_config", &n, FormatSlamConfig(SlamOptions()));
+  Write(out / "slam_config", &n, FormatSlamConfig(changed, /*only_changed=*/true));
+  Write(out / "slam_config", &n, "# comment\nkeyframe-window = 8  # trailing\n\nfinal_adjustment = off\n");
+  std::printf("{\"envelope\": 6, \"frame_decoder\": 9, \"draco_chunk\": 6, \"slam_config\": 3, \"out\": \"%s\"}\n",
+              out.c_str());
   return 0;
 }
