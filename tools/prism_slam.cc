@@ -12,6 +12,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "core/eval/depth_metrics.h"
+#include "core/io/calibration_io.h"
 #include "core/eval/trajectory_metrics.h"
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
@@ -19,6 +20,7 @@
 #include "core/pipeline/dense_stage.h"
 #include "core/slam/slam_config.h"
 #include "core/slam/slam_system.h"
+#include "core/slam/undistort.h"
 #include "core/util/thread_pool.h"
 
 namespace {
@@ -36,6 +38,9 @@ Writes to DIR:
   keyframes/       per keyframe <id>_idepth.tiff and <id>_variance.tiff (32-bit float, 0 = none)
                    and keyframes.txt (id frame_id timestamp scale tx ty tz qx qy qz qw)
   semidense.ply    the semi-dense points of all keyframes, world frame, with colours
+  camera.yaml      the calibration the SLAM ran with: the sequence's, or when it has lens distortion
+                   the undistorted pinhole camera every frame was remapped into (keyframe depth maps
+                   and poses refer to it; see core/slam/undistort.h)
   slam_config.txt  every SLAM option as used (core/slam/slam_config.h; re-readable by --slam-config)
   summary.json     frames, keyframes, states, timing; with ground truth in the sequence also the ATE
                    (Sim(3)-aligned, also as % of the path) and the keyframe depth error (printed too)
@@ -180,8 +185,16 @@ int main(int argc, char** argv) {
     if (!config) return Fail("cannot write '" + out_dir + "/slam_config.txt'");
   }
 
+  // Lens distortion: every frame (and, for the evaluation, the true depth) is remapped into an
+  // undistorted pinhole camera of the same size, which the SLAM and the dense stage run on.
+  StatusOr<ImageUndistorter> undistorter = ImageUndistorter::Create(seq->calibration.camera);
+  if (!undistorter.ok()) return Fail(undistorter.status().ToString());
+  RigCalibration rig = seq->calibration;
+  rig.camera = undistorter->camera();
+  if (Status st = WriteCalibrationYaml(out_dir + "/camera.yaml", rig); !st.ok()) return Fail(st.ToString());
+
   ThreadPool pool(threads);
-  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(seq->calibration, options, &pool);
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(rig, options, &pool);
   if (!slam.ok()) return Fail(slam.status().ToString());
 
   const size_t n = max_frames > 0 ? std::min<size_t>(seq->frames.size(), static_cast<size_t>(max_frames))
@@ -193,7 +206,7 @@ int main(int argc, char** argv) {
   std::map<int, cv::Mat> fused_depth;  // keyframe id -> fused depth (SLAM units), for the evaluation
   std::string dense_first_error;
   if (dense) {
-    StatusOr<std::unique_ptr<DenseStage>> d = DenseStage::Create(seq->calibration, dense_options, &pool);
+    StatusOr<std::unique_ptr<DenseStage>> d = DenseStage::Create(rig, dense_options, &pool);
     if (!d.ok()) return Fail(d.status().ToString());
     dense_stage = std::move(d).value();
   }
@@ -217,6 +230,8 @@ int main(int argc, char** argv) {
     StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
     if (!rgb.ok()) return Fail(rgb.status().ToString());
     const auto t0 = std::chrono::steady_clock::now();
+    rgb = undistorter->Undistort(*rgb);
+    if (!rgb.ok()) return Fail("frame " + std::to_string(i) + ": " + rgb.status().ToString());
     StatusOr<SlamFrameResult> r = (*slam)->ProcessFrame(seq->frames[i].timestamp_s, *rgb);
     slam_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (!r.ok()) return Fail("frame " + std::to_string(i) + ": " + r.status().ToString());
@@ -284,6 +299,7 @@ int main(int argc, char** argv) {
        << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
        << ",\n  \"keyframe_adjustments\": " << (*slam)->num_keyframe_adjustments()
        << ",\n  \"semidense_points\": " << cloud.size()
+       << ",\n  \"undistorted\": " << (undistorter->identity() ? "false" : "true")
        << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n)
        << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds;
   if (dense_stage) {
@@ -312,6 +328,7 @@ int main(int argc, char** argv) {
         if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq->frames.size()) continue;
         if (seq->frames[static_cast<size_t>(k.frame_id)].depth_file.empty()) continue;
         StatusOr<cv::Mat> gt = seq->ReadDepth(static_cast<size_t>(k.frame_id));
+        if (gt.ok()) gt = undistorter->UndistortNearest(*gt);
         if (!gt.ok()) continue;
         cv::Mat est = cv::Mat::zeros(k.depth.inverse_depth.size(), CV_32F);
         for (int y = 0; y < est.rows; ++y)

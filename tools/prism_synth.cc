@@ -1,10 +1,12 @@
 // prism-synth: renders a synthetic multispectral sequence with ground truth (core/synth).
 //   prism-synth --list-presets
 //   prism-synth --preset NAME --out DIR [--frames N] [--size WxH] [--seed S] [options]
+#include <array>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <iostream>
+#include <optional>
 #include <string>
 
 #include "core/io/ply_io.h"
@@ -36,6 +38,8 @@ options:
   --noise SIGMA       read-noise standard deviation in 8-bit levels (default from the preset)
   --ambient A         white ambient light in [0, 1] (default 0: dark room)
   --no-shadows        disable cast shadows
+  --distortion K1,K2,P1,P2,K3  render through this lens distortion (OpenCV's radial-tangential model;
+                      written to camera.yaml), e.g. -0.25,0.08,0,0,0 for a webcam's barrel distortion
   --gt-cloud FILE     also write a dense ground-truth cloud (PLY: positions, normals, colours;
                       every 10th frame back-projected, 2 mm voxels)
   --help              this text
@@ -69,6 +73,7 @@ int main(int argc, char** argv) {
   bool list = false, describe = false, no_shadows = false;
   int threads = 0;
   double noise = -1, ambient = -1;
+  std::optional<std::array<double, 5>> distortion;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&](const char* flag) -> const char* {
@@ -86,7 +91,8 @@ int main(int argc, char** argv) {
     } else if (a == "--no-shadows") {
       no_shadows = true;
     } else if (a == "--preset" || a == "--out" || a == "--frames" || a == "--size" || a == "--seed" ||
-               a == "--threads" || a == "--mesh-dir" || a == "--noise" || a == "--ambient" || a == "--gt-cloud") {
+               a == "--threads" || a == "--mesh-dir" || a == "--noise" || a == "--ambient" || a == "--gt-cloud" ||
+               a == "--distortion") {
       const char* v = value(a.c_str());
       if (!v) return Fail(a + " needs a value (see --help)");
       if (a == "--preset") preset = v;
@@ -111,6 +117,12 @@ int main(int argc, char** argv) {
         if (!ParseDouble(v, &noise)) return Fail("--noise must be a number");
       } else if (a == "--ambient") {
         if (!ParseDouble(v, &ambient)) return Fail("--ambient must be a number");
+      } else if (a == "--distortion") {
+        std::array<double, 5> d{};
+        char extra;
+        if (std::sscanf(v, "%lf,%lf,%lf,%lf,%lf%c", &d[0], &d[1], &d[2], &d[3], &d[4], &extra) != 5)
+          return Fail("--distortion must be five comma-separated numbers K1,K2,P1,P2,K3");
+        distortion = d;
       }
     } else {
       return Fail("unknown argument '" + a + "' (see --help)");
@@ -133,6 +145,10 @@ int main(int argc, char** argv) {
   if (noise >= 0) setup->render.noise_sigma = noise;
   if (ambient >= 0) setup->render.ambient = ambient;
   if (no_shadows) setup->render.cast_shadows = false;
+  if (distortion) {
+    setup->rig.camera.distortion = *distortion;
+    if (Status s = setup->rig.camera.Check(); !s.ok()) return Fail("--distortion: " + s.ToString());
+  }
   if (Status s = setup->render.Check(); !s.ok()) return Fail(s.ToString());
 
   ThreadPool pool(threads);

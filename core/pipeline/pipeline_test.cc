@@ -1,7 +1,9 @@
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <iostream>
+#include <map>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -10,6 +12,7 @@
 #include <gtest/gtest.h>
 
 #include "core/codec/frame_codec.h"
+#include "core/eval/trajectory_metrics.h"
 #include "core/pipeline/bounded_queue.h"
 #include "core/pipeline/dense_workers.h"
 #include "core/pipeline/session_pipeline.h"
@@ -156,8 +159,10 @@ TEST(SessionPipelineTest, RejectPolicyRefusesWhenFullAndCountsIt) {
 struct RenderedSequence {
   RigCalibration rig;
   std::vector<EncodedFrame> frames;
+  Trajectory groundtruth;
 };
-RenderedSequence RenderSequence(const std::string& preset, int frames) {
+RenderedSequence RenderSequence(const std::string& preset, int frames,
+                                const std::array<double, 5>& distortion = {0, 0, 0, 0, 0}) {
   synth::PresetOptions po;
   po.width = 256;
   po.height = 256;
@@ -165,7 +170,9 @@ RenderedSequence RenderSequence(const std::string& preset, int frames) {
   StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, po);
   RenderedSequence seq;
   if (!setup.ok()) return seq;
+  setup->rig.camera.distortion = distortion;  // the renderer casts its rays through the lens model
   seq.rig = setup->rig;
+  seq.groundtruth = synth::MakeTrajectory(setup->trajectory);
   ThreadPool pool(2);
   const Trajectory trajectory = synth::MakeTrajectory(setup->trajectory);
   for (size_t i = 0; i < trajectory.size(); ++i) {
@@ -257,6 +264,51 @@ TEST(SessionPipelineTest, UploadWaitsForTheDenseStageAndLiveDropsTheOldestKeyfra
         ++keyframe_events;
     EXPECT_LE(keyframe_events, s.keyframes - s.keyframes_dropped);
   }
+}
+
+// A camera with lens distortion (a webcam's barrel, k1 = -0.25): the session undistorts every frame
+// and tracks it as a pinhole camera. Before, the session could not be created ("undistort the images
+// first"). The poses are scored against the ground truth of the rendering. Measured (256x256, 90
+// frames, armadillo): 0.35% of the path with this lens, 0.22% at k1 = -0.15, 0.36% with pincushion
+// k1 = +0.1; the multi-coloured sphere at this small size was chaotic (0.59-2.9% between lenses).
+TEST(SessionPipelineTest, ADistortedCameraIsUndistortedAndTrackedAccurately) {
+  const RenderedSequence seq = RenderSequence("armadillo-textured-forward", 90, {-0.25, 0.08, 0, 0, 0});
+  if (seq.frames.empty()) GTEST_SKIP() << "armadillo mesh unavailable (Debian's libcgal-demo)";
+  ASSERT_TRUE(seq.rig.camera.HasDistortion());
+  ThreadPool pool(2);
+  DenseWorkers workers(1, &pool);
+  EventLog log;
+  SessionPipelineOptions options;
+  options.input_policy = OverflowPolicy::kReject;
+  StatusOr<std::unique_ptr<SessionPipeline>> p = SessionPipeline::Create(seq.rig, options, &workers, log.Sink());
+  ASSERT_TRUE(p.ok()) << p.status();
+  for (const EncodedFrame& f : seq.frames) {
+    while ((*p)->Push(f).code() == StatusCode::kResourceExhausted) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  (*p)->Finish();
+  ASSERT_TRUE(log.WaitFinished(120000));
+  // The latest pose of every tracked frame (refined ones replace the first report).
+  std::map<uint64_t, TimedPose> latest;
+  size_t chunks = 0;
+  for (const PipelineEvent& e : log.events) {
+    if (e.kind == PipelineEvent::Kind::kChunk) ++chunks;
+    if (e.kind == PipelineEvent::Kind::kError) ADD_FAILURE() << e.status;
+    if (e.kind != PipelineEvent::Kind::kPose || e.slam.state != SlamState::kTracking) continue;
+    latest[e.frame_sequence_number] = {e.timestamp_ns * 1e-9, e.slam.world_from_camera};
+  }
+  Trajectory estimate;
+  for (const auto& [seq_number, pose] : latest) estimate.push_back(pose);
+  EXPECT_GE(estimate.size(), 70u) << "frames tracked";
+  EXPECT_GT(chunks, 0u) << "the dense stage ran on the undistorted keyframes";
+  TrajectoryEvalOptions eo;
+  eo.alignment = AlignmentModel::kSim3;
+  StatusOr<AteResult> ate = ComputeAte(seq.groundtruth, estimate, eo);
+  ASSERT_TRUE(ate.ok()) << ate.status();
+  const double percent = 100.0 * ate->error_m.rmse / ate->trajectory_length_m;
+  std::cout << "distorted camera: " << estimate.size() << " frames tracked, ATE " << percent << "% of the path, "
+            << chunks << " map chunks\n";
+  constexpr double kAtePercentTolerance = 1.0;  // the SLAM bar
+  EXPECT_LT(percent, kAtePercentTolerance);
 }
 
 TEST(SessionPipelineTest, InvalidOptionsAreRefused) {

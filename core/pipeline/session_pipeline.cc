@@ -39,12 +39,18 @@ StatusOr<std::unique_ptr<SessionPipeline>> SessionPipeline::Create(const RigCali
   PRISM_RETURN_IF_ERROR(rig.Check());
   if (workers == nullptr || !sink) return InvalidArgumentError("SessionPipeline needs dense workers and an event sink");
   std::unique_ptr<SessionPipeline> p(new SessionPipeline(rig, options, workers, std::move(sink)));
+  // A camera with lens distortion: the SLAM and the dense stage run on the undistorted pinhole camera
+  // every decoded frame is remapped into (core/slam/undistort.h); poses and the map are unaffected.
+  PRISM_ASSIGN_OR_RETURN(ImageUndistorter undistorter, ImageUndistorter::Create(rig.camera));
+  RigCalibration pinhole_rig = rig;
+  pinhole_rig.camera = undistorter.camera();
+  p->undistorter_ = std::make_unique<ImageUndistorter>(std::move(undistorter));
   // The final adjustment runs after the last keyframes are handed to the dense stage (SlamLoop), so the
   // map does not wait for it.
   SlamOptions slam_options = options.slam;
   slam_options.final_adjustment = false;
-  PRISM_ASSIGN_OR_RETURN(p->slam_, SlamSystem::Create(rig, slam_options));
-  PRISM_ASSIGN_OR_RETURN(p->dense_, DenseStage::Create(rig, options.dense, workers->pool()));
+  PRISM_ASSIGN_OR_RETURN(p->slam_, SlamSystem::Create(pinhole_rig, slam_options));
+  PRISM_ASSIGN_OR_RETURN(p->dense_, DenseStage::Create(pinhole_rig, options.dense, workers->pool()));
   p->slam_thread_ = std::thread([raw = p.get()] { raw->SlamLoop(); });
   return p;
 }
@@ -152,8 +158,13 @@ void SessionPipeline::SlamLoop() {
       continue;
     }
     const auto t0 = std::chrono::steady_clock::now();
-    const Status decoded = DecodeFrame(frame->bytes.data(), frame->bytes.size(), frame->codec, rig_.camera.width,
-                                       rig_.camera.height, &rgb);
+    Status decoded = DecodeFrame(frame->bytes.data(), frame->bytes.size(), frame->codec, rig_.camera.width,
+                                 rig_.camera.height, &rgb);
+    if (decoded.ok() && !undistorter_->identity()) {
+      StatusOr<cv::Mat> undistorted = undistorter_->Undistort(rgb);
+      if (undistorted.ok()) rgb = std::move(undistorted).value();
+      else decoded = undistorted.status();
+    }
     if (!decoded.ok()) {
       {
         std::lock_guard<std::mutex> lock(mutex_);

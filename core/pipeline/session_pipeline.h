@@ -30,6 +30,7 @@
 #include "core/pipeline/dense_stage.h"
 #include "core/pipeline/dense_workers.h"
 #include "core/slam/slam_system.h"
+#include "core/slam/undistort.h"
 #include "core/util/status.h"
 
 namespace prism {
@@ -149,6 +150,7 @@ class SessionPipeline {
   DenseWorkers* workers_;
   std::shared_ptr<DenseWorkers::Strand> strand_;
   PipelineEventSink sink_;
+  std::unique_ptr<ImageUndistorter> undistorter_;  // rig_'s camera -> the pinhole camera of slam_ and dense_
   std::unique_ptr<SlamSystem> slam_;   // SLAM thread only
   // Per SLAM frame id: the frame's sequence number and timestamp and the pose and state reported
   // (SLAM thread only); compared with the SLAM's final trajectory for the refined poses.

@@ -3,6 +3,7 @@
 
 #include "core/slam/slam_system.h"
 #include "core/slam/tracker.h"
+#include "core/slam/undistort.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
 #include "core/synth/trajectory.h"
@@ -75,6 +76,25 @@ BENCHMARK_CAPTURE(BM_Track, bunny_gap1_predicted_shading, std::string("bunny-mul
     ->Unit(benchmark::kMillisecond)
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
+
+// The per-frame cost a lens with distortion adds in front of the tracker (prism-slam and the session
+// pipeline remap every frame, core/slam/undistort.h): one 512x512 RGB frame, k1 = -0.25.
+void BM_UndistortFrame(benchmark::State& state) {
+  PinholeCamera camera = PinholeCamera::FromFov(512, 512, 50.0);
+  camera.distortion = {-0.25, 0.08, 0, 0, 0};
+  StatusOr<ImageUndistorter> u = ImageUndistorter::Create(camera);
+  if (!u.ok()) {
+    state.SkipWithError(u.status().ToString().c_str());
+    return;
+  }
+  cv::Mat rgb(512, 512, CV_8UC3);
+  cv::randu(rgb, cv::Scalar::all(0), cv::Scalar::all(255));
+  for (auto _ : state) {
+    StatusOr<cv::Mat> out = u->Undistort(rgb);
+    benchmark::DoNotOptimize(out);
+  }
+}
+BENCHMARK(BM_UndistortFrame)->Unit(benchmark::kMillisecond)->Repetitions(5)->ReportAggregatesOnly(true);
 
 }  // namespace
 }  // namespace prism
