@@ -77,6 +77,23 @@ BENCHMARK_CAPTURE(BM_Track, bunny_gap1_predicted_shading, std::string("bunny-mul
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 
+// Every standard preset with the SLAM's tracker settings, consecutive frames (the per-preset figures
+// of the tracking bar: 10 ms = 100 frames/s on one core).
+#define PRISM_TRACK_PRESET_BENCHMARK(NAME, PRESET)                                                        \
+  BENCHMARK_CAPTURE(BM_Track, preset_##NAME, std::string(PRESET), 1, ShadingModel::kLocalMeanNormalisation, true) \
+      ->Unit(benchmark::kMillisecond)                                                                    \
+      ->Repetitions(5)                                                                                   \
+      ->ReportAggregatesOnly(true)
+PRISM_TRACK_PRESET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
+PRISM_TRACK_PRESET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");
+PRISM_TRACK_PRESET_BENCHMARK(dragon_multicolor_sideways, "dragon-multicolor-sideways");
+PRISM_TRACK_PRESET_BENCHMARK(sphere_uniform_sideways, "sphere-uniform-sideways");
+PRISM_TRACK_PRESET_BENCHMARK(relief_uniform_sideways, "relief-uniform-sideways");
+PRISM_TRACK_PRESET_BENCHMARK(boxes_multicolor_forward, "boxes-multicolor-forward");
+PRISM_TRACK_PRESET_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
+PRISM_TRACK_PRESET_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
+PRISM_TRACK_PRESET_BENCHMARK(torus_textured_forward, "torus-textured-forward");
+
 // The per-frame cost a lens with distortion adds in front of the tracker (prism-slam and the session
 // pipeline remap every frame, core/slam/undistort.h): one 512x512 RGB frame, k1 = -0.25.
 void BM_UndistortFrame(benchmark::State& state) {
