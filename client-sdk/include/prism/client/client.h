@@ -61,7 +61,9 @@ struct Status {
 struct Camera {
   int width = 0, height = 0;
   double fx = 0, fy = 0, cx = 0, cy = 0;
-  std::array<double, 5> distortion{0, 0, 0, 0, 0};  // k1 k2 p1 p2 k3
+  // k1 k2 p1 p2 k3 (OpenCV). Send the raw frames with their lens distortion: the server undistorts
+  // every frame into a pinhole camera of the same size; poses and map chunks are not affected.
+  std::array<double, 5> distortion{0, 0, 0, 0, 0};
 };
 
 struct Light {
