@@ -12,8 +12,8 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "core/eval/depth_metrics.h"
-#include "core/io/calibration_io.h"
 #include "core/eval/trajectory_metrics.h"
+#include "core/io/calibration_io.h"
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
