@@ -1,6 +1,6 @@
 // prism-convert: the exchange formats users expect, in and out of Prism.
 //   prism-convert cloud IN OUT [--ascii] [--draco-bits N]         .ply .pcd .drc, by extension
-//   prism-convert camera IN --out camera.yaml [--lights FILE]     OpenCV / ROS camera file -> rig calibration
+//   prism-convert camera IN --out camera.yaml [--lights FILE]     OpenCV / ROS / DSO camera file -> rig calibration
 //   prism-convert colmap --trajectory T --camera C --out DIR [--sequence S] [--map M] [--every K] [--max-points N]
 //   prism-convert trajectory IN OUT                                TUM or KITTI -> TUM
 // Prints one JSON line on stdout; exits 2 on bad arguments, 1 on unreadable input or a failed write.
@@ -32,7 +32,8 @@ constexpr char kUsage[] = R"(usage: prism-convert COMMAND ...
       Point cloud between PLY (binary), PCD (binary, or ASCII with --ascii) and Draco .drc (positions
       quantised to N bits, default 14; 0 = lossless), chosen by extension. Positions, normals, colours.
   camera IN --out FILE [--lights FILE]
-      Camera intrinsics from an OpenCV calibration YAML, a ROS camera_info YAML or a Prism camera.yaml,
+      Camera intrinsics from an OpenCV calibration YAML, a ROS camera_info YAML, a DSO / LSD-SLAM
+      camera.txt (RadTan or Pinhole; relative values are scaled as DSO does) or a Prism camera.yaml,
       written as Prism's camera.yaml (rig calibration). Lights and crosstalk come from --lights (a
       camera.yaml) or else the default rig (red left, green right, blue above, 0.2 m from the lens).
   colmap --trajectory T --camera C --out DIR [--sequence S] [--map M] [--every K] [--max-points N]

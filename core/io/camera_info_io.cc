@@ -1,5 +1,6 @@
 #include "core/io/camera_info_io.h"
 
+#include <cctype>
 #include <cstdio>
 #include <fstream>
 #include <iterator>
@@ -163,7 +164,71 @@ Status WriteRosCameraInfoYaml(const std::string& path, const PinholeCamera& came
   return Status::Ok();
 }
 
+StatusOr<PinholeCamera> ReadDsoCameraTxt(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) return NotFoundError("cannot open '" + path + "'");
+  std::vector<std::string> lines;
+  for (std::string line; std::getline(in, line);) {
+    const size_t b = line.find_first_not_of(" \t\r");
+    if (b != std::string::npos) lines.push_back(line.substr(b));
+  }
+  if (lines.size() < 2)
+    return InvalidArgumentError(path + ": a camera.txt needs the intrinsics line and the 'width height' line");
+  std::istringstream first(lines[0]);
+  std::string model;
+  if (!lines[0].empty() && std::isalpha(static_cast<unsigned char>(lines[0][0]))) first >> model;
+  std::vector<double> v;
+  for (double x; first >> x;) v.push_back(x);
+  if (!first.eof())
+    return InvalidArgumentError(path + ":1: expected numbers after the model name, got '" + lines[0] + "'");
+  if (model.empty()) model = v.size() == 8 ? "RadTan" : v.size() == 5 ? "FOV" : "";
+  const auto want = [&](size_t n) -> Status {
+    if (v.size() == n) return Status::Ok();
+    return InvalidArgumentError(path + ":1: the " + model + " model has " + std::to_string(n) + " numbers, got " +
+                                std::to_string(v.size()));
+  };
+  PinholeCamera c;
+  if (model == "RadTan") {
+    PRISM_RETURN_IF_ERROR(want(8));
+    c.distortion = {v[4], v[5], v[6], v[7], 0};
+  } else if (model == "Pinhole" || (model == "FOV" && v.size() == 5 && v[4] == 0)) {
+    PRISM_RETURN_IF_ERROR(want(5));
+  } else if (model == "FOV" || model == "KannalaBrandt" || model == "EquiDistant") {
+    return InvalidArgumentError(path + ": the " + model +
+                                " camera model is not Prism's (pinhole + k1 k2 p1 p2 k3); calibrate with the "
+                                "radial-tangential (RadTan) model");
+  } else {
+    return InvalidArgumentError(path + ":1: unknown camera model or parameter count ('" + lines[0] +
+                                "'); expected RadTan fx fy cx cy k1 k2 p1 p2 or Pinhole fx fy cx cy 0");
+  }
+  std::istringstream size_line(lines[1]);
+  std::string extra;
+  if (!(size_line >> c.width >> c.height) || (size_line >> extra))
+    return InvalidArgumentError(path + ":2: expected 'width height', got '" + lines[1] + "'");
+  c.fx = v[0];
+  c.fy = v[1];
+  c.cx = v[2];
+  c.cy = v[3];
+  if (c.cx < 1 && c.cy < 1) {  // relative
+    c.fx *= c.width;
+    c.fy *= c.height;
+    c.cx = c.cx * c.width - 0.5;
+    c.cy = c.cy * c.height - 0.5;
+  }
+  if (Status s = c.Check(); !s.ok()) return InvalidArgumentError(path + ": " + s.message());
+  return c;
+}
+
 StatusOr<PinholeCamera> ReadCameraIntrinsics(const std::string& path) {
+  {
+    std::ifstream in(path);
+    if (!in) return NotFoundError("cannot open '" + path + "'");
+    std::string line;
+    while (std::getline(in, line) && line.find_first_not_of(" \t\r") == std::string::npos) {
+    }
+    if (line.find(':') == std::string::npos && line.rfind("%YAML", 0) != 0 && line.rfind("---", 0) != 0)
+      return ReadDsoCameraTxt(path);
+  }
   StatusOr<cv::FileStorage> fs = OpenYaml(path);
   if (!fs.ok()) return fs.status();
   bool ros = false, opencv = false, prism = false;

@@ -24,7 +24,21 @@ StatusOr<PinholeCamera> ReadRosCameraInfoYaml(const std::string& path);
 Status WriteRosCameraInfoYaml(const std::string& path, const PinholeCamera& camera,
                               const std::string& camera_name = "prism_camera");
 
-// Any of the two, or the camera part of Prism's camera.yaml (calibration_io.h), told apart by keys.
+// DSO's and LSD-SLAM's camera.txt (plain text, not YAML):
+//   [Model] fx fy cx cy p1 ... pn      model RadTan (8 numbers: k1 k2 p1 p2) or Pinhole (fx fy cx cy 0);
+//                                      without a model name, 8 numbers are RadTan and 5 are FOV (ATAN)
+//   width height                       the input images
+//   crop | full | none | fx fy cx cy 0 and the output size (their own rectification; ignored here:
+//                                      Prism undistorts itself, core/slam/undistort.h)
+// When cx < 1 and cy < 1 the values are relative (DSO's convention): fx * width, fy * height,
+// cx * width - 0.5, cy * height - 0.5 (their pixel (0, 0) spans [0, 1]^2; Prism's, OpenCV's, is
+// centred at 0). FOV with a non-zero omega, KannalaBrandt and EquiDistant are not Prism's model:
+// INVALID_ARGUMENT naming the model.
+StatusOr<PinholeCamera> ReadDsoCameraTxt(const std::string& path);
+
+// Any of the above, or the camera part of Prism's camera.yaml (calibration_io.h): a file whose first
+// line holds no ':' and is not a YAML header is read as DSO / LSD-SLAM camera.txt, YAML files are told
+// apart by keys.
 StatusOr<PinholeCamera> ReadCameraIntrinsics(const std::string& path);
 
 }  // namespace prism

@@ -220,6 +220,53 @@ TEST_F(FormatsTest, ColmapTextRoundTripWithPixelConvention) {
   EXPECT_EQ(WriteColmapText(P("bad"), bad).code(), StatusCode::kInvalidArgument);
 }
 
+// DSO's and LSD-SLAM's camera.txt: absolute RadTan (EuRoC's cam0 as DSO users write it), relative
+// Pinhole (DSO's convention: scaled by the image size, centre shifted by half a pixel), RadTan without
+// the model name, and what Prism's model cannot take.
+TEST_F(FormatsTest, DsoAndLsdSlamCameraTxt) {
+  Write(P("euroc.txt"),
+        "RadTan 458.654 457.296 367.215 248.375 -0.28340811 0.07395907 0.00019359 1.76187114e-05\n752 480\ncrop\n"
+        "640 480\n");
+  StatusOr<PinholeCamera> euroc = ReadCameraIntrinsics(P("euroc.txt"));
+  ASSERT_TRUE(euroc.ok()) << euroc.status();
+  EXPECT_EQ(euroc->width, 752);
+  EXPECT_EQ(euroc->height, 480);
+  EXPECT_DOUBLE_EQ(euroc->fx, 458.654);
+  EXPECT_DOUBLE_EQ(euroc->cy, 248.375);
+  EXPECT_DOUBLE_EQ(euroc->distortion[0], -0.28340811);
+  EXPECT_DOUBLE_EQ(euroc->distortion[3], 1.76187114e-05);
+  EXPECT_DOUBLE_EQ(euroc->distortion[4], 0.0);
+
+  Write(P("relative.txt"), "Pinhole 0.5 0.625 0.5 0.5 0\n640 480\nnone\n640 480\n");
+  StatusOr<PinholeCamera> rel = ReadCameraIntrinsics(P("relative.txt"));
+  ASSERT_TRUE(rel.ok()) << rel.status();
+  EXPECT_DOUBLE_EQ(rel->fx, 320.0);
+  EXPECT_DOUBLE_EQ(rel->fy, 300.0);
+  EXPECT_DOUBLE_EQ(rel->cx, 319.5);
+  EXPECT_DOUBLE_EQ(rel->cy, 239.5);
+  EXPECT_FALSE(rel->HasDistortion());
+
+  Write(P("unnamed.txt"), "\n  400 400 320 240 0.1 -0.05 0.001 0.002\n640 480\n");
+  StatusOr<PinholeCamera> unnamed = ReadDsoCameraTxt(P("unnamed.txt"));
+  ASSERT_TRUE(unnamed.ok()) << unnamed.status();
+  EXPECT_DOUBLE_EQ(unnamed->distortion[1], -0.05);
+
+  const std::pair<std::string, std::string> bad[] = {
+      {"0.349 0.549 0.5 0.5 0.88\n640 480\n", "FOV camera model is not Prism's"},  // TUM monoVO's ATAN
+      {"KannalaBrandt 400 400 320 240 0.1 0.01 0 0\n640 480\n", "KannalaBrandt"},
+      {"RadTan 400 400 320 240 0.1\n640 480\n", "the RadTan model has 8 numbers, got 5"},
+      {"RadTan 400 400 320 240 0.1 0 0 0\n640\n", ":2: expected 'width height'"},
+      {"RadTan 400 400 320 240 0.1 0 0 0\n", "needs the intrinsics line and the 'width height' line"},
+      {"Weird 1 2 3\n640 480\n", "unknown camera model"},
+  };
+  for (const auto& [text, expect] : bad) {
+    Write(P("bad.txt"), text);
+    StatusOr<PinholeCamera> c = ReadCameraIntrinsics(P("bad.txt"));
+    EXPECT_EQ(c.status().code(), StatusCode::kInvalidArgument) << text;
+    EXPECT_NE(c.status().message().find(expect), std::string::npos) << c.status();
+  }
+}
+
 TEST_F(FormatsTest, RosCameraInfoAndOpenCvCalibrationFiles) {
   // As camera_calibration_parsers writes it (ROS wiki example values).
   Write(P("ros.yaml"),
