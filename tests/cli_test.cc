@@ -3,6 +3,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <iomanip>
 #include <sstream>
 #include <string>
 
@@ -296,6 +297,32 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
   ASSERT_TRUE(used.ok()) << used.status();
   EXPECT_FALSE(used->camera.HasDistortion());
   EXPECT_LT(used->camera.fx, rendered->camera.fx) << "barrel: a wider pinhole view keeps every pixel valid";
+  // The same calibration as a DSO / LSD-SLAM camera.txt given with --camera, the sequence without
+  // camera.yaml: the same trajectory, to the byte.
+  const fs::path bare = dir / "bare";
+  fs::copy(seq, bare, fs::copy_options::recursive);
+  fs::remove(bare / "camera.yaml");
+  {
+    std::ofstream txt(dir / "camera.txt");
+    const PinholeCamera& c = rendered->camera;
+    txt << std::setprecision(17) << "RadTan " << c.fx << " " << c.fy << " " << c.cx << " " << c.cy << " "
+        << c.distortion[0] << " " << c.distortion[1] << " " << c.distortion[2] << " " << c.distortion[3] << "\n"
+        << c.width << " " << c.height << "\ncrop\n" << c.width << " " << c.height << "\n";
+  }
+  r = Execute(Bin("prism-slam") + " --sequence " + bare.string() + " --out " + (dir / "bare_out").string());
+  EXPECT_NE(r.exit_code, 0) << "no camera.yaml and no --camera";
+  EXPECT_NE(r.out.find("--camera"), std::string::npos) << r.out;
+  r = Execute(Bin("prism-slam") + " --sequence " + bare.string() + " --camera " + (dir / "camera.txt").string() +
+              " --out " + (dir / "bare_out").string());
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  auto slurp = [](const fs::path& p) {
+    std::ifstream in(p);
+    std::ostringstream s;
+    s << in.rdbuf();
+    return s.str();
+  };
+  EXPECT_EQ(slurp(dir / "bare_out" / "trajectory.txt"), slurp(fs::path(out) / "trajectory.txt"));
+
   // The dense stage on the undistorted keyframes: a map of the object, scored against the true surface
   // of the distorted rendering. Measured: F-score 0.373 at tau = 1% of the bounding box.
   const std::string dense_out = (dir / "dense").string();

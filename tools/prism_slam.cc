@@ -14,6 +14,7 @@
 #include "core/eval/depth_metrics.h"
 #include "core/eval/trajectory_metrics.h"
 #include "core/io/calibration_io.h"
+#include "core/io/camera_info_io.h"
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
@@ -44,6 +45,10 @@ Writes to DIR:
   slam_config.txt  every SLAM option as used (core/slam/slam_config.h; re-readable by --slam-config)
   summary.json     frames, keyframes, states, timing; with ground truth in the sequence also the ATE
                    (Sim(3)-aligned, also as % of the path) and the keyframe depth error (printed too)
+
+--camera FILE takes the camera intrinsics and lens distortion from FILE instead of the sequence's
+camera.yaml: an OpenCV calibration YAML, a ROS camera_info YAML, a DSO / LSD-SLAM camera.txt or a
+Prism camera.yaml (core/io/camera_info_io.h).
 
 --kitti DIR reads a KITTI odometry folder instead: image_0/*.png (greyscale), calib.txt (P0, with or
 without the 'P0:' label), times.txt and, when present, poses.txt as ground truth.
@@ -119,7 +124,7 @@ StatusOr<Sequence> LoadKitti(const std::string& dir) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string sequence_dir, kitti_dir, out_dir;
+  std::string sequence_dir, kitti_dir, out_dir, camera_file;
   long max_frames = -1;
   int threads = 0;
   bool eval = true;
@@ -157,6 +162,7 @@ int main(int argc, char** argv) {
     if (a == "--sequence") sequence_dir = v;
     else if (a == "--kitti") kitti_dir = v;
     else if (a == "--out") out_dir = v;
+    else if (a == "--camera") camera_file = v;
     else if (a == "--position-weight" && is_num && num >= 0) dense_options.fusion.position_weight = num;
     else if (a == "--min-brightness" && is_num && num >= 0 && num <= 255) dense_options.min_brightness = num;
     else if (a == "--slam-config") {
@@ -174,7 +180,18 @@ int main(int argc, char** argv) {
   if (Status st = options.Check(); !st.ok()) return Fail("SLAM options: " + st.ToString());
   StatusOr<Sequence> seq = kitti_dir.empty() ? LoadSequence(sequence_dir) : LoadKitti(kitti_dir);
   if (!seq.ok()) return Fail(seq.status().ToString());
-  if (!seq->has_calibration) return Fail("sequence has no camera.yaml (the camera calibration is needed)");
+  if (!camera_file.empty()) {
+    // The intrinsics from the user's own calibration file; the lights and crosstalk stay the
+    // sequence's (the SLAM does not use them; the dense stage does).
+    if (dense && !seq->has_calibration)
+      return Fail("--camera gives the intrinsics only; --dense also needs the rig's lights (camera.yaml)");
+    StatusOr<PinholeCamera> camera = ReadCameraIntrinsics(camera_file);
+    if (!camera.ok()) return Fail(camera.status().ToString());
+    seq->calibration.camera = *camera;
+    seq->has_calibration = true;
+  }
+  if (!seq->has_calibration)
+    return Fail("sequence has no camera.yaml (the camera calibration is needed; or give --camera FILE)");
   std::error_code ec;
   std::filesystem::create_directories(out_dir + "/keyframes", ec);
   if (ec) return Fail("cannot create '" + out_dir + "/keyframes': " + ec.message());
