@@ -2,8 +2,10 @@
 
 #include <cstdlib>
 #include <fstream>
+#include <sstream>
 
 #include "core/slam/slam_config.h"
+#include "core/util/key_value_text.h"
 
 namespace prism::server {
 namespace {
@@ -17,10 +19,6 @@ bool ParseDouble(const std::string& s, double* out) {
   char* end = nullptr;
   *out = std::strtod(s.c_str(), &end);
   return !s.empty() && end && *end == '\0';
-}
-std::string Trim(const std::string& s) {
-  const size_t b = s.find_first_not_of(" \t\r\n"), e = s.find_last_not_of(" \t\r\n");
-  return b == std::string::npos ? "" : s.substr(b, e - b + 1);
 }
 
 }  // namespace
@@ -138,21 +136,11 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
 Status LoadServerConfig(const std::string& path, ServerOptions* options) {
   std::ifstream in(path);
   if (!in) return NotFoundError("cannot read config file '" + path + "'");
-  std::string line;
-  int n = 0;
-  while (std::getline(in, line)) {
-    ++n;
-    const size_t hash = line.find('#');
-    if (hash != std::string::npos) line.resize(hash);
-    line = Trim(line);
-    if (line.empty()) continue;
-    const size_t eq = line.find_first_of("=:");
-    if (eq == std::string::npos)
-      return InvalidArgumentError(path + ":" + std::to_string(n) + ": expected 'key = value', got '" + line + "'");
-    const Status s = ApplyServerOption(Trim(line.substr(0, eq)), Trim(line.substr(eq + 1)), options);
-    if (!s.ok()) return InvalidArgumentError(path + ":" + std::to_string(n) + ": " + s.message());
-  }
-  return Status::Ok();
+  std::ostringstream text;
+  text << in.rdbuf();
+  return ForEachKeyValueLine(text.str(), path, "=:", [&](const std::string& key, const std::string& value) {
+    return ApplyServerOption(key, value, options);
+  });
 }
 
 }  // namespace prism::server

@@ -212,12 +212,6 @@ TEST(SlamCliTest, OneSlamConfigForEveryEntryPoint) {
   const fs::path dir = fs::temp_directory_path() / ("prism_slam_config_" + std::to_string(::getpid()));
   fs::remove_all(dir);
   fs::create_directories(dir);
-  auto slurp = [](const fs::path& p) {
-    std::ifstream in(p);
-    std::ostringstream s;
-    s << in.rdbuf();
-    return s.str();
-  };
   const std::string seq = (dir / "seq").string();
   ProcessResult r = Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --frames 60 --size 256x256 --out " + seq);
   ASSERT_EQ(r.exit_code, 0) << r.out;
@@ -226,7 +220,7 @@ TEST(SlamCliTest, OneSlamConfigForEveryEntryPoint) {
   r = Execute(slam + (dir / "default").string());
   ASSERT_EQ(r.exit_code, 0) << r.out;
   const double default_keyframes = JsonNumber(r.out, "keyframes");
-  const std::string default_config = slurp(dir / "default" / "slam_config.txt");
+  const std::string default_config = test::ReadFileText(dir / "default" / "slam_config.txt");
   EXPECT_NE(default_config.find("\nkeyframe_distance_fraction = 0.09\n"), std::string::npos) << default_config;
 
   {
@@ -237,15 +231,15 @@ TEST(SlamCliTest, OneSlamConfigForEveryEntryPoint) {
               " --set tracker.min_gradient=5 --no-final-adjustment");
   ASSERT_EQ(r.exit_code, 0) << r.out;
   EXPECT_LT(JsonNumber(r.out, "keyframes"), default_keyframes) << "the keyframe distance took effect";
-  const std::string written = slurp(dir / "a" / "slam_config.txt");
+  const std::string written = test::ReadFileText(dir / "a" / "slam_config.txt");
   for (const char* line : {"\nkeyframe_distance_fraction = 0.18\n", "\nloop_closure = false\n",
                            "\ntracker.min_gradient = 5\n", "\nfinal_adjustment = false\n"})
     EXPECT_NE(written.find(line), std::string::npos) << line << " in\n" << written;
   // The written file reproduces the run.
   r = Execute(slam + (dir / "b").string() + " --slam-config " + (dir / "a" / "slam_config.txt").string());
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  EXPECT_EQ(slurp(dir / "b" / "slam_config.txt"), written);
-  EXPECT_EQ(slurp(dir / "b" / "trajectory.txt"), slurp(dir / "a" / "trajectory.txt"));
+  EXPECT_EQ(test::ReadFileText(dir / "b" / "slam_config.txt"), written);
+  EXPECT_EQ(test::ReadFileText(dir / "b" / "trajectory.txt"), test::ReadFileText(dir / "a" / "trajectory.txt"));
 
   const std::pair<std::string, std::string> bad[] = {
       {" --set tracker.min_gradiant=5", "nearest: 'tracker.min_gradient'"},
@@ -315,13 +309,7 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
   r = Execute(Bin("prism-slam") + " --sequence " + bare.string() + " --camera " + (dir / "camera.txt").string() +
               " --out " + (dir / "bare_out").string());
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  auto slurp = [](const fs::path& p) {
-    std::ifstream in(p);
-    std::ostringstream s;
-    s << in.rdbuf();
-    return s.str();
-  };
-  EXPECT_EQ(slurp(dir / "bare_out" / "trajectory.txt"), slurp(fs::path(out) / "trajectory.txt"));
+  EXPECT_EQ(test::ReadFileText(dir / "bare_out" / "trajectory.txt"), test::ReadFileText(fs::path(out) / "trajectory.txt"));
 
   // The dense stage on the undistorted keyframes: a map of the object, scored against the true surface
   // of the distorted rendering. Measured: F-score 0.373 at tau = 1% of the bounding box.

@@ -5,7 +5,9 @@
 
 #include <cmath>
 #include <cstdio>
+#include <fstream>
 #include <regex>
+#include <sstream>
 #include <string>
 
 namespace prism::test {
@@ -29,6 +31,14 @@ inline ProcessResult Execute(const std::string& command) {
 }
 
 // Path of a binary of this build (PRISM_BINARY_DIR is set by prism_add_test).
+// The whole content of a file ("" when it cannot be read).
+inline std::string ReadFileText(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::ostringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
 inline std::string Bin(const std::string& name) { return std::string(PRISM_BINARY_DIR) + "/bin/" + name; }
 
 // The number after "key": in a JSON text (NaN when absent).

@@ -10,6 +10,8 @@
 #include <sstream>
 #include <variant>
 
+#include "core/util/key_value_text.h"
+
 namespace prism {
 namespace {
 
@@ -124,13 +126,8 @@ std::vector<Field> Fields(SlamOptions& o) {
 
 constexpr const char* kShadingModelNames[] = {"none", "local_mean_normalisation", "predicted_shading"};
 
-std::string Trim(const std::string& s) {
-  const size_t b = s.find_first_not_of(" \t\r\n"), e = s.find_last_not_of(" \t\r\n");
-  return b == std::string::npos ? "" : s.substr(b, e - b + 1);
-}
-
 std::string NormaliseKey(std::string key) {
-  key = Trim(key);
+  key = TrimWhitespace(key);
   std::replace(key.begin(), key.end(), '-', '_');
   return key;
 }
@@ -199,7 +196,7 @@ std::vector<std::string> SlamOptionKeys() {
 }
 
 Status SetSlamOption(const std::string& key_in, const std::string& value_in, SlamOptions* options) {
-  const std::string key = NormaliseKey(key_in), value = Trim(value_in);
+  const std::string key = NormaliseKey(key_in), value = TrimWhitespace(value_in);
   std::vector<Field> fields = Fields(*options);
   auto it = std::find_if(fields.begin(), fields.end(), [&](const Field& f) { return f.key == key; });
   if (it == fields.end()) {
@@ -232,24 +229,11 @@ Status SetSlamOption(const std::string& key_in, const std::string& value_in, Sla
 Status ApplySlamConfig(const std::string& text, const std::string& source, SlamOptions* options) {
   SlamOptions result = *options;
   std::set<std::string> seen;
-  std::istringstream in(text);
-  std::string line;
-  int n = 0;
-  while (std::getline(in, line)) {
-    ++n;
-    const size_t hash = line.find('#');
-    if (hash != std::string::npos) line.resize(hash);
-    line = Trim(line);
-    if (line.empty()) continue;
-    const std::string where = source + ":" + std::to_string(n) + ": ";
-    const size_t eq = line.find('=');
-    if (eq == std::string::npos)
-      return InvalidArgumentError(where + "expected 'key = value', got '" + line + "'");
-    const std::string key = NormaliseKey(line.substr(0, eq));
-    if (!seen.insert(key).second) return InvalidArgumentError(where + "SLAM option '" + key + "' given twice");
-    if (Status s = SetSlamOption(key, line.substr(eq + 1), &result); !s.ok())
-      return InvalidArgumentError(where + s.message());
-  }
+  PRISM_RETURN_IF_ERROR(ForEachKeyValueLine(text, source, "=", [&](const std::string& key_in, const std::string& value) {
+    const std::string key = NormaliseKey(key_in);
+    if (!seen.insert(key).second) return InvalidArgumentError("SLAM option '" + key + "' given twice");
+    return SetSlamOption(key, value, &result);
+  }));
   if (Status s = result.Check(); !s.ok()) return InvalidArgumentError(source + ": " + s.message());
   *options = result;
   return Status::Ok();
