@@ -36,9 +36,11 @@ constexpr int kSanitizerWaitScale = 20;
 constexpr int kSanitizerWaitScale = 1;
 #endif
 // Extra prism-server and prism-client flags for the stretched waits (none in plain builds).
-std::vector<std::string> ServerWaitFlags() {
-  if (kSanitizerWaitScale == 1) return {};
-  return {"--idle-timeout-ms", std::to_string(30000 * kSanitizerWaitScale)};
+std::vector<std::string> WithServerWaitFlags(std::vector<std::string> flags) {
+  if (kSanitizerWaitScale == 1) return flags;
+  flags.push_back("--idle-timeout-ms");
+  flags.push_back(std::to_string(30000 * kSanitizerWaitScale));
+  return flags;
 }
 std::string ClientWaitFlags() {
   if (kSanitizerWaitScale == 1) return "";
@@ -60,6 +62,11 @@ class RoundTripTest : public ::testing::Test {
     if (!HasFailure()) fs::remove_all(dir_);
   }
   std::string P(const std::string& name) const { return (dir_ / name).string(); }
+  // prism-client streaming the fixture's sequence (P("seq")) to `server`, without --out.
+  std::string StreamCommand(const ServerProcess& server) const {
+    return Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") +
+           ClientWaitFlags();
+  }
   fs::path dir_;
 };
 
@@ -69,12 +76,9 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
                             std::to_string(kFrames) + " --out " + P("seq"));
   if (r.exit_code != 0 && r.out.find("not found") != std::string::npos) GTEST_SKIP() << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  std::vector<std::string> server_flags = {"--keyframe-queue", "16"};
-  for (const std::string& f : ServerWaitFlags()) server_flags.push_back(f);
-  ServerProcess server(P("data"), server_flags, P("server.log"));
+  ServerProcess server(P("data"), WithServerWaitFlags({"--keyframe-queue", "16"}), P("server.log"));
   ASSERT_TRUE(server.ok());
-  r = Execute(Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") +
-              ClientWaitFlags() + " --out " + P("out"));
+  r = Execute(StreamCommand(server) + " --out " + P("out"));
   ASSERT_EQ(r.exit_code, 0) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "poses"), kFrames) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "errors"), 0) << r.out;
@@ -142,12 +146,10 @@ TEST_F(RoundTripTest, ADistortedCameraStreamsThroughTheServer) {
                             std::to_string(kFrames) + " --distortion -0.25,0.08,0,0,0 --out " + P("seq"));
   if (r.exit_code != 0 && r.out.find("mesh") != std::string::npos) GTEST_SKIP() << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  std::vector<std::string> server_flags = {"--input-policy", "upload", "--keyframe-queue", "32"};
-  for (const std::string& f : ServerWaitFlags()) server_flags.push_back(f);
-  ServerProcess server(P("data"), server_flags, P("server.log"));
+  ServerProcess server(P("data"), WithServerWaitFlags({"--input-policy", "upload", "--keyframe-queue", "32"}),
+                       P("server.log"));
   ASSERT_TRUE(server.ok());
-  r = Execute(Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") +
-              ClientWaitFlags() + " --out " + P("out"));
+  r = Execute(StreamCommand(server) + " --out " + P("out"));
   ASSERT_EQ(r.exit_code, 0) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "poses"), kFrames) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "errors"), 0) << r.out;
@@ -170,12 +172,9 @@ TEST_F(RoundTripTest, TwoConcurrentSessionsBothComplete) {
                             P("seq"));
   if (r.exit_code != 0 && r.out.find("not found") != std::string::npos) GTEST_SKIP() << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  std::vector<std::string> server_flags = {"--max-sessions", "2"};
-  for (const std::string& f : ServerWaitFlags()) server_flags.push_back(f);
-  ServerProcess server(P("data"), server_flags, P("server.log"));
+  ServerProcess server(P("data"), WithServerWaitFlags({"--max-sessions", "2"}), P("server.log"));
   ASSERT_TRUE(server.ok());
-  const std::string client =
-      Bin("prism-client") + " stream --server " + server.endpoint() + " --sequence " + P("seq") + ClientWaitFlags();
+  const std::string client = StreamCommand(server);
   r = Execute("(" + client + " --out " + P("a") + " > " + P("a.json") + " 2>&1 & " + client + " --codec jpeg --out " +
               P("b") + " > " + P("b.json") + " 2>&1 & wait)");
   for (const char* name : {"a.json", "b.json"}) {
