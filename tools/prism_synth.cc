@@ -37,6 +37,7 @@ options:
   --mesh-dir DIR      folder with bunny00.off, armadillo.off, ChineseDragon-10kv.off
   --noise SIGMA       read-noise standard deviation in 8-bit levels (default from the preset)
   --ambient A         white ambient light in [0, 1] (default 0: dark room)
+  --supersampling N   N x N rays per pixel, averaged: pixel-area integration (default from the preset)
   --no-shadows        disable cast shadows
   --distortion K1,K2,P1,P2,K3  render through this lens distortion (OpenCV's radial-tangential model;
                       written to camera.yaml), e.g. -0.25,0.08,0,0,0 for a webcam's barrel distortion
@@ -73,6 +74,7 @@ int main(int argc, char** argv) {
   bool list = false, describe = false, no_shadows = false;
   int threads = 0;
   double noise = -1, ambient = -1;
+  int supersampling = 0;
   std::optional<std::array<double, 5>> distortion;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -91,7 +93,7 @@ int main(int argc, char** argv) {
     } else if (a == "--no-shadows") {
       no_shadows = true;
     } else if (a == "--preset" || a == "--out" || a == "--frames" || a == "--size" || a == "--seed" ||
-               a == "--threads" || a == "--mesh-dir" || a == "--noise" || a == "--ambient" || a == "--gt-cloud" ||
+               a == "--threads" || a == "--mesh-dir" || a == "--noise" || a == "--ambient" || a == "--supersampling" || a == "--gt-cloud" ||
                a == "--distortion") {
       const char* v = value(a.c_str());
       if (!v) return Fail(a + " needs a value (see --help)");
@@ -115,6 +117,8 @@ int main(int argc, char** argv) {
         options.height = h;
       } else if (a == "--noise") {
         if (!ParseDouble(v, &noise)) return Fail("--noise must be a number");
+      } else if (a == "--supersampling") {
+        if (!ParseInt(v, 1, 8, &supersampling)) return Fail("--supersampling must be an integer in [1, 8]");
       } else if (a == "--ambient") {
         if (!ParseDouble(v, &ambient)) return Fail("--ambient must be a number");
       } else if (a == "--distortion") {
@@ -144,6 +148,7 @@ int main(int argc, char** argv) {
   if (!setup.ok()) return Fail(setup.status().ToString());
   if (noise >= 0) setup->render.noise_sigma = noise;
   if (ambient >= 0) setup->render.ambient = ambient;
+  if (supersampling > 0) setup->render.supersampling = supersampling;
   if (no_shadows) setup->render.cast_shadows = false;
   if (distortion) {
     setup->rig.camera.distortion = *distortion;

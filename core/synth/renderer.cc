@@ -19,6 +19,8 @@ Status RenderOptions::Check() const {
   else if (!(max_depth_m > 0)) e << "RenderOptions.max_depth_m = " << max_depth_m << "; violated: > 0";
   else if (!(shadow_bias_m >= 0 && shadow_bias_m < 0.01))
     e << "RenderOptions.shadow_bias_m = " << shadow_bias_m << "; violated: in [0, 0.01)";
+  else if (!(supersampling >= 1 && supersampling <= 8))
+    e << "RenderOptions.supersampling = " << supersampling << "; violated: in [1, 8]";
   if (e.str().empty()) return Status::Ok();
   return InvalidArgumentError(e.str());
 }
@@ -143,6 +145,7 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
   const Eigen::Quaterniond camera_from_world_rot = world_from_camera.rotation.conjugate();
   const FrameContext ctx = MakeContext(rig, world_from_camera);
 
+  const int n = options.supersampling;
   auto render_row = [&](std::ptrdiff_t y) {
     // Per-row noise stream: deterministic whatever the thread schedule.
     FastGaussian gauss(noise_seed * 0x9E3779B97F4A7C15ull + static_cast<uint64_t>(y) + 1);
@@ -158,7 +161,7 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
       SurfaceHit hit;
       Eigen::Vector3d radiance = Eigen::Vector3d::Zero();
       if (scene.Intersect(world_from_camera.translation, dir, 1e-6, options.max_depth_m, &hit)) {
-        radiance = Shade(scene, rig, ctx, hit, options);
+        if (n == 1) radiance = Shade(scene, rig, ctx, hit, options);
         depth[x] = static_cast<float>(hit.t * dir_cam.z());
         const Eigen::Vector3d n_cam = camera_from_world_rot * hit.normal_in_world;
         nrm[x] = cv::Vec3f(static_cast<float>(n_cam.x()), static_cast<float>(n_cam.y()), static_cast<float>(n_cam.z()));
@@ -167,6 +170,19 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
         depth[x] = 0.f;
         nrm[x] = cv::Vec3f(0, 0, 0);
         mask[x] = 0;
+      }
+      if (n > 1) {
+        // Sub-pixel rays at offsets (i + 0.5) / n - 0.5 across the pixel.
+        for (int sy = 0; sy < n; ++sy) {
+          for (int sx = 0; sx < n; ++sx) {
+            const Eigen::Vector2d p(x + (sx + 0.5) / n - 0.5, y + (sy + 0.5) / n - 0.5);
+            const Eigen::Vector3d d = world_from_camera.rotation * cam.Unproject(p).normalized();
+            SurfaceHit sub;
+            if (scene.Intersect(world_from_camera.translation, d, 1e-6, options.max_depth_m, &sub))
+              radiance += Shade(scene, rig, ctx, sub, options);
+          }
+        }
+        radiance /= static_cast<double>(n * n);
       }
       for (int c = 0; c < 3; ++c) {
         rad[x][c] = static_cast<float>(radiance[c]);

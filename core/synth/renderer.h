@@ -8,7 +8,8 @@
 //       + specular * sum_l X(c,l) * E_l(x) * V_l(x) * max(0, n . H_l)^shininess   (if n . L_l > 0)
 // with X the crosstalk matrix, rho_l the albedo in light l's band, E_l = intensity / d^2 (point) or
 // intensity (directional), L_l the unit direction to the light, V_l the cast-shadow visibility and
-// H_l the half vector between L_l and the view direction. Pixel value = round(255 * I + noise).
+// H_l the half vector between L_l and the view direction. Pixel value = round(255 * I + noise), with
+// I the mean over RenderOptions::supersampling^2 rays across the pixel (1: the centre ray only).
 #pragma once
 
 #include <cstdint>
@@ -41,6 +42,11 @@ struct RenderOptions {
   double max_depth_m = 20.0;
   // Offset of shadow-ray origins along the geometric normal, metres.
   double shadow_bias_m = 1e-5;
+  // Pixel-area integration: each pixel's radiance is the mean over n x n rays on a regular grid
+  // across the pixel (a box filter, as a sensor with full fill factor), in [1, 8]. 1 = one ray
+  // through the pixel centre (point sampling: sharp albedo edges and silhouettes alias, so sub-pixel
+  // motion changes pixel values in steps). Depth, normals and mask stay those of the centre ray.
+  int supersampling = 1;
 
   Status Check() const;
 };

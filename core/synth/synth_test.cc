@@ -2,6 +2,7 @@
 #include <random>
 
 #include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
 
 #include "core/io/sequence.h"
 #include "core/synth/mesh_bvh.h"
@@ -125,6 +126,55 @@ TEST(RendererTest, NoiseIsDeterministicForASeed) {
   ThreadPool pool(2);
   const RenderedFrame d = RenderFrame(a.setup.scene, a.setup.rig, a.pose, a.setup.render, 7, &pool);
   EXPECT_EQ(cv::norm(a.frame.rgb, d.rgb, cv::NORM_INF), 0.0) << "threading must not change the image";
+}
+
+// Supersampling n x n must equal point sampling at n times the resolution, averaged over n x n
+// blocks (the sub-pixel rays are exactly the fine pixels' centres), and keep the centre ray's
+// depth, normals and mask.
+TEST(RendererTest, SupersamplingIntegratesThePixelArea) {
+  constexpr int kN = 3;
+  SphereFixture f(/*shadows=*/true, /*noise=*/0.0);
+  RenderOptions options = f.setup.render;
+  options.supersampling = kN;
+  ASSERT_TRUE(options.Check().ok());
+  const RenderedFrame ss = RenderFrame(f.setup.scene, f.setup.rig, f.pose, options, 7);
+
+  RigCalibration fine = f.setup.rig;
+  fine.camera.width *= kN;
+  fine.camera.height *= kN;
+  fine.camera.fx *= kN;
+  fine.camera.fy *= kN;
+  // Fine pixel i covers coarse coordinate (i - (kN - 1) / 2) / kN.
+  fine.camera.cx = kN * f.setup.rig.camera.cx + 0.5 * (kN - 1);
+  fine.camera.cy = kN * f.setup.rig.camera.cy + 0.5 * (kN - 1);
+  const RenderedFrame hi = RenderFrame(f.setup.scene, fine, f.pose, f.setup.render, 7);
+  cv::Mat block_mean;
+  cv::resize(hi.radiance, block_mean, ss.radiance.size(), 0, 0, cv::INTER_AREA);
+  EXPECT_LT(cv::norm(ss.radiance, block_mean, cv::NORM_INF), 1e-4);
+
+  EXPECT_EQ(cv::norm(ss.depth, f.frame.depth, cv::NORM_INF), 0.0);
+  EXPECT_EQ(cv::norm(ss.normals, f.frame.normals, cv::NORM_INF), 0.0);
+  EXPECT_EQ(cv::norm(ss.mask, f.frame.mask, cv::NORM_INF), 0.0);
+  // Silhouette pixels whose centre ray misses now carry part of the sphere's light, and the
+  // interior, where shading is smooth, stays close to the point-sampled value.
+  int partial = 0;
+  double interior_max_diff = 0;
+  for (int y = 1; y < ss.mask.rows - 1; ++y)
+    for (int x = 1; x < ss.mask.cols - 1; ++x) {
+      const cv::Vec3f a = ss.radiance.at<cv::Vec3f>(y, x), b = f.frame.radiance.at<cv::Vec3f>(y, x);
+      if (f.frame.mask.at<uint8_t>(y, x) == 0 && a[0] + a[1] + a[2] > 1e-3f) ++partial;
+      bool interior = true;
+      for (int dy = -1; dy <= 1; ++dy)
+        for (int dx = -1; dx <= 1; ++dx) interior &= f.frame.mask.at<uint8_t>(y + dy, x + dx) == 255;
+      if (interior) interior_max_diff = std::max(interior_max_diff, cv::norm(a - b, cv::NORM_INF));
+    }
+  EXPECT_GT(partial, 20);
+  EXPECT_LT(interior_max_diff, 0.02) << "smooth shading must not change by more than 2% of full scale";
+
+  options.supersampling = 0;
+  EXPECT_FALSE(options.Check().ok());
+  options.supersampling = 9;
+  EXPECT_FALSE(options.Check().ok());
 }
 
 TEST(MeshBvhTest, ClosestHitEqualsBruteForce) {

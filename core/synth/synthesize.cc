@@ -52,6 +52,7 @@ StatusOr<SynthesizeSummary> SynthesizeSequence(const SynthSetup& setup, uint32_t
   fs << "path_length_m" << summary.path_length_m;
   fs << "ambient" << setup.render.ambient << "noise_sigma" << setup.render.noise_sigma;
   fs << "cast_shadows" << static_cast<int>(setup.render.cast_shadows);
+  fs << "supersampling" << setup.render.supersampling;
   fs.release();
 
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
