@@ -20,8 +20,10 @@ prism::server::Server* TheServer() {
   static prism::server::Server* server = [] {
     prism::SetMinLogLevel(prism::LogLevel::kError);
     prism::server::ServerOptions options;
-    options.bind = "ipc://" + (std::filesystem::temp_directory_path() / ("prism_fuzz_" + std::to_string(getpid()))).string();
-    options.data_dir = (std::filesystem::temp_directory_path() / ("prism_fuzz_data_" + std::to_string(getpid()))).string();
+    options.bind =
+        "ipc://" + (std::filesystem::temp_directory_path() / ("prism_fuzz_" + std::to_string(getpid()))).string();
+    options.data_dir =
+        (std::filesystem::temp_directory_path() / ("prism_fuzz_data_" + std::to_string(getpid()))).string();
     options.metrics_bind = "off";
     options.max_sessions = 2;  // a few real sessions, then admission refusals
     options.threads = 1;

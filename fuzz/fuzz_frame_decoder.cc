@@ -8,8 +8,9 @@
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size < 3) return 0;
-  const prism::FrameCodec codec =
-      data[0] % 3 == 0 ? prism::FrameCodec::kPng : data[0] % 3 == 1 ? prism::FrameCodec::kJpeg : prism::FrameCodec::kRaw;
+  const prism::FrameCodec codec = data[0] % 3 == 0   ? prism::FrameCodec::kPng
+                                  : data[0] % 3 == 1 ? prism::FrameCodec::kJpeg
+                                                     : prism::FrameCodec::kRaw;
   const int width = 1 + data[1], height = 1 + data[2];
   cv::Mat rgb;
   const prism::Status s = prism::DecodeFrame(data + 3, size - 3, codec, width, height, &rgb);

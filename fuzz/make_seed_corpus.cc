@@ -13,8 +13,8 @@
 #include "core/slam/slam_config.h"
 #include "core/synth/presets.h"
 #include "fuzz/fuzz_input.h"
-#include "server/rig_wire.h"
 #include "prism/v1/session.pb.h"
+#include "server/rig_wire.h"
 
 namespace {
 
@@ -98,7 +98,8 @@ int main(int argc, char** argv) {
   n = 0;
   for (const auto& [w, h] : {std::pair{16, 12}, std::pair{33, 7}, std::pair{64, 64}}) {
     const cv::Mat rgb = Image(w, h);
-    for (const auto& [codec, tag] : {std::pair{FrameCodec::kPng, 0}, std::pair{FrameCodec::kJpeg, 1}, std::pair{FrameCodec::kRaw, 2}}) {
+    for (const auto& [codec, tag] :
+         {std::pair{FrameCodec::kPng, 0}, std::pair{FrameCodec::kJpeg, 1}, std::pair{FrameCodec::kRaw, 2}}) {
       FrameEncodeOptions o;
       o.codec = codec;
       std::vector<uint8_t> bytes;

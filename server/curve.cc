@@ -32,8 +32,8 @@ Status WriteCurveKeyFile(const std::string& path, const CurveKeyPair& keys) {
   const mode_t old = umask(077);
   {
     std::ofstream out(path, std::ios::trunc);
-    out << "# prism CURVE key pair: give 'public' to the other side, keep 'secret' here\npublic = "
-        << keys.public_key << "\nsecret = " << keys.secret_key << "\n";
+    out << "# prism CURVE key pair: give 'public' to the other side, keep 'secret' here\npublic = " << keys.public_key
+        << "\nsecret = " << keys.secret_key << "\n";
     umask(old);
     if (!out) return UnavailableError("cannot write key file '" + path + "'");
   }

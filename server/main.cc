@@ -59,7 +59,8 @@ int main(int argc, char** argv) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
       std::cout << "usage: prism-server --bind ENDPOINT --data-dir DIR [--config FILE] [--KEY VALUE ...]\n"
-                   "       prism-server keygen [--out FILE]   (a CURVE key pair; FILE gets both, the public key is printed)\n\n"
+                   "       prism-server keygen [--out FILE]   (a CURVE key pair; FILE gets both, the public key is "
+                   "printed)\n\n"
                    "Serves reconstruction sessions over ZeroMQ (proto/prism/v1/session.proto). Options (flags\n"
                    "or 'key = value' lines in the config file):\n"
                 << ServerOptionsHelp()
@@ -67,7 +68,8 @@ int main(int argc, char** argv) {
                    "work (shutdown-deadline-ms), persist maps, exit 0.\n";
       return 0;
     }
-    if (a.rfind("--", 0) != 0 || i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
+    if (a.rfind("--", 0) != 0 || i + 1 >= argc)
+      return Fail("unknown argument or missing value: '" + a + "' (see --help)");
     const std::string key = a.substr(2), value = argv[++i];
     if (key == "config") continue;
     if (key == "log-level") {

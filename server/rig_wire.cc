@@ -31,7 +31,8 @@ StatusOr<RigCalibration> RigFromWire(const v1::RigCalibration& w) {
     return InvalidArgumentError("calibration.camera.distortion needs 0 or 5 values, got " +
                                 std::to_string(c.distortion_size()));
   for (int i = 0; i < c.distortion_size(); ++i) rig.camera.distortion[static_cast<size_t>(i)] = c.distortion(i);
-  if (w.lights_size() != 3) return InvalidArgumentError("calibration needs exactly 3 lights, got " + std::to_string(w.lights_size()));
+  if (w.lights_size() != 3)
+    return InvalidArgumentError("calibration needs exactly 3 lights, got " + std::to_string(w.lights_size()));
   for (int i = 0; i < 3; ++i) {
     const v1::LightCalibration& l = w.lights(i);
     Light& light = rig.lights[static_cast<size_t>(i)];
@@ -42,7 +43,8 @@ StatusOr<RigCalibration> RigFromWire(const v1::RigCalibration& w) {
     light.color = FromWire(l.color());
     light.intensity = l.intensity();
   }
-  if (w.crosstalk_size() != 9) return InvalidArgumentError("calibration.crosstalk needs 9 values, got " + std::to_string(w.crosstalk_size()));
+  if (w.crosstalk_size() != 9)
+    return InvalidArgumentError("calibration.crosstalk needs 9 values, got " + std::to_string(w.crosstalk_size()));
   for (int i = 0; i < 9; ++i) rig.crosstalk(i / 3, i % 3) = w.crosstalk(i);
   if (Status s = rig.Check(); !s.ok()) return InvalidArgumentError("calibration: " + s.message());
   return rig;

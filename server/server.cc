@@ -1,10 +1,11 @@
 #include "server/server.h"
-#include "server/curve.h"
-#include "server/rig_wire.h"
-#include "server/session_store.h"
 
 #include <arpa/inet.h>
 #include <fcntl.h>
+
+#include "server/curve.h"
+#include "server/rig_wire.h"
+#include "server/session_store.h"
 #if defined(__GLIBC__)
 #include <malloc.h>
 #endif
@@ -45,23 +46,35 @@ using Clock = std::chrono::steady_clock;
 v1::ErrorCode ToWireCode(StatusCode code) {
   switch (code) {
     case StatusCode::kInvalidArgument:
-    case StatusCode::kOutOfRange: return v1::ERROR_CODE_INVALID_ARGUMENT;
-    case StatusCode::kNotFound: return v1::ERROR_CODE_NOT_FOUND;
-    case StatusCode::kResourceExhausted: return v1::ERROR_CODE_RESOURCE_EXHAUSTED;
-    case StatusCode::kFailedPrecondition: return v1::ERROR_CODE_FAILED_PRECONDITION;
-    case StatusCode::kUnauthenticated: return v1::ERROR_CODE_UNAUTHENTICATED;
-    case StatusCode::kDataLoss: return v1::ERROR_CODE_DATA_LOSS;
-    case StatusCode::kUnavailable: return v1::ERROR_CODE_UNAVAILABLE;
-    default: return v1::ERROR_CODE_INTERNAL;
+    case StatusCode::kOutOfRange:
+      return v1::ERROR_CODE_INVALID_ARGUMENT;
+    case StatusCode::kNotFound:
+      return v1::ERROR_CODE_NOT_FOUND;
+    case StatusCode::kResourceExhausted:
+      return v1::ERROR_CODE_RESOURCE_EXHAUSTED;
+    case StatusCode::kFailedPrecondition:
+      return v1::ERROR_CODE_FAILED_PRECONDITION;
+    case StatusCode::kUnauthenticated:
+      return v1::ERROR_CODE_UNAUTHENTICATED;
+    case StatusCode::kDataLoss:
+      return v1::ERROR_CODE_DATA_LOSS;
+    case StatusCode::kUnavailable:
+      return v1::ERROR_CODE_UNAVAILABLE;
+    default:
+      return v1::ERROR_CODE_INTERNAL;
   }
 }
 
 StatusOr<FrameCodec> FromWireCodec(v1::FrameCodec c) {
   switch (c) {
-    case v1::FRAME_CODEC_PNG: return FrameCodec::kPng;
-    case v1::FRAME_CODEC_JPEG: return FrameCodec::kJpeg;
-    case v1::FRAME_CODEC_RAW: return FrameCodec::kRaw;
-    default: return InvalidArgumentError("frame codec " + std::to_string(static_cast<int>(c)) + " is not png, jpeg or raw");
+    case v1::FRAME_CODEC_PNG:
+      return FrameCodec::kPng;
+    case v1::FRAME_CODEC_JPEG:
+      return FrameCodec::kJpeg;
+    case v1::FRAME_CODEC_RAW:
+      return FrameCodec::kRaw;
+    default:
+      return InvalidArgumentError("frame codec " + std::to_string(static_cast<int>(c)) + " is not png, jpeg or raw");
   }
 }
 
@@ -142,10 +155,10 @@ struct Server::Impl {
     bool memory_limit_hit = false;
     uint32_t frame_credits_to_grant = 0;
     Clock::time_point last_activity;
-    bool closing = false;    // Close received, idle timeout or shutdown: no more frames
-    bool finished = false;   // the pipeline's kFinished arrived
-    std::string reason;      // why it ends
-    PipelineStats stats;     // at kFinished
+    bool closing = false;   // Close received, idle timeout or shutdown: no more frames
+    bool finished = false;  // the pipeline's kFinished arrived
+    std::string reason;     // why it ends
+    PipelineStats stats;    // at kFinished
     uint64_t poses_sent = 0, chunks_sent = 0, frames_refused = 0;
     std::string resume_token;
     // Replay of an ended session (resume after it finished or after a server restart): no pipeline;
@@ -197,7 +210,8 @@ struct Server::Impl {
   Status BindMetrics() {
     if (options.metrics_bind == "off") return Status::Ok();
     const size_t colon = options.metrics_bind.rfind(':');
-    if (colon == std::string::npos) return InvalidArgumentError("metrics must be HOST:PORT or off, got '" + options.metrics_bind + "'");
+    if (colon == std::string::npos)
+      return InvalidArgumentError("metrics must be HOST:PORT or off, got '" + options.metrics_bind + "'");
     const std::string host = options.metrics_bind.substr(0, colon);
     const int port = std::atoi(options.metrics_bind.c_str() + colon + 1);
     sockaddr_in addr{};
@@ -249,8 +263,7 @@ struct Server::Impl {
         body = "{\"endpoint\": \"" + (options.advertise.empty() ? endpoint : options.advertise) +
                "\", \"sessions_active\": " + std::to_string(active) +
                ", \"sessions_capacity\": " + std::to_string(options.max_sessions) +
-               ", \"free\": " + std::to_string(free_slots) + ", \"draining\": " + (draining ? "true" : "false") +
-               "}\n";
+               ", \"free\": " + std::to_string(free_slots) + ", \"draining\": " + (draining ? "true" : "false") + "}\n";
         if (free_slots == 0) status = "503 Service Unavailable";
         metrics.Add("prism_allocate_requests_total");
       } else {
@@ -337,16 +350,18 @@ struct Server::Impl {
     const std::string peer = parts[0].to_string();
     if (parts.size() < 2 || parts.size() > 3) {
       metrics.Add("prism_malformed_messages_total");
-      SendError(peer, InvalidArgumentError("malformed message: expected [Envelope] or [Envelope][payload], got " +
-                                           std::to_string(parts.size() - 1) + " parts"),
+      SendError(peer,
+                InvalidArgumentError("malformed message: expected [Envelope] or [Envelope][payload], got " +
+                                     std::to_string(parts.size() - 1) + " parts"),
                 "", false, false);
       return;
     }
     v1::Envelope env;
     if (!env.ParseFromArray(parts[1].data(), static_cast<int>(parts[1].size()))) {
       metrics.Add("prism_malformed_messages_total");
-      SendError(peer, InvalidArgumentError("malformed envelope: " + std::to_string(parts[1].size()) +
-                                           " bytes that do not parse as a prism.v1.Envelope"),
+      SendError(peer,
+                InvalidArgumentError("malformed envelope: " + std::to_string(parts[1].size()) +
+                                     " bytes that do not parse as a prism.v1.Envelope"),
                 "", false, false);
       return;
     }
@@ -363,8 +378,10 @@ struct Server::Impl {
       return;
     }
     switch (env.body_case()) {
-      case v1::Envelope::kOpenSession: return OpenSession(peer, env.open_session());
-      case v1::Envelope::kFrame: return HandleFrame(peer, env.frame(), payload);
+      case v1::Envelope::kOpenSession:
+        return OpenSession(peer, env.open_session());
+      case v1::Envelope::kFrame:
+        return HandleFrame(peer, env.frame(), payload);
       case v1::Envelope::kChunkCredits: {
         // Credits for a session that has just ended (granted for its last chunks) are harmless: no error.
         auto it = sessions.find(env.chunk_credits().session_id());
@@ -397,8 +414,9 @@ struct Server::Impl {
         return;
       default:
         metrics.Add("prism_malformed_messages_total");
-        SendError(peer, InvalidArgumentError("a client may not send this message type (body " +
-                                             std::to_string(static_cast<int>(env.body_case())) + ")"),
+        SendError(peer,
+                  InvalidArgumentError("a client may not send this message type (body " +
+                                       std::to_string(static_cast<int>(env.body_case())) + ")"),
                   "", false, false);
         return;
     }
@@ -419,8 +437,8 @@ struct Server::Impl {
     const std::string& id = open.resume_session_id();
     if (!IsValidSessionId(id)) {
       metrics.Add("prism_resumes_rejected_total{reason=\"invalid\"}");
-      return SendError(peer, InvalidArgumentError("malformed resume_session_id '" + id.substr(0, 64) + "'"), "",
-                       false, false);
+      return SendError(peer, InvalidArgumentError("malformed resume_session_id '" + id.substr(0, 64) + "'"), "", false,
+                       false);
     }
     auto token_ok = [&](const std::string& token) {
       // Constant time in the token length: no early exit on the first differing byte.
@@ -435,8 +453,8 @@ struct Server::Impl {
       s = it->second.get();
       if (!token_ok(s->resume_token)) {
         metrics.Add("prism_resumes_rejected_total{reason=\"token\"}");
-        return SendError(peer, Status(StatusCode::kUnauthenticated, "resume token does not match session '" + id + "'"), id, false,
-                         false);
+        return SendError(peer, Status(StatusCode::kUnauthenticated, "resume token does not match session '" + id + "'"),
+                         id, false, false);
       }
     } else {
       StatusOr<StoredSession> stored = store.Load(id);
@@ -446,12 +464,13 @@ struct Server::Impl {
       }
       if (!token_ok(stored->resume_token)) {
         metrics.Add("prism_resumes_rejected_total{reason=\"token\"}");
-        return SendError(peer, Status(StatusCode::kUnauthenticated, "resume token does not match session '" + id + "'"), id, false,
-                         false);
+        return SendError(peer, Status(StatusCode::kUnauthenticated, "resume token does not match session '" + id + "'"),
+                         id, false, false);
       }
       if (static_cast<int>(sessions.size()) >= options.max_sessions)
-        return SendError(peer, ResourceExhaustedError("server at capacity: " + std::to_string(sessions.size()) +
-                                                      " sessions; retry the resume later"),
+        return SendError(peer,
+                         ResourceExhaustedError("server at capacity: " + std::to_string(sessions.size()) +
+                                                " sessions; retry the resume later"),
                          id, true, false);
       if (!stored->has_summary) {
         // Interrupted by a server stop: finish it from what was persisted.
@@ -510,10 +529,10 @@ struct Server::Impl {
     o->set_read_only(s->replay);
     o->set_next_frame_sequence(s->next_frame_sequence);
     o->set_initial_frame_credits(
-        s->replay || s->closing ? 0u
-                                : static_cast<uint32_t>(std::max<int64_t>(
-                                      0, static_cast<int64_t>(options.pipeline.frame_queue_capacity) -
-                                             static_cast<int64_t>(s->pipeline->queued_frames()))));
+        s->replay || s->closing
+            ? 0u
+            : static_cast<uint32_t>(std::max<int64_t>(0, static_cast<int64_t>(options.pipeline.frame_queue_capacity) -
+                                                             static_cast<int64_t>(s->pipeline->queued_frames()))));
     metrics.Add("prism_sessions_resumed_total");
     PRISM_LOG(INFO) << "event=session_resumed session=" << id << " read_only=" << s->replay
                     << " chunks_to_resend=" << s->pending_chunks.size() << " next_pose=" << open.resume_next_pose();
@@ -566,7 +585,8 @@ struct Server::Impl {
     session->id = "s" + std::to_string(++session_counter) + "-" + RandomHex(6);
     session->peer = peer;
     session->client_name = open.client_name();
-    session->chunk_credits = open.initial_chunk_credits() > 0 ? open.initial_chunk_credits() : options.default_chunk_credits;
+    session->chunk_credits =
+        open.initial_chunk_credits() > 0 ? open.initial_chunk_credits() : options.default_chunk_credits;
     session->last_activity = Clock::now();
     session->rate_refilled = session->last_activity;
     session->rate_tokens = 2.0 * po.frame_queue_capacity;
@@ -603,8 +623,8 @@ struct Server::Impl {
     o->set_max_frame_rate_hz(options.max_frame_rate_hz);
     sessions[id] = std::move(session);
     metrics.Add("prism_sessions_opened_total");
-    PRISM_LOG(INFO) << "event=session_opened session=" << id << " client=\"" << open.client_name() << "\" size="
-                    << rig->camera.width << "x" << rig->camera.height << " sessions=" << sessions.size();
+    PRISM_LOG(INFO) << "event=session_opened session=" << id << " client=\"" << open.client_name()
+                    << "\" size=" << rig->camera.width << "x" << rig->camera.height << " sessions=" << sessions.size();
     Send(peer, env);
   }
 
@@ -617,18 +637,19 @@ struct Server::Impl {
       ++s->frames_refused;
       ++s->frame_credits_to_grant;  // the frame never entered the queue: its credit comes back
       metrics.Add("prism_frames_refused_total");
-      SendError(peer, Status(st.code(), "frame " + std::to_string(seq) + ": " + st.message()), s->id, retryable,
-                false, &seq);
+      SendError(peer, Status(st.code(), "frame " + std::to_string(seq) + ": " + st.message()), s->id, retryable, false,
+                &seq);
     };
-    if (s->replay) return refuse(FailedPreconditionError("the session has ended (" + s->reason + "); it takes no frames"), false);
+    if (s->replay)
+      return refuse(FailedPreconditionError("the session has ended (" + s->reason + "); it takes no frames"), false);
     if (s->closing) return refuse(FailedPreconditionError("the session is closing; no frames after Close"), false);
     s->next_frame_sequence = std::max(s->next_frame_sequence, seq + 1);
     if (options.max_frame_rate_hz > 0) {
       const auto now = Clock::now();
       // Twice the burst a client pacing itself uses (the frame queue), so network jitter never trips it.
       const double burst = 2.0 * options.pipeline.frame_queue_capacity;
-      s->rate_tokens = std::min(
-          burst, s->rate_tokens + std::chrono::duration<double>(now - s->rate_refilled).count() * options.max_frame_rate_hz);
+      s->rate_tokens = std::min(burst, s->rate_tokens + std::chrono::duration<double>(now - s->rate_refilled).count() *
+                                                            options.max_frame_rate_hz);
       s->rate_refilled = now;
       if (s->rate_tokens < 1.0) {
         metrics.Add("prism_frames_dropped_total{reason=\"rate\"}");
@@ -638,7 +659,8 @@ struct Server::Impl {
       }
       s->rate_tokens -= 1.0;
     }
-    if (!payload || payload->size() == 0) return refuse(InvalidArgumentError("frame without image payload part"), false);
+    if (!payload || payload->size() == 0)
+      return refuse(InvalidArgumentError("frame without image payload part"), false);
     if (payload->size() > options.max_frame_bytes)
       return refuse(InvalidArgumentError("frame payload of " + std::to_string(payload->size()) + " bytes exceeds " +
                                          std::to_string(options.max_frame_bytes)),
@@ -755,8 +777,9 @@ struct Server::Impl {
         QueueChunk(s, std::move(pc));
         FlushChunks(s);
         // Memory per session: the map (voxels) and the chunks held for the client.
-        const double session_mb = (static_cast<double>(e.map_points) * kMapBytesPerPoint +
-                                   static_cast<double>(s->pending_bytes_in_memory)) / (1 << 20);
+        const double session_mb =
+            (static_cast<double>(e.map_points) * kMapBytesPerPoint + static_cast<double>(s->pending_bytes_in_memory)) /
+            (1 << 20);
         if (!s->memory_limit_hit && !s->closing && session_mb > options.max_session_memory_mb) {
           s->memory_limit_hit = true;
           s->closing = true;
@@ -764,11 +787,11 @@ struct Server::Impl {
           s->pipeline->Finish();
           metrics.Add("prism_sessions_limited_total{limit=\"memory\"}");
           SendError(s->peer,
-                    ResourceExhaustedError("session memory ~" + std::to_string(static_cast<int>(session_mb)) +
-                                           " MiB exceeds max-session-memory-mb = " +
-                                           std::to_string(options.max_session_memory_mb) +
-                                           "; the session is finished with the map so far (raise the limit or use a "
-                                           "coarser voxel-m)"),
+                    ResourceExhaustedError(
+                        "session memory ~" + std::to_string(static_cast<int>(session_mb)) +
+                        " MiB exceeds max-session-memory-mb = " + std::to_string(options.max_session_memory_mb) +
+                        "; the session is finished with the map so far (raise the limit or use a "
+                        "coarser voxel-m)"),
                     s->id, false, false);
         }
         return;
@@ -856,8 +879,9 @@ struct Server::Impl {
         s->reason = "idle timeout";
         s->pipeline->Abort();
         metrics.Add("prism_sessions_reaped_total");
-        SendError(s->peer, UnavailableError("session closed after " + std::to_string(options.idle_timeout_ms) +
-                                            " ms without a message"),
+        SendError(s->peer,
+                  UnavailableError("session closed after " + std::to_string(options.idle_timeout_ms) +
+                                   " ms without a message"),
                   s->id, false, true);
       }
       if (draining && now > drain_deadline && !s->finished) s->pipeline->Abort();

@@ -103,27 +103,61 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   else if (key == "data-dir") o->data_dir = value;
   else if (key == "metrics") o->metrics_bind = value;
   else if (key == "advertise") o->advertise = value;
-  else if (key == "max-sessions") { if (!is_int) return bad(); o->max_sessions = static_cast<int>(i); }
-  else if (key == "dense-workers") { if (!is_int) return bad(); o->dense_workers = static_cast<int>(i); }
-  else if (key == "threads") { if (!is_int) return bad(); o->threads = static_cast<int>(i); }
-  else if (key == "idle-timeout-ms") { if (!is_int) return bad(); o->idle_timeout_ms = static_cast<int>(i); }
-  else if (key == "max-frame-bytes") { if (!is_int || i < 0) return bad(); o->max_frame_bytes = static_cast<uint64_t>(i); }
-  else if (key == "max-message-bytes") { if (!is_int) return bad(); o->max_message_bytes = i; }
-  else if (key == "heartbeat-ivl-ms") { if (!is_int) return bad(); o->heartbeat_ivl_ms = static_cast<int>(i); }
-  else if (key == "heartbeat-timeout-ms") { if (!is_int) return bad(); o->heartbeat_timeout_ms = static_cast<int>(i); }
-  else if (key == "send-hwm") { if (!is_int) return bad(); o->send_hwm = static_cast<int>(i); }
-  else if (key == "max-frame-rate-hz") { if (!is_double) return bad(); o->max_frame_rate_hz = d; }
-  else if (key == "max-session-memory-mb") { if (!is_int) return bad(); o->max_session_memory_mb = static_cast<int>(i); }
-  else if (key == "max-pending-chunks-in-memory") { if (!is_int) return bad(); o->max_pending_chunks_in_memory = static_cast<int>(i); }
-  else if (key == "chunk-credits") { if (!is_int) return bad(); o->default_chunk_credits = static_cast<int>(i); }
-  else if (key == "frame-queue") { if (!is_int) return bad(); o->pipeline.frame_queue_capacity = static_cast<int>(i); }
-  else if (key == "keyframe-queue") { if (!is_int) return bad(); o->pipeline.keyframe_queue_capacity = static_cast<int>(i); }
-  else if (key == "voxel-m") { if (!is_double) return bad(); o->pipeline.dense.map.voxel_m = d; }
-  else if (key == "curve-keys") o->curve_keys = value;
+  else if (key == "max-sessions") {
+    if (!is_int) return bad();
+    o->max_sessions = static_cast<int>(i);
+  } else if (key == "dense-workers") {
+    if (!is_int) return bad();
+    o->dense_workers = static_cast<int>(i);
+  } else if (key == "threads") {
+    if (!is_int) return bad();
+    o->threads = static_cast<int>(i);
+  } else if (key == "idle-timeout-ms") {
+    if (!is_int) return bad();
+    o->idle_timeout_ms = static_cast<int>(i);
+  } else if (key == "max-frame-bytes") {
+    if (!is_int || i < 0) return bad();
+    o->max_frame_bytes = static_cast<uint64_t>(i);
+  } else if (key == "max-message-bytes") {
+    if (!is_int) return bad();
+    o->max_message_bytes = i;
+  } else if (key == "heartbeat-ivl-ms") {
+    if (!is_int) return bad();
+    o->heartbeat_ivl_ms = static_cast<int>(i);
+  } else if (key == "heartbeat-timeout-ms") {
+    if (!is_int) return bad();
+    o->heartbeat_timeout_ms = static_cast<int>(i);
+  } else if (key == "send-hwm") {
+    if (!is_int) return bad();
+    o->send_hwm = static_cast<int>(i);
+  } else if (key == "max-frame-rate-hz") {
+    if (!is_double) return bad();
+    o->max_frame_rate_hz = d;
+  } else if (key == "max-session-memory-mb") {
+    if (!is_int) return bad();
+    o->max_session_memory_mb = static_cast<int>(i);
+  } else if (key == "max-pending-chunks-in-memory") {
+    if (!is_int) return bad();
+    o->max_pending_chunks_in_memory = static_cast<int>(i);
+  } else if (key == "chunk-credits") {
+    if (!is_int) return bad();
+    o->default_chunk_credits = static_cast<int>(i);
+  } else if (key == "frame-queue") {
+    if (!is_int) return bad();
+    o->pipeline.frame_queue_capacity = static_cast<int>(i);
+  } else if (key == "keyframe-queue") {
+    if (!is_int) return bad();
+    o->pipeline.keyframe_queue_capacity = static_cast<int>(i);
+  } else if (key == "voxel-m") {
+    if (!is_double) return bad();
+    o->pipeline.dense.map.voxel_m = d;
+  } else if (key == "curve-keys") o->curve_keys = value;
   else if (key == "allowed-clients") o->allowed_clients = value;
   else if (key == "slam-config") return ApplySlamConfigFile(value, &o->pipeline.slam);
-  else if (key == "shutdown-deadline-ms") { if (!is_int) return bad(); o->shutdown_deadline_ms = static_cast<int>(i); }
-  else if (key == "input-policy") {
+  else if (key == "shutdown-deadline-ms") {
+    if (!is_int) return bad();
+    o->shutdown_deadline_ms = static_cast<int>(i);
+  } else if (key == "input-policy") {
     if (value == "live") o->pipeline.input_policy = OverflowPolicy::kDropOldest;
     else if (value == "upload") o->pipeline.input_policy = OverflowPolicy::kReject;
     else return bad();

@@ -50,7 +50,8 @@ Status WriteFileAtomic(const std::string& path, const void* data, size_t size) {
 
 bool IsValidSessionId(const std::string& id) {
   if (id.empty() || id.size() > 64 || id[0] != 's') return false;
-  return std::all_of(id.begin(), id.end(), [](char c) { return (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '-'; });
+  return std::all_of(id.begin(), id.end(),
+                     [](char c) { return (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '-'; });
 }
 
 Status SessionStore::Create(const StoredSession& s) const {

@@ -1,5 +1,7 @@
 #include "server/session_store.h"
 
+#include <unistd.h>
+
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -7,7 +9,6 @@
 #include <vector>
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 namespace prism::server {
 namespace {
@@ -52,8 +53,7 @@ TEST(PoseLogTest, FinalTrajectoryHasTheLatestPoseOfEveryFrame) {
     log.Append(Pose(3, 3.5, v1::PoseUpdate::TRACKING_STATE_TRACKING, true));
     ASSERT_TRUE(log.WriteFinalTrajectory().ok());
   }
-  EXPECT_EQ(Read((dir / "trajectory.txt").string()),
-            "1002.000000 2 0 0 0 0 0 1\n1003.000000 3 0 0 0 0 0 1\n");
+  EXPECT_EQ(Read((dir / "trajectory.txt").string()), "1002.000000 2 0 0 0 0 0 1\n1003.000000 3 0 0 0 0 0 1\n");
   const std::string final_text = Read((dir / "trajectory_final.txt").string());
   EXPECT_EQ(final_text.substr(final_text.find('\n') + 1),
             "1000.000000 0.5 0 0 0 0 0 1\n1001.000000 1.5 0 0 0 0 0 1\n1002.000000 2 0 0 0 0 0 1\n"

@@ -2,12 +2,13 @@
 // (deploy/k8s/README.md): a real prism-server, queried with prism-probe (the
 // tool the container's HEALTHCHECK uses), filled to capacity with a real client
 // session.
-#include <gtest/gtest.h>
 #include <unistd.h>
 
 #include <filesystem>
 #include <memory>
 #include <string>
+
+#include <gtest/gtest.h>
 
 #include "prism/client/client.h"
 #include "tests/client_rig.h"

@@ -32,8 +32,9 @@ class CliTest : public ::testing::Test {
     dir_ = new fs::path(fs::temp_directory_path() / ("prism_cli_test_" + std::to_string(::getpid())));
     fs::remove_all(*dir_);
     fs::create_directories(*dir_);
-    const ProcessResult r = Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --frames 24 --size 128x96 --seed 3" +
-                          " --out " + Seq() + " --gt-cloud " + (*dir_ / "gt.ply").string());
+    const ProcessResult r =
+        Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --frames 24 --size 128x96 --seed 3" +
+                " --out " + Seq() + " --gt-cloud " + (*dir_ / "gt.ply").string());
     ASSERT_EQ(r.exit_code, 0) << r.out;
   }
   static void TearDownTestSuite() {
@@ -127,8 +128,7 @@ TEST_F(CliTest, NormalsAgainstItselfIsZeroAndRotatedByFiveDegreesIsFive) {
       const Eigen::Vector3f normal(v[0], v[1], v[2]);
       Eigen::Vector3f axis = normal.cross(Eigen::Vector3f::UnitX());
       if (axis.norm() < 1e-3f) axis = normal.cross(Eigen::Vector3f::UnitY());
-      const Eigen::Vector3f w =
-          Eigen::AngleAxisf(5.0f * static_cast<float>(M_PI) / 180.f, axis.normalized()) * normal;
+      const Eigen::Vector3f w = Eigen::AngleAxisf(5.0f * static_cast<float>(M_PI) / 180.f, axis.normalized()) * normal;
       v = cv::Vec3f(w.x(), w.y(), w.z());
     }
     ASSERT_TRUE(WriteNormalPng(P("rotated/") + fs::path(seq.frames[i].normal_file).filename().string(), n).ok());
@@ -171,7 +171,8 @@ TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
   fs::remove_all(dir);
   const std::string seq = (dir / "seq").string(), out = (dir / "out").string();
   ProcessResult r = Execute(Bin("prism-synth") + " --preset bunny-multicolor-forward --frames 150 --out " + seq);
-  if (r.exit_code != 0 && r.out.find("mesh") != std::string::npos) GTEST_SKIP() << "bunny mesh not installed: " << r.out;
+  if (r.exit_code != 0 && r.out.find("mesh") != std::string::npos)
+    GTEST_SKIP() << "bunny mesh not installed: " << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
   r = Execute(Bin("prism-slam") + " --sequence " + seq + " --out " + out + " --max-frames 60");
   ASSERT_EQ(r.exit_code, 0) << r.out;
@@ -195,7 +196,8 @@ TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
   ASSERT_TRUE(png.ok()) << png.status();
   EXPECT_EQ(png->cols, 200);
   EXPECT_LT(cv::mean(*png)[0], 254.0) << "the picture shows points";
-  for (const std::string& cmd : {Bin("prism-slam") + " --out " + out, Bin("prism-slam") + " --sequence " + (dir / "none").string() + " --out " + out,
+  for (const std::string& cmd : {Bin("prism-slam") + " --out " + out,
+                                 Bin("prism-slam") + " --sequence " + (dir / "none").string() + " --out " + out,
                                  Bin("prism-preview") + " --cloud " + (dir / "none.ply").string() + " --out x.png"}) {
     r = Execute(cmd);
     EXPECT_NE(r.exit_code, 0) << cmd;
@@ -213,7 +215,8 @@ TEST(SlamCliTest, OneSlamConfigForEveryEntryPoint) {
   fs::remove_all(dir);
   fs::create_directories(dir);
   const std::string seq = (dir / "seq").string();
-  ProcessResult r = Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --frames 60 --size 256x256 --out " + seq);
+  ProcessResult r =
+      Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --frames 60 --size 256x256 --out " + seq);
   ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::string slam = Bin("prism-slam") + " --no-eval --sequence " + seq + " --out ";
 
@@ -273,9 +276,12 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
   const fs::path dir = fs::temp_directory_path() / ("prism_slam_distorted_" + std::to_string(::getpid()));
   fs::remove_all(dir);
   const std::string seq = (dir / "seq").string(), out = (dir / "out").string();
-  ProcessResult r = Execute(Bin("prism-synth") + " --preset armadillo-textured-forward --frames 90 --size 256x256 "
-                            "--distortion -0.25,0.08,0,0,0 --out " + seq);
-  if (r.exit_code != 0 && r.out.find("mesh") != std::string::npos) GTEST_SKIP() << "armadillo mesh not installed: " << r.out;
+  ProcessResult r = Execute(Bin("prism-synth") +
+                            " --preset armadillo-textured-forward --frames 90 --size 256x256 "
+                            "--distortion -0.25,0.08,0,0,0 --out " +
+                            seq);
+  if (r.exit_code != 0 && r.out.find("mesh") != std::string::npos)
+    GTEST_SKIP() << "armadillo mesh not installed: " << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
   StatusOr<RigCalibration> rendered = ReadCalibrationYaml(seq + "/camera.yaml");
   ASSERT_TRUE(rendered.ok()) << rendered.status();
@@ -301,7 +307,8 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
     const PinholeCamera& c = rendered->camera;
     txt << std::setprecision(17) << "RadTan " << c.fx << " " << c.fy << " " << c.cx << " " << c.cy << " "
         << c.distortion[0] << " " << c.distortion[1] << " " << c.distortion[2] << " " << c.distortion[3] << "\n"
-        << c.width << " " << c.height << "\ncrop\n" << c.width << " " << c.height << "\n";
+        << c.width << " " << c.height << "\ncrop\n"
+        << c.width << " " << c.height << "\n";
   }
   r = Execute(Bin("prism-slam") + " --sequence " + bare.string() + " --out " + (dir / "bare_out").string());
   EXPECT_NE(r.exit_code, 0) << "no camera.yaml and no --camera";
@@ -309,7 +316,8 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
   r = Execute(Bin("prism-slam") + " --sequence " + bare.string() + " --camera " + (dir / "camera.txt").string() +
               " --out " + (dir / "bare_out").string());
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  EXPECT_EQ(test::ReadFileText(dir / "bare_out" / "trajectory.txt"), test::ReadFileText(fs::path(out) / "trajectory.txt"));
+  EXPECT_EQ(test::ReadFileText(dir / "bare_out" / "trajectory.txt"),
+            test::ReadFileText(fs::path(out) / "trajectory.txt"));
 
   // The dense stage on the undistorted keyframes: a map of the object, scored against the true surface
   // of the distorted rendering. Measured: F-score 0.373 at tau = 1% of the bounding box.
@@ -322,7 +330,8 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
   ASSERT_EQ(r.exit_code, 0) << r.out;
   constexpr double kMinFscore = 0.3;
   EXPECT_GT(JsonNumber(r.out, "fscore"), kMinFscore) << r.out;
-  r = Execute(Bin("prism-synth") + " --preset armadillo-textured-forward --distortion -0.25,0.08 --out " + (dir / "x").string());
+  r = Execute(Bin("prism-synth") + " --preset armadillo-textured-forward --distortion -0.25,0.08 --out " +
+              (dir / "x").string());
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(r.out.find("K1,K2,P1,P2,K3"), std::string::npos) << r.out;
   fs::remove_all(dir);

@@ -9,7 +9,6 @@
 // PRISM_CONTAINER_IMAGE=TAG uses an image already built from this tree instead
 // of building prism:test.
 #include <fcntl.h>
-#include <gtest/gtest.h>
 #include <netinet/in.h>
 #include <signal.h>
 #include <sys/socket.h>
@@ -24,6 +23,8 @@
 #include <string>
 #include <thread>
 #include <vector>
+
+#include <gtest/gtest.h>
 
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"

@@ -40,9 +40,10 @@ TEST_P(DenseStageTest, MergedMapMatchesTheGroundTruthSurface) {
   const double ps_median = JsonNumber(r.out, "ps_median_deg");
   const double fused_median = JsonNumber(r.out, "fused_normal_median_deg");
   const double rmse_ratio = JsonNumber(r.out, "fused_depth_rmse_m") / JsonNumber(r.out, "semi_dense_depth_rmse_m");
-  std::cout << GetParam() << ": fused depth RMSE / semi-dense RMSE " << rmse_ratio << " (object pixels, 6 keyframes pooled), "
-            << "min coverage " << JsonNumber(r.out, "min_fused_coverage") << ", normals PS " << ps_median << " -> fused "
-            << fused_median << " deg\n";
+  std::cout << GetParam() << ": fused depth RMSE / semi-dense RMSE " << rmse_ratio
+            << " (object pixels, 6 keyframes pooled), "
+            << "min coverage " << JsonNumber(r.out, "min_fused_coverage") << ", normals PS " << ps_median
+            << " -> fused " << fused_median << " deg\n";
   EXPECT_LE(rmse_ratio, /*max_fused_to_semi_dense_rmse=*/0.5);
   EXPECT_GE(JsonNumber(r.out, "min_fused_coverage"), /*min_dense_coverage_of_object=*/0.95);
   // Fused normals no worse than the PS normals, on the same pixels (object pixels where both have a

@@ -16,11 +16,11 @@
 
 #include <algorithm>
 #include <atomic>
-#include <cmath>
-#include <functional>
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <optional>
@@ -33,8 +33,8 @@
 #include <zmq.hpp>
 
 #include "core/io/sequence.h"
-#include "server/rig_wire.h"
 #include "prism/v1/session.pb.h"
+#include "server/rig_wire.h"
 #include "tests/server_process.h"
 #include "tests/test_process.h"
 
@@ -121,8 +121,9 @@ class FaultTest : public ::testing::Test {
   static void SetUpTestSuite() {
     seq_dir_ = fs::temp_directory_path() / ("prism_fault_test_seq_" + std::to_string(getpid()));
     fs::remove_all(seq_dir_);
-    const ProcessResult r = Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --size 256x256 --frames " +
-                                    std::to_string(kFrames) + " --out " + seq_dir_.string());
+    const ProcessResult r =
+        Execute(Bin("prism-synth") + " --preset sphere-multicolor-sideways --size 256x256 --frames " +
+                std::to_string(kFrames) + " --out " + seq_dir_.string());
     if (r.exit_code != 0) seq_dir_.clear();
   }
   static void TearDownTestSuite() {
@@ -145,8 +146,20 @@ class FaultTest : public ::testing::Test {
     return s;
   }
   std::vector<std::string> ClientArgs(const std::string& endpoint, const std::string& out) const {
-    return {Bin("prism-client"), "stream", "--server", endpoint, "--sequence", seq_dir_.string(), "--out", P(out),
-            "--timeout-ms", "30000", "--reconnect-timeout-ms", "30000", "--close-timeout-ms", "120000"};
+    return {Bin("prism-client"),
+            "stream",
+            "--server",
+            endpoint,
+            "--sequence",
+            seq_dir_.string(),
+            "--out",
+            P(out),
+            "--timeout-ms",
+            "30000",
+            "--reconnect-timeout-ms",
+            "30000",
+            "--close-timeout-ms",
+            "120000"};
   }
   // Waits until `pred` holds (polling), at most timeout_ms.
   static bool WaitFor(const std::function<bool()>& pred, int timeout_ms) {
@@ -204,9 +217,9 @@ TEST_F(FaultTest, ServerKilledAndRestartedMidSessionLosesNoFinishedChunk) {
     if (!fs::exists(mine)) ++lost;
     else if (ReadAll(mine) != ReadAll(c)) ++differing;
   }
-  std::cout << "[fault] server SIGKILL + restart: persisted " << server_chunks.size() << " chunks (" << persisted_at_kill
-            << " at the kill), client has " << Files(dir_ / "out" / "chunks", ".drc").size() << ", lost " << lost
-            << ", differing " << differing << "\n";
+  std::cout << "[fault] server SIGKILL + restart: persisted " << server_chunks.size() << " chunks ("
+            << persisted_at_kill << " at the kill), client has " << Files(dir_ / "out" / "chunks", ".drc").size()
+            << ", lost " << lost << ", differing " << differing << "\n";
   EXPECT_EQ(server_chunks.size(), persisted_at_kill);
   EXPECT_GE(server_chunks.size(), 5u);
   EXPECT_EQ(lost, 0u);
@@ -342,8 +355,9 @@ TEST_F(FaultTest, ClientGrantingNoChunkCreditsCostsNoServerMemory) {
   for (int i = 0; i < kFrames;) {
     if (credits > 0) {
       const std::string png = ReadAll(seq->Path(seq->frames[i].rgb_file));
-      client.Send(WireClient::Frame(id, static_cast<uint64_t>(i), static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9)),
-                  &png);
+      client.Send(
+          WireClient::Frame(id, static_cast<uint64_t>(i), static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9)),
+          &png);
       --credits;
       ++i;
       continue;
@@ -418,9 +432,9 @@ TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBou
     // Refined poses (sent again after the session's pose-graph optimisation) are not new frames.
     if (m.has_pose_update() && !m.pose_update().refined()) {
       ++poses;
-      latency_ms.push_back(std::chrono::duration<double, std::milli>(
-                               Clock::now() - sent[m.pose_update().frame_sequence_number()])
-                               .count());
+      latency_ms.push_back(
+          std::chrono::duration<double, std::milli>(Clock::now() - sent[m.pose_update().frame_sequence_number()])
+              .count());
     }
     if (m.has_error() && m.error().has_frame()) {
       ++refused;
@@ -453,8 +467,8 @@ TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBou
   const double max = latency_ms.empty() ? 0 : latency_ms.back();
   std::cout << "[fault] 10x frame rate (" << total << " frames at 300/s, limit 100/s, live, queue 4): " << poses
             << " tracked, " << summary->frames_dropped() << " dropped from the queue, " << refused
-            << " refused by the rate limit; frame->pose latency p50 " << p50 << " ms, p95 " << p95 << " ms, max "
-            << max << " ms\n";
+            << " refused by the rate limit; frame->pose latency p50 " << p50 << " ms, p95 " << p95 << " ms, max " << max
+            << " ms\n";
   // Every frame is accounted for: tracked, dropped (queue) or refused (rate), all counted.
   EXPECT_EQ(poses + summary->frames_dropped() + refused, static_cast<size_t>(total));
   EXPECT_GT(refused, 0u);
@@ -503,8 +517,7 @@ TEST_F(FaultTest, EightConcurrentSessionsForThreeMinutesKeepServerMemoryFlat) {
         const std::string log = ReadAll(P(name + ".log"));
         if (exit_code != 0 || log.find("\"errors\": 0") == std::string::npos)
           failures[static_cast<size_t>(s)].push_back(name + " exit " + std::to_string(exit_code) + ": " + log);
-        else
-          fs::remove_all(P(name));  // keeps the test's disk use bounded
+        else fs::remove_all(P(name));  // keeps the test's disk use bounded
       }
     });
   }

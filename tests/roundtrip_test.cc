@@ -124,10 +124,10 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
   r = Execute(Bin("prism-eval") + " cloud --object-only --sequence " + P("seq") + " --cloud " + P("aligned.ply"));
   ASSERT_EQ(r.exit_code, 0) << r.out;
   const double fscore = JsonNumber(r.out, "fscore"), accuracy = JsonNumber(r.out, "accuracy_median_m");
-  std::cout << "round trip: " << kFrames << " frames, " << chunks << " chunks, " << map->size()
-            << " map points; ATE " << ate << " m (" << 100 * ate / path << "% of the path); map on the object: F-score "
-            << fscore << " at tau " << JsonNumber(r.out, "tau_m") << " m, accuracy median " << accuracy
-            << " m, completeness " << JsonNumber(r.out, "completeness") << "\n";
+  std::cout << "round trip: " << kFrames << " frames, " << chunks << " chunks, " << map->size() << " map points; ATE "
+            << ate << " m (" << 100 * ate / path << "% of the path); map on the object: F-score " << fscore
+            << " at tau " << JsonNumber(r.out, "tau_m") << " m, accuracy median " << accuracy << " m, completeness "
+            << JsonNumber(r.out, "completeness") << "\n";
   // The bars follow the SLAM's current accuracy (prism-slam alone: ATE 8% of the path on this preset,
   // positions-only alignment); they check that poses, scale and chunks put the map on the object
   // (a frame or scale mistake in the pipeline puts it tens of centimetres away: F-score 0).
@@ -168,8 +168,8 @@ TEST_F(RoundTripTest, ADistortedCameraStreamsThroughTheServer) {
 }
 
 TEST_F(RoundTripTest, TwoConcurrentSessionsBothComplete) {
-  ProcessResult r = Execute(Bin("prism-synth") + " --preset bunny-multicolor-forward --frames 24 --size 256x256 --out " +
-                            P("seq"));
+  ProcessResult r =
+      Execute(Bin("prism-synth") + " --preset bunny-multicolor-forward --frames 24 --size 256x256 --out " + P("seq"));
   if (r.exit_code != 0 && r.out.find("not found") != std::string::npos) GTEST_SKIP() << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
   ServerProcess server(P("data"), WithServerWaitFlags({"--max-sessions", "2"}), P("server.log"));

@@ -2,6 +2,7 @@
 // an allowed client streams, a client with an unknown key, a wrong server key or no keys at all is
 // refused with kUnauthenticated (a readable error, at once, not a timeout). Plain TCP on a
 // non-loopback address is logged as a warning.
+#include <prism/client/client.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -11,8 +12,6 @@
 #include <string>
 
 #include <gtest/gtest.h>
-
-#include <prism/client/client.h>
 
 #include "tests/client_rig.h"
 #include "tests/server_process.h"
@@ -52,8 +51,8 @@ class ServerCurveTest : public ::testing::Test {
 
 TEST_F(ServerCurveTest, AllowedKeyStreamsAndOthersAreRefusedWithAnAuthError) {
   // Many key pairs, so keys with Z85's '#' and '=' characters turn up in the files.
-  for (const char* name : {"server.key", "alice.key", "mallory.key", "other_server.key", "k1", "k2", "k3", "k4", "k5",
-                           "k6", "k7", "k8"}) {
+  for (const char* name :
+       {"server.key", "alice.key", "mallory.key", "other_server.key", "k1", "k2", "k3", "k4", "k5", "k6", "k7", "k8"}) {
     const ProcessResult r = Execute(Bin("prism-server") + " keygen --out " + P(name));
     ASSERT_EQ(r.exit_code, 0) << r.out;
     ASSERT_EQ(r.out.size(), 41u) << r.out;  // the public key and a newline
@@ -62,7 +61,8 @@ TEST_F(ServerCurveTest, AllowedKeyStreamsAndOthersAreRefusedWithAnAuthError) {
   {
     std::ofstream allowed(P("allowed.txt"));
     allowed << "# alice\n" << Key(P("alice.key"), "public") << "\n\n";
-    for (const char* k : {"k1", "k2", "k3", "k4", "k5", "k6", "k7", "k8"}) allowed << "public = " << Key(P(k), "public") << "\n";
+    for (const char* k : {"k1", "k2", "k3", "k4", "k5", "k6", "k7", "k8"})
+      allowed << "public = " << Key(P(k), "public") << "\n";
   }
   ServerProcess server(P("data"), {"--curve-keys", P("server.key"), "--allowed-clients", P("allowed.txt")},
                        P("server.log"));

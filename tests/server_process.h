@@ -33,8 +33,8 @@ class ServerProcess {
       const int log = open(log_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
       if (log >= 0) dup2(log, 2);
       close(out[0]);
-      std::vector<std::string> all = {Bin("prism-server"), "--bind", "tcp://127.0.0.1:*", "--data-dir", data_dir,
-                                      "--metrics", "127.0.0.1:0"};
+      std::vector<std::string> all = {Bin("prism-server"), "--bind",     "tcp://127.0.0.1:*", "--data-dir", data_dir,
+                                      "--metrics",         "127.0.0.1:0"};
       all.insert(all.end(), args.begin(), args.end());
       std::vector<char*> argv;
       for (auto& a : all) argv.push_back(a.data());

@@ -19,8 +19,8 @@
 
 #include "core/codec/frame_codec.h"
 #include "core/synth/presets.h"
-#include "server/rig_wire.h"
 #include "prism/v1/session.pb.h"
+#include "server/rig_wire.h"
 #include "tests/server_process.h"
 
 namespace prism {
@@ -159,7 +159,8 @@ TEST_F(ServerTest, SlamOptionsOnTheCommandLineAreTakenAndLogged) {
   std::ifstream log(dir_ / "server.log");
   std::ostringstream text;
   text << log.rdbuf();
-  for (const char* line : {"\nkeyframe_distance_fraction = 0.18", "\nloop_closure = false", "\ntracker.min_gradient = 5"})
+  for (const char* line :
+       {"\nkeyframe_distance_fraction = 0.18", "\nloop_closure = false", "\ntracker.min_gradient = 5"})
     EXPECT_NE(text.str().find(line), std::string::npos) << line << " in\n" << text.str();
   EXPECT_EQ(text.str().find("\nkeyframe_window = "), std::string::npos) << "only the options that differ are logged";
 }

@@ -4,9 +4,10 @@
 // streamed map in the ground-truth frame.
 #pragma once
 
-#include <Eigen/SVD>
 #include <cmath>
 #include <vector>
+
+#include <Eigen/SVD>
 
 #include "core/geometry/rigid3.h"
 #include "core/io/trajectory_io.h"

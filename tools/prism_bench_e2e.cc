@@ -1,10 +1,10 @@
 // prism-bench-e2e: the networked system end to end on this machine, as JSON. Starts prism-server (next
 // to this binary) on a free port, renders a preset in memory, and streams it through libprism_client
 // once per codec, measuring what a device sees.
+#include <fcntl.h>
 #include <signal.h>
 #include <spawn.h>
 #include <sys/wait.h>
-#include <fcntl.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -20,11 +20,11 @@
 #include <thread>
 #include <vector>
 
-#include "prism/client/client.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
 #include "core/synth/trajectory.h"
 #include "core/util/thread_pool.h"
+#include "prism/client/client.h"
 
 extern char** environ;
 
@@ -133,7 +133,8 @@ int main(int argc, char** argv) {
   // Server.
   const std::string dir = std::filesystem::path(argv[0]).parent_path().string();
   const std::string server = (dir.empty() ? std::string(".") : dir) + "/prism-server";
-  const std::string tmp = (std::filesystem::temp_directory_path() / ("prism_bench_e2e_" + std::to_string(getpid()))).string();
+  const std::string tmp =
+      (std::filesystem::temp_directory_path() / ("prism_bench_e2e_" + std::to_string(getpid()))).string();
   std::filesystem::create_directories(tmp);
   const std::string out_file = tmp + "/server.json", err_file = tmp + "/server.log";
   posix_spawn_file_actions_t actions;
@@ -141,9 +142,19 @@ int main(int argc, char** argv) {
   posix_spawn_file_actions_addopen(&actions, 1, out_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   posix_spawn_file_actions_addopen(&actions, 2, err_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   const std::string data_dir = tmp + "/data";
-  std::vector<std::string> args = {server, "--bind", "tcp://127.0.0.1:*", "--data-dir", data_dir,
-                                   "--input-policy", "upload", "--keyframe-queue", "64", "--metrics", "off",
-                                   "--log-level", "warning"};
+  std::vector<std::string> args = {server,
+                                   "--bind",
+                                   "tcp://127.0.0.1:*",
+                                   "--data-dir",
+                                   data_dir,
+                                   "--input-policy",
+                                   "upload",
+                                   "--keyframe-queue",
+                                   "64",
+                                   "--metrics",
+                                   "off",
+                                   "--log-level",
+                                   "warning"};
   std::vector<char*> cargs;
   for (std::string& s : args) cargs.push_back(s.data());
   cargs.push_back(nullptr);
@@ -172,10 +183,10 @@ int main(int argc, char** argv) {
   std::ostringstream json;
   json.setf(std::ios::fixed);
   json.precision(2);
-  json << "{\n  \"preset\": \"" << preset << "\",\n  \"frames\": " << frames << ",\n  \"push_fps\": " << fps << ",\n  \"size\": \""
-       << setup->rig.camera.width << "x" << setup->rig.camera.height << "\",\n  \"hardware_threads\": "
-       << std::thread::hardware_concurrency() << ",\n  \"server_rss_mb_idle\": " << ProcStatusMb(pid, "VmRSS")
-       << ",\n  \"codecs\": {";
+  json << "{\n  \"preset\": \"" << preset << "\",\n  \"frames\": " << frames << ",\n  \"push_fps\": " << fps
+       << ",\n  \"size\": \"" << setup->rig.camera.width << "x" << setup->rig.camera.height
+       << "\",\n  \"hardware_threads\": " << std::thread::hardware_concurrency()
+       << ",\n  \"server_rss_mb_idle\": " << ProcStatusMb(pid, "VmRSS") << ",\n  \"codecs\": {";
   const prism::client::Rig rig = ToClientRig(setup->rig);
   std::stringstream codec_list(codecs);
   std::string codec_name;
@@ -196,21 +207,22 @@ int main(int argc, char** argv) {
       stop_server();
       return Fail("open: " + s.ToString());
     }
-    std::map<uint64_t, Clock::time_point> sent;      // frame sequence number -> send time
+    std::map<uint64_t, Clock::time_point> sent;  // frame sequence number -> send time
     std::vector<double> frame_to_pose;
     // Keyframe id -> arrival of the pose of the frame that became it. Keyframes are numbered in
     // creation order and the first one's frame is still initialising when its pose is sent, so the
     // n-th live is_keyframe pose made keyframe n.
     std::map<uint64_t, Clock::time_point> keyframe_pose_time;
     uint64_t live_keyframes = 0;
-    std::map<uint64_t, Clock::time_point> chunk_time;   // keyframe id -> first chunk arrival
+    std::map<uint64_t, Clock::time_point> chunk_time;  // keyframe id -> first chunk arrival
     uint64_t chunk_bytes = 0, chunk_points = 0, chunks = 0;
     Clock::time_point last_pose;
     auto handle = [&](const prism::client::Event& e) {
       const auto now = Clock::now();
       if (e.kind == prism::client::Event::Kind::kPose && !e.pose.refined) {
         auto it = sent.find(e.pose.frame_sequence_number);
-        if (it != sent.end()) frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
+        if (it != sent.end())
+          frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
         if (e.pose.is_keyframe) keyframe_pose_time.emplace(++live_keyframes, now);
         last_pose = now;
       } else if (e.kind == prism::client::Event::Kind::kChunk) {
@@ -223,7 +235,9 @@ int main(int argc, char** argv) {
     session->SetEventCallback(handle);
     const auto t0 = Clock::now();
     for (int i = 0; i < frames; ++i) {
-      if (fps > 0) std::this_thread::sleep_until(t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(i / fps)));
+      if (fps > 0)
+        std::this_thread::sleep_until(
+            t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(i / fps)));
       sent[static_cast<uint64_t>(i)] = Clock::now();
       s = session->PushFrame(static_cast<int64_t>(trajectory[i].timestamp_s * 1e9), images[i].data, images[i].cols,
                              images[i].rows, static_cast<int>(images[i].step));
@@ -248,17 +262,18 @@ int main(int argc, char** argv) {
       if (auto next = keyframe_pose_time.find(kf + 1); next != keyframe_pose_time.end())
         kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - next->second).count());
     }
-    json << (first ? "" : ",") << "\n    \"" << codec_name << "\": {\"frames_per_s\": " << frames / std::max(1e-9, seconds)
+    json << (first ? "" : ",") << "\n    \"" << codec_name
+         << "\": {\"frames_per_s\": " << frames / std::max(1e-9, seconds)
          << ", \"map_frames_per_s\": " << frames / std::max(1e-9, map_seconds)
-         << ", \"map_done_after_last_pose_s\": " << map_seconds - seconds
-         << ", \"poses\": " << frame_to_pose.size() << ", \"frame_to_pose_ms_p50\": " << Percentile(frame_to_pose, 0.5)
+         << ", \"map_done_after_last_pose_s\": " << map_seconds - seconds << ", \"poses\": " << frame_to_pose.size()
+         << ", \"frame_to_pose_ms_p50\": " << Percentile(frame_to_pose, 0.5)
          << ", \"frame_to_pose_ms_p95\": " << Percentile(frame_to_pose, 0.95)
          << ", \"keyframe_to_chunk_ms_p50\": " << Percentile(kf_to_chunk, 0.5)
          << ", \"keyframe_to_chunk_ms_p95\": " << Percentile(kf_to_chunk, 0.95)
          << ", \"uplink_bytes_per_frame\": " << static_cast<double>(session->bytes_sent()) / frames
-         << ", \"chunks\": " << chunks << ", \"chunk_bits_per_point\": "
-         << (chunk_points ? 8.0 * chunk_bytes / chunk_points : -1) << ", \"keyframes\": " << summary.keyframes
-         << ", \"keyframes_dropped\": " << summary.keyframes_dropped
+         << ", \"chunks\": " << chunks
+         << ", \"chunk_bits_per_point\": " << (chunk_points ? 8.0 * chunk_bytes / chunk_points : -1)
+         << ", \"keyframes\": " << summary.keyframes << ", \"keyframes_dropped\": " << summary.keyframes_dropped
          << ", \"keyframes_failed\": " << summary.keyframes_failed
          << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS") << "}";
     first = false;

@@ -1,17 +1,17 @@
 // prism-client: streams a sequence to prism-server and writes what comes back.
 //   prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [--realtime] [--codec png|jpeg|raw]
 //   prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR
+#include <prism/client/client.h>
+
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <map>
 #include <iostream>
+#include <map>
 #include <string>
 #include <thread>
 #include <vector>
-
-#include <prism/client/client.h>
 
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
@@ -136,8 +136,8 @@ int main(int argc, char** argv) {
   }
 
   prism::Sequence empty_sequence;
-  prism::StatusOr<prism::Sequence> seq = command == "fetch" ? prism::StatusOr<prism::Sequence>(empty_sequence)
-                                                            : prism::LoadSequence(sequence_dir);
+  prism::StatusOr<prism::Sequence> seq =
+      command == "fetch" ? prism::StatusOr<prism::Sequence>(empty_sequence) : prism::LoadSequence(sequence_dir);
   if (!seq.ok()) return Fail(seq.status().ToString());
   if (command == "stream" && !seq->has_calibration)
     return Fail("sequence '" + sequence_dir + "' has no camera.yaml (the rig calibration)");
@@ -185,16 +185,17 @@ int main(int argc, char** argv) {
       if (e.kind == pc::Event::Kind::kPose) {
         refined_poses += e.pose.refined ? 1 : 0;
         poses[e.pose.frame_sequence_number] = e.pose;
-      }
-      else if (e.kind == pc::Event::Kind::kChunk) {
+      } else if (e.kind == pc::Event::Kind::kChunk) {
         char name[64];
-        std::snprintf(name, sizeof(name), "/chunks/%06llu.drc", static_cast<unsigned long long>(e.chunk.sequence_number));
+        std::snprintf(name, sizeof(name), "/chunks/%06llu.drc",
+                      static_cast<unsigned long long>(e.chunk.sequence_number));
         std::ofstream(out_dir + name, std::ios::binary)
-            .write(reinterpret_cast<const char*>(e.chunk.draco.data()), static_cast<std::streamsize>(e.chunk.draco.size()));
+            .write(reinterpret_cast<const char*>(e.chunk.draco.data()),
+                   static_cast<std::streamsize>(e.chunk.draco.size()));
         ++chunks;
         chunk_bytes += e.chunk.draco.size();
-        std::cerr << "prism-client: chunk " << e.chunk.sequence_number << " (keyframe " << e.chunk.keyframe_id << "): "
-                  << e.chunk.points.size() << " points, " << e.chunk.draco.size() << " bytes\n";
+        std::cerr << "prism-client: chunk " << e.chunk.sequence_number << " (keyframe " << e.chunk.keyframe_id
+                  << "): " << e.chunk.points.size() << " points, " << e.chunk.draco.size() << " bytes\n";
       } else if (e.kind == pc::Event::Kind::kError) {
         ++frame_errors;
         std::cerr << "prism-client: server error: " << e.error.ToString() << "\n";
@@ -243,8 +244,7 @@ int main(int argc, char** argv) {
   st = session->Close(close_timeout_ms, &summary);
   drain(0);
   if (!st.ok()) return Fail("close: " + st.ToString());
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 
   // Trajectory, scaled to metres by the final session scale when known.
   const double s = summary.metres_per_unit > 0 ? summary.metres_per_unit : 1.0;
@@ -269,21 +269,22 @@ int main(int argc, char** argv) {
   }
   if (prism::Status w = prism::WritePointCloudPly(out_dir + "/map.ply", cloud); !w.ok()) return Fail(w.ToString());
   char json[1024];
-  std::snprintf(json, sizeof(json),
-                "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"poses\": %zu, \"refined_poses\": %zu, "
-                "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"errors\": %zu, "
-                "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
-                "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"metres_per_unit\": %.6g, "
-                "\"reconnects\": %d, \"reason\": \"%s\"}\n",
-                session->session_id().c_str(), n - skipped, skipped, poses.size(), refined_poses, chunks, chunk_bytes, map.size(),
-                frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
-                n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0,
-                seconds, seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,
-                static_cast<unsigned long long>(summary.keyframes),
-                static_cast<unsigned long long>(summary.keyframes_failed), summary.metres_per_unit,
-                session->reconnects(), summary.reason.c_str());
+  std::snprintf(
+      json, sizeof(json),
+      "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"poses\": %zu, \"refined_poses\": %zu, "
+      "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"errors\": %zu, "
+      "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
+      "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"metres_per_unit\": %.6g, "
+      "\"reconnects\": %d, \"reason\": \"%s\"}\n",
+      session->session_id().c_str(), n - skipped, skipped, poses.size(), refined_poses, chunks, chunk_bytes, map.size(),
+      frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
+      n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0, seconds,
+      seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,
+      static_cast<unsigned long long>(summary.keyframes), static_cast<unsigned long long>(summary.keyframes_failed),
+      summary.metres_per_unit, session->reconnects(), summary.reason.c_str());
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
-  if (session->reconnects() > 0) std::cerr << "prism-client: resumed after " << session->reconnects() << " lost connection(s)\n";
+  if (session->reconnects() > 0)
+    std::cerr << "prism-client: resumed after " << session->reconnects() << " lost connection(s)\n";
   return summary.reason.rfind("interrupted", 0) == 0 ? 3 : 0;
 }

@@ -295,8 +295,7 @@ int RunTraj(const std::vector<std::string>& args) {
   json.Number("trajectory_length_m", ate->trajectory_length_m);
   if (ate->trajectory_length_m > 0.0)
     json.Number("ate_percent_of_length", 100.0 * ate->error_m.rmse / ate->trajectory_length_m);
-  else
-    json.Null("ate_percent_of_length");
+  else json.Null("ate_percent_of_length");
   json.Integer("gt_poses", static_cast<long long>(gt->size()));
   json.Integer("est_poses", static_cast<long long>(est->size()));
   Print(json);

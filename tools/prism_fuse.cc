@@ -214,7 +214,8 @@ int main(int argc, char** argv) {
       if (!mask.empty()) common &= mask;
       (void)ps_common_error.Add(ps->normals, *truth_normals, common);
       (void)fused_common_error.Add(fused->normals, *truth_normals, common);
-      if (!fused->corrected_normals.empty()) (void)corrected_common_error.Add(fused->corrected_normals, *truth_normals, common);
+      if (!fused->corrected_normals.empty())
+        (void)corrected_common_error.Add(fused->corrected_normals, *truth_normals, common);
       if (auto e = ComputeNormalError(ps->normals, *truth_normals, mask); e.ok()) ps_median = e->median_deg;
       if (auto e = ComputeNormalError(fused->normals, *truth_normals, mask); e.ok()) fused_median = e->median_deg;
     }
@@ -244,11 +245,10 @@ int main(int argc, char** argv) {
       for (int x = 0; x < vis.cols; ++x) {
         const cv::Vec3f n = fused->normals.at<cv::Vec3f>(y, x);
         // BGR file: x -> red, -y -> green (up), -z -> blue (towards the camera).
-        vis.at<cv::Vec3b>(y, x) = n == cv::Vec3f(0, 0, 0)
-                                      ? cv::Vec3b(0, 0, 0)
-                                      : cv::Vec3b(cv::saturate_cast<uint8_t>(127.5 * (1 - n[2])),
-                                                  cv::saturate_cast<uint8_t>(127.5 * (1 - n[1])),
-                                                  cv::saturate_cast<uint8_t>(127.5 * (1 + n[0])));
+        vis.at<cv::Vec3b>(y, x) = n == cv::Vec3f(0, 0, 0) ? cv::Vec3b(0, 0, 0)
+                                                          : cv::Vec3b(cv::saturate_cast<uint8_t>(127.5 * (1 - n[2])),
+                                                                      cv::saturate_cast<uint8_t>(127.5 * (1 - n[1])),
+                                                                      cv::saturate_cast<uint8_t>(127.5 * (1 + n[0])));
       }
     cv::imwrite(out_dir + "/normals_vis/" + name + ".png", vis);
     (void)WriteDepthPng(out_dir + "/depth/" + name + ".png", fused_m);
@@ -291,21 +291,22 @@ int main(int argc, char** argv) {
                           corrected_common = corrected_common_error.Summarize();
   std::ostringstream json;
   char head[2048];
-  std::snprintf(head, sizeof(head),
-                "{\n  \"keyframes\": %d,\n  \"map_points\": %zu,\n  \"session_depth_scale\": %.5f,\n"
-                "  \"slam_scale_true\": %.5f,\n  \"ps_median_deg\": %.4f,\n  \"ps_mean_deg\": %.4f,\n"
-                "  \"fused_normal_median_deg\": %.4f,\n  \"prior_normal_median_deg\": %.4f,\n"
-                "  \"ps_median_common_deg\": %.4f,\n  \"fused_normal_median_common_deg\": %.4f,\n"
-                "  \"corrected_normal_median_common_deg\": %.4f,\n  \"common_normal_pixels\": %zu,\n"
-                "  \"fused_depth_rmse_m\": %.6g,\n  \"semi_dense_depth_rmse_m\": %.6g,\n"
-                "  \"min_fused_coverage\": %.4f,\n"
-                "  \"ps_ms_per_keyframe\": %.1f,\n  \"fusion_ms_per_keyframe\": %.1f,\n  \"icp_merge_ms_per_keyframe\": %.1f,\n"
-                "  \"per_keyframe\": [\n",
-                keyframes, merged.size(), (*stage)->depth_scale().has_value() ? (*stage)->depth_scale().value() : 0.0, slam_scale,
-                ps_stats.median_deg, ps_stats.mean_deg, fused_stats.median_deg, prior_stats.median_deg,
-                ps_common.median_deg, fused_common.median_deg, corrected_common.median_deg, ps_common_error.count(),
-                fused_n ? std::sqrt(fused_sse / fused_n) : 0.0, semi_n ? std::sqrt(semi_sse / semi_n) : 0.0, min_coverage,
-                ps_ms / keyframes, fusion_ms / keyframes, icp_ms / keyframes);
+  std::snprintf(
+      head, sizeof(head),
+      "{\n  \"keyframes\": %d,\n  \"map_points\": %zu,\n  \"session_depth_scale\": %.5f,\n"
+      "  \"slam_scale_true\": %.5f,\n  \"ps_median_deg\": %.4f,\n  \"ps_mean_deg\": %.4f,\n"
+      "  \"fused_normal_median_deg\": %.4f,\n  \"prior_normal_median_deg\": %.4f,\n"
+      "  \"ps_median_common_deg\": %.4f,\n  \"fused_normal_median_common_deg\": %.4f,\n"
+      "  \"corrected_normal_median_common_deg\": %.4f,\n  \"common_normal_pixels\": %zu,\n"
+      "  \"fused_depth_rmse_m\": %.6g,\n  \"semi_dense_depth_rmse_m\": %.6g,\n"
+      "  \"min_fused_coverage\": %.4f,\n"
+      "  \"ps_ms_per_keyframe\": %.1f,\n  \"fusion_ms_per_keyframe\": %.1f,\n  \"icp_merge_ms_per_keyframe\": %.1f,\n"
+      "  \"per_keyframe\": [\n",
+      keyframes, merged.size(), (*stage)->depth_scale().has_value() ? (*stage)->depth_scale().value() : 0.0, slam_scale,
+      ps_stats.median_deg, ps_stats.mean_deg, fused_stats.median_deg, prior_stats.median_deg, ps_common.median_deg,
+      fused_common.median_deg, corrected_common.median_deg, ps_common_error.count(),
+      fused_n ? std::sqrt(fused_sse / fused_n) : 0.0, semi_n ? std::sqrt(semi_sse / semi_n) : 0.0, min_coverage,
+      ps_ms / keyframes, fusion_ms / keyframes, icp_ms / keyframes);
   json << head << keyframes_json.str() << "\n  ]\n}\n";
   std::cout << json.str();
   FILE* f = std::fopen((out_dir + "/summary.json").c_str(), "w");

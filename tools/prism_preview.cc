@@ -4,8 +4,8 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <limits>
 #include <iostream>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -150,9 +150,9 @@ int main(int argc, char** argv) {
         float& z = zbuf.at<float>(y, x);
         if (pc.z() >= z) continue;
         z = static_cast<float>(pc.z());
-        image.at<cv::Vec3b>(y, x) = cv::Vec3b(cv::saturate_cast<uint8_t>(255 * colour.z()),
-                                              cv::saturate_cast<uint8_t>(255 * colour.y()),
-                                              cv::saturate_cast<uint8_t>(255 * colour.x()));  // BGR
+        image.at<cv::Vec3b>(y, x) =
+            cv::Vec3b(cv::saturate_cast<uint8_t>(255 * colour.z()), cv::saturate_cast<uint8_t>(255 * colour.y()),
+                      cv::saturate_cast<uint8_t>(255 * colour.x()));  // BGR
       }
     }
   }

@@ -113,10 +113,8 @@ int main(int argc, char **argv) {
     char buf[4096];
     const ssize_t n = ::recv(fd, buf, sizeof(buf), 0);
     if (n < 0 && errno == EAGAIN) continue;
-    if (n <= 0)
-      closed = true;
-    else
-      response.append(buf, static_cast<size_t>(n));
+    if (n <= 0) closed = true;
+    else response.append(buf, static_cast<size_t>(n));
   }
   ::close(fd);
   // "HTTP/1.x CODE reason\r\n...\r\n\r\nbody"

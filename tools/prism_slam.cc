@@ -214,8 +214,8 @@ int main(int argc, char** argv) {
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(rig, options, &pool);
   if (!slam.ok()) return Fail(slam.status().ToString());
 
-  const size_t n = max_frames > 0 ? std::min<size_t>(seq->frames.size(), static_cast<size_t>(max_frames))
-                                  : seq->frames.size();
+  const size_t n =
+      max_frames > 0 ? std::min<size_t>(seq->frames.size(), static_cast<size_t>(max_frames)) : seq->frames.size();
   std::vector<SlamKeyframe> keyframes;
   double slam_seconds = 0, dense_seconds = 0;
   std::unique_ptr<DenseStage> dense_stage;
@@ -321,8 +321,7 @@ int main(int argc, char** argv) {
        << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds;
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
-         << ",\n  \"dense_failed_keyframes\": " << dense_failed
-         << ",\n  \"metres_per_unit\": " << metres_per_unit
+         << ",\n  \"dense_failed_keyframes\": " << dense_failed << ",\n  \"metres_per_unit\": " << metres_per_unit
          << ",\n  \"map_points\": " << dense_stage->map().ToPointCloud().size();
     if (dense_failed) json << ",\n  \"dense_first_error\": \"" << dense_first_error << "\"";
   }
@@ -354,7 +353,7 @@ int main(int argc, char** argv) {
             if (d > 0)
               est.at<float>(y, x) =
                   static_cast<float>(ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale / d),
-              ++claimed;
+                               ++claimed;
           }
         (void)acc.Add(est, *gt);
         DepthEvalOptions per;
@@ -364,14 +363,14 @@ int main(int argc, char** argv) {
           StatusOr<DepthErrorStats> f = ComputeDepthError(fused->second, *gt, cv::Mat(), per);
           if (f.ok()) {
             per_keyframe_fused << (per_keyframe_fused.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id
-                               << ", \"coverage\": " << f->coverage << ", \"median_rel_error_own_scale\": "
-                               << f->median_rel_error << "}";
+                               << ", \"coverage\": " << f->coverage
+                               << ", \"median_rel_error_own_scale\": " << f->median_rel_error << "}";
           }
         }
         if (one.ok()) {
-          per_keyframe << (per_keyframe.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id << ", \"points\": " << one->pixels
-                       << ", \"scale\": " << one->scale << ", \"median_rel_error_own_scale\": " << one->median_rel_error
-                       << "}";
+          per_keyframe << (per_keyframe.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id
+                       << ", \"points\": " << one->pixels << ", \"scale\": " << one->scale
+                       << ", \"median_rel_error_own_scale\": " << one->median_rel_error << "}";
         }
       }
       DepthEvalOptions de;

@@ -93,8 +93,8 @@ int main(int argc, char** argv) {
     } else if (a == "--no-shadows") {
       no_shadows = true;
     } else if (a == "--preset" || a == "--out" || a == "--frames" || a == "--size" || a == "--seed" ||
-               a == "--threads" || a == "--mesh-dir" || a == "--noise" || a == "--ambient" || a == "--supersampling" || a == "--gt-cloud" ||
-               a == "--distortion") {
+               a == "--threads" || a == "--mesh-dir" || a == "--noise" || a == "--ambient" || a == "--supersampling" ||
+               a == "--gt-cloud" || a == "--distortion") {
       const char* v = value(a.c_str());
       if (!v) return Fail(a + " needs a value (see --help)");
       if (a == "--preset") preset = v;
@@ -173,6 +173,7 @@ int main(int argc, char** argv) {
       "\"threads\": %d, \"seconds\": %.3f, \"frames_per_second\": %.2f, \"path_length_m\": %.6f, "
       "\"object_radius_m\": %.6f, \"gt_cloud_points\": %zu}\n",
       preset.c_str(), out.c_str(), summary->frames, options.width, options.height, options.seed, pool.num_threads(),
-      summary->seconds, summary->frames / summary->seconds, summary->path_length_m, summary->object_radius_m, cloud_points);
+      summary->seconds, summary->frames / summary->seconds, summary->path_length_m, summary->object_radius_m,
+      cloud_points);
   return 0;
 }

@@ -1,11 +1,11 @@
 // The smallest libprism_client program: opens a session, streams N synthetic grey frames, prints the
 // poses and chunks it gets, closes and prints the summary.
 //   prism_client_example tcp://127.0.0.1:5555 [frames]
+#include <prism/client/client.h>
+
 #include <cstdio>
 #include <cstdlib>
 #include <vector>
-
-#include <prism/client/client.h>
 
 int main(int argc, char** argv) {
   if (argc < 2) {
@@ -36,7 +36,8 @@ int main(int argc, char** argv) {
     if (!s.ok()) std::fprintf(stderr, "frame %d: %s\n", i, s.ToString().c_str());
     prism::client::Event e;
     while (session->Poll(&e, 0)) {
-      if (e.kind == prism::client::Event::Kind::kPose) std::printf("pose %llu\n", (unsigned long long)e.pose.frame_sequence_number);
+      if (e.kind == prism::client::Event::Kind::kPose)
+        std::printf("pose %llu\n", (unsigned long long)e.pose.frame_sequence_number);
       if (e.kind == prism::client::Event::Kind::kError) std::printf("error %s\n", e.error.ToString().c_str());
     }
   }
@@ -47,7 +48,7 @@ int main(int argc, char** argv) {
     return 1;
   }
   std::printf("summary: %llu frames received, %llu keyframes, %zu map points (%s)\n",
-              (unsigned long long)summary.frames_received, (unsigned long long)summary.keyframes,
-              session->Map().size(), summary.reason.c_str());
+              (unsigned long long)summary.frames_received, (unsigned long long)summary.keyframes, session->Map().size(),
+              summary.reason.c_str());
   return 0;
 }

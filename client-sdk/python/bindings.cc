@@ -10,10 +10,11 @@
 #include <cstring>
 #include <deque>
 #include <memory>
-#include <opencv2/core.hpp>
 #include <string>
 #include <unordered_map>
 #include <vector>
+
+#include <opencv2/core.hpp>
 
 #include "core/io/calibration_io.h"
 #include "core/io/colmap_io.h"
@@ -316,7 +317,7 @@ class PySession {
   std::unique_ptr<pc::Session> session_;
   std::vector<pc::Pose> poses_;                      // in arrival order of each frame's first pose
   std::unordered_map<uint64_t, size_t> pose_index_;  // frame sequence number -> index in poses_
-  std::deque<pc::Event> pending_;  // received inside StreamFolder/Close, not yet polled
+  std::deque<pc::Event> pending_;                    // received inside StreamFolder/Close, not yet polled
   int width_ = 0, height_ = 0;
   double summary_scale_ = 0;  // metres per SLAM unit from the Summary (0 before Close)
 };

@@ -23,25 +23,39 @@ using Clock = std::chrono::steady_clock;
 
 Code FromWire(v1::ErrorCode c) {
   switch (c) {
-    case v1::ERROR_CODE_INVALID_ARGUMENT: return Code::kInvalidArgument;
-    case v1::ERROR_CODE_NOT_FOUND: return Code::kNotFound;
-    case v1::ERROR_CODE_RESOURCE_EXHAUSTED: return Code::kResourceExhausted;
-    case v1::ERROR_CODE_FAILED_PRECONDITION: return Code::kFailedPrecondition;
-    case v1::ERROR_CODE_UNAUTHENTICATED: return Code::kUnauthenticated;
-    case v1::ERROR_CODE_DATA_LOSS: return Code::kDataLoss;
-    case v1::ERROR_CODE_UNAVAILABLE: return Code::kUnavailable;
-    case v1::ERROR_CODE_VERSION_MISMATCH: return Code::kVersionMismatch;
-    default: return Code::kInternal;
+    case v1::ERROR_CODE_INVALID_ARGUMENT:
+      return Code::kInvalidArgument;
+    case v1::ERROR_CODE_NOT_FOUND:
+      return Code::kNotFound;
+    case v1::ERROR_CODE_RESOURCE_EXHAUSTED:
+      return Code::kResourceExhausted;
+    case v1::ERROR_CODE_FAILED_PRECONDITION:
+      return Code::kFailedPrecondition;
+    case v1::ERROR_CODE_UNAUTHENTICATED:
+      return Code::kUnauthenticated;
+    case v1::ERROR_CODE_DATA_LOSS:
+      return Code::kDataLoss;
+    case v1::ERROR_CODE_UNAVAILABLE:
+      return Code::kUnavailable;
+    case v1::ERROR_CODE_VERSION_MISMATCH:
+      return Code::kVersionMismatch;
+    default:
+      return Code::kInternal;
   }
 }
 
-Status Make(Code code, std::string message, bool retryable = false) { return Status{code, std::move(message), retryable}; }
+Status Make(Code code, std::string message, bool retryable = false) {
+  return Status{code, std::move(message), retryable};
+}
 
 v1::FrameCodec ToWire(Codec c) {
   switch (c) {
-    case Codec::kPng: return v1::FRAME_CODEC_PNG;
-    case Codec::kJpeg: return v1::FRAME_CODEC_JPEG;
-    case Codec::kRaw: return v1::FRAME_CODEC_RAW;
+    case Codec::kPng:
+      return v1::FRAME_CODEC_PNG;
+    case Codec::kJpeg:
+      return v1::FRAME_CODEC_JPEG;
+    case Codec::kRaw:
+      return v1::FRAME_CODEC_RAW;
   }
   return v1::FRAME_CODEC_UNSPECIFIED;
 }
@@ -72,17 +86,28 @@ std::vector<Point> ToPoints(const PointCloud& cloud) {
 
 const char* CodeName(Code code) {
   switch (code) {
-    case Code::kOk: return "OK";
-    case Code::kInvalidArgument: return "INVALID_ARGUMENT";
-    case Code::kNotFound: return "NOT_FOUND";
-    case Code::kResourceExhausted: return "RESOURCE_EXHAUSTED";
-    case Code::kFailedPrecondition: return "FAILED_PRECONDITION";
-    case Code::kUnauthenticated: return "UNAUTHENTICATED";
-    case Code::kDataLoss: return "DATA_LOSS";
-    case Code::kUnavailable: return "UNAVAILABLE";
-    case Code::kInternal: return "INTERNAL";
-    case Code::kVersionMismatch: return "VERSION_MISMATCH";
-    case Code::kTimeout: return "TIMEOUT";
+    case Code::kOk:
+      return "OK";
+    case Code::kInvalidArgument:
+      return "INVALID_ARGUMENT";
+    case Code::kNotFound:
+      return "NOT_FOUND";
+    case Code::kResourceExhausted:
+      return "RESOURCE_EXHAUSTED";
+    case Code::kFailedPrecondition:
+      return "FAILED_PRECONDITION";
+    case Code::kUnauthenticated:
+      return "UNAUTHENTICATED";
+    case Code::kDataLoss:
+      return "DATA_LOSS";
+    case Code::kUnavailable:
+      return "UNAVAILABLE";
+    case Code::kInternal:
+      return "INTERNAL";
+    case Code::kVersionMismatch:
+      return "VERSION_MISMATCH";
+    case Code::kTimeout:
+      return "TIMEOUT";
   }
   return "?";
 }
@@ -247,15 +272,17 @@ struct Session::Impl {
   Status OpenOnce(int timeout_ms) {
     got_opened = false;
     open_error = Status();
-    if (!SendEnvelope(OpenEnvelope())) return Make(Code::kUnavailable, "cannot send OpenSession to '" + endpoint + "'", true);
+    if (!SendEnvelope(OpenEnvelope()))
+      return Make(Code::kUnavailable, "cannot send OpenSession to '" + endpoint + "'", true);
     const auto deadline = Clock::now() + std::chrono::milliseconds(timeout_ms);
     while (!got_opened && open_error.ok() && Clock::now() < deadline)
       Pump(static_cast<int>(std::max<int64_t>(
           1, std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count())));
     if (!open_error.ok()) return open_error;
     if (!got_opened)
-      return Make(Code::kTimeout, "no answer from '" + endpoint + "' within " + std::to_string(timeout_ms) +
-                                      " ms (is prism-server running there?)",
+      return Make(Code::kTimeout,
+                  "no answer from '" + endpoint + "' within " + std::to_string(timeout_ms) +
+                      " ms (is prism-server running there?)",
                   true);
     return Status();
   }
@@ -469,7 +496,8 @@ struct Session::Impl {
         Emit(std::move(e));
         return;
       }
-      default: return;
+      default:
+        return;
     }
   }
 
@@ -560,9 +588,10 @@ Status Session::PushEncoded(int64_t timestamp_ns, Codec codec, const std::vector
   Impl& m = *impl_;
   m.Pump(0);
   auto ended = [&] {
-    return Make(Code::kFailedPrecondition, m.read_only ? "the session has ended on the server (" +
-                                                             (m.summary_received ? m.summary.reason : std::string("read-only")) + ")"
-                                                       : std::string("the session is closed"));
+    return Make(Code::kFailedPrecondition,
+                m.read_only ? "the session has ended on the server (" +
+                                  (m.summary_received ? m.summary.reason : std::string("read-only")) + ")"
+                            : std::string("the session is closed"));
   };
   if (m.closed || m.read_only) return ended();
   const auto deadline = Clock::now() + std::chrono::milliseconds(m.options.timeout_ms);
@@ -576,7 +605,8 @@ Status Session::PushEncoded(int64_t timestamp_ns, Codec codec, const std::vector
     const double rate = 0.95 * m.max_frame_rate_hz;
     for (;;) {
       const auto now = Clock::now();
-      m.rate_tokens = std::min(m.rate_burst, m.rate_tokens + std::chrono::duration<double>(now - m.rate_refilled).count() * rate);
+      m.rate_tokens =
+          std::min(m.rate_burst, m.rate_tokens + std::chrono::duration<double>(now - m.rate_refilled).count() * rate);
       m.rate_refilled = now;
       if (m.rate_tokens >= 1.0) break;
       m.Pump(std::max(1, static_cast<int>(1000.0 * (1.0 - m.rate_tokens) / rate)));

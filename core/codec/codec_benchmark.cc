@@ -1,11 +1,11 @@
 // Codec speed and size: frame encode/decode per codec on a rendered 512x512 frame, and map-chunk
 // encode/decode on a keyframe-sized chunk. Counters: bytes per frame, bits per point.
 //   codec_benchmark --benchmark_format=json
+#include <unistd.h>
+
 #include <filesystem>
 #include <random>
 #include <string>
-
-#include <unistd.h>
 
 #include <benchmark/benchmark.h>
 
@@ -74,7 +74,8 @@ const MapChunk& Chunk() {
     for (int i = 0; i < 400000; ++i) {
       Eigen::Vector3f d(g(rng), g(rng), -std::abs(g(rng)));
       d.normalize();
-      cloud.positions.push_back(Eigen::Vector3f(0, 0, 0.6f) + 0.15f * d + 0.0003f * Eigen::Vector3f(g(rng), g(rng), g(rng)));
+      cloud.positions.push_back(Eigen::Vector3f(0, 0, 0.6f) + 0.15f * d +
+                                0.0003f * Eigen::Vector3f(g(rng), g(rng), g(rng)));
       cloud.normals.push_back(d);
       cloud.colors.push_back(Eigen::Matrix<uint8_t, 3, 1>(200, static_cast<uint8_t>(100 + 50 * d.x()), 40));
     }

@@ -4,13 +4,13 @@
 // Each variant encodes the rendered frame, decodes it, and runs EstimateNormals with the true depth
 // scale on the same simulated semi-dense depth; the error is against the ground-truth normals on the
 // object. "jpeg420" is OpenCV's default JPEG (4:2:0 chroma), which the server refuses.
+#include <unistd.h>
+
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <string>
 #include <vector>
-
-#include <unistd.h>
 
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -78,7 +78,8 @@ int main(int argc, char** argv) {
   for (int q : {100, 98, 95, 90, 85, 75, 50}) variants.push_back({"jpeg", FrameCodec::kJpeg, q});
   variants.push_back({"jpeg420", FrameCodec::kJpeg, 95});
 
-  std::printf("{\n  \"preset\": \"%s\", \"size\": %d, \"frame\": %d,\n  \"variants\": [\n", preset.c_str(), size, frame);
+  std::printf("{\n  \"preset\": \"%s\", \"size\": %d, \"frame\": %d,\n  \"variants\": [\n", preset.c_str(), size,
+              frame);
   for (size_t v = 0; v < variants.size(); ++v) {
     const Variant& var = variants[v];
     std::vector<uint8_t> bytes;
@@ -101,10 +102,11 @@ int main(int argc, char** argv) {
     if (!ps.ok()) return Fail(ps.status().ToString());
     StatusOr<AngularErrorStats> err = ComputeNormalError(ps->normals, *truth, object);
     if (!err.ok()) return Fail(err.status().ToString());
-    std::printf("    {\"codec\": \"%s\", \"quality\": %d, \"bytes\": %zu, \"bits_per_pixel\": %.3f, "
-                "\"rms_grey_levels\": %.3f, \"normal_median_deg\": %.4f, \"normal_mean_deg\": %.4f}%s\n",
-                var.name.c_str(), var.quality, bytes.size(), 8.0 * bytes.size() / rgb->total(), rms, err->median_deg,
-                err->mean_deg, v + 1 < variants.size() ? "," : "");
+    std::printf(
+        "    {\"codec\": \"%s\", \"quality\": %d, \"bytes\": %zu, \"bits_per_pixel\": %.3f, "
+        "\"rms_grey_levels\": %.3f, \"normal_median_deg\": %.4f, \"normal_mean_deg\": %.4f}%s\n",
+        var.name.c_str(), var.quality, bytes.size(), 8.0 * bytes.size() / rgb->total(), rms, err->median_deg,
+        err->mean_deg, v + 1 < variants.size() ? "," : "");
   }
   std::printf("  ]\n}\n");
   return 0;

@@ -1,11 +1,12 @@
+#include <unistd.h>
+
 #include <cmath>
-#include <cstring>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <random>
 #include <string>
-#include <unistd.h>
 
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
@@ -27,9 +28,9 @@ cv::Mat TestImage(int width, int height, uint32_t seed) {
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x) {
       const float r = 128 + 100 * std::sin(x * 0.05f), g = 128 + 90 * std::cos(y * 0.07f), b = 60 + 0.3f * (x + y);
-      rgb.at<cv::Vec3b>(y, x) = cv::Vec3b(cv::saturate_cast<uint8_t>(r + noise(rng)),
-                                          cv::saturate_cast<uint8_t>(g + noise(rng)),
-                                          cv::saturate_cast<uint8_t>(b + noise(rng)));
+      rgb.at<cv::Vec3b>(y, x) =
+          cv::Vec3b(cv::saturate_cast<uint8_t>(r + noise(rng)), cv::saturate_cast<uint8_t>(g + noise(rng)),
+                    cv::saturate_cast<uint8_t>(b + noise(rng)));
     }
   return rgb;
 }
@@ -178,9 +179,8 @@ TEST(MapChunkCodecTest, RoundTripKeepsVoxelsNormalsColoursAndMortonOrder) {
   EXPECT_LE(max_position_error, step * (1 + 1e-3));  // one cell at most (clamped inside the voxel)
   EXPECT_LT(max_normal_deg, /*max_normal_quantisation_deg=*/0.25);
   const double bits_per_point = 8.0 * encoded->bytes.size() / encoded->num_points;
-  std::cout << "map chunk: " << encoded->num_points << " points, " << bits_per_point
-            << " bits/point (positions on a " << step * 1000 << " mm grid, normals " << options.normal_bits
-            << " bits, RGB)\n";
+  std::cout << "map chunk: " << encoded->num_points << " points, " << bits_per_point << " bits/point (positions on a "
+            << step * 1000 << " mm grid, normals " << options.normal_bits << " bits, RGB)\n";
   EXPECT_LT(bits_per_point, /*max_bits_per_point=*/48.0);
 }
 
@@ -223,8 +223,8 @@ TEST(MapChunkCodecTest, ClaimedPointCountBeyondTheBytesIsRefusedBeforeDecoding) 
   StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(chunk.cloud, options);
   ASSERT_TRUE(encoded.ok());
   ASSERT_TRUE(DecodeMapChunk(encoded->bytes.data(), encoded->bytes.size()).ok());
-  for (const int32_t claimed : {int32_t{1} << 30, int32_t{50'000'000}, -1,
-                                static_cast<int32_t>(8 * encoded->bytes.size() + 65)}) {
+  for (const int32_t claimed :
+       {int32_t{1} << 30, int32_t{50'000'000}, -1, static_cast<int32_t>(8 * encoded->bytes.size() + 65)}) {
     std::vector<uint8_t> bytes = encoded->bytes;
     std::memcpy(bytes.data() + 11, &claimed, sizeof(claimed));  // the int32 point count after the header
     const Status s = DecodeMapChunk(bytes.data(), bytes.size()).status();
@@ -248,7 +248,8 @@ TEST(MapChunkCodecTest, DebianDracoDecoderReadsTheChunk) {
   const MapChunk chunk = SphereChunk(options.voxel_m, 5000, 10);
   StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(chunk.cloud, options);
   ASSERT_TRUE(encoded.ok());
-  const std::string dir = (std::filesystem::temp_directory_path() / ("prism_codec_" + std::to_string(getpid()))).string();
+  const std::string dir =
+      (std::filesystem::temp_directory_path() / ("prism_codec_" + std::to_string(getpid()))).string();
   std::filesystem::create_directories(dir);
   const std::string drc = dir + "/chunk.drc", ply = dir + "/chunk.ply";
   FILE* f = std::fopen(drc.c_str(), "wb");

@@ -1,11 +1,11 @@
 #include "core/codec/frame_codec.h"
 
+#include <jpeglib.h>
+
 #include <csetjmp>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
-
-#include <jpeglib.h>
 
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -44,8 +44,7 @@ void InstallErrorManager(j_common_ptr cinfo, JpegErrorManager* err) {
 
 // Returns false with err->message set on a libjpeg error. No C++ object with a destructor lives in
 // this frame across setjmp.
-bool JpegEncode(const cv::Mat& rgb, int quality, unsigned char** buffer, unsigned long* length,
-                JpegErrorManager* err) {
+bool JpegEncode(const cv::Mat& rgb, int quality, unsigned char** buffer, unsigned long* length, JpegErrorManager* err) {
   jpeg_compress_struct cinfo;
   InstallErrorManager(reinterpret_cast<j_common_ptr>(&cinfo), err);
   if (setjmp(err->jump)) {
@@ -153,9 +152,12 @@ Status DecodePng(const uint8_t* data, size_t size, int expected_width, int expec
 
 const char* FrameCodecName(FrameCodec codec) {
   switch (codec) {
-    case FrameCodec::kPng: return "png";
-    case FrameCodec::kJpeg: return "jpeg";
-    case FrameCodec::kRaw: return "raw";
+    case FrameCodec::kPng:
+      return "png";
+    case FrameCodec::kJpeg:
+      return "jpeg";
+    case FrameCodec::kRaw:
+      return "raw";
   }
   return "?";
 }
@@ -212,13 +214,15 @@ Status DecodeFrame(const uint8_t* data, size_t size, FrameCodec codec, int expec
   if (expected_width <= 0 || expected_height <= 0)
     return InvalidArgumentError("DecodeFrame: expected size must be positive, got " +
                                 SizeText(expected_width, expected_height));
-  if (data == nullptr || size == 0) return InvalidArgumentError(std::string("empty ") + FrameCodecName(codec) + " frame");
+  if (data == nullptr || size == 0)
+    return InvalidArgumentError(std::string("empty ") + FrameCodecName(codec) + " frame");
   switch (codec) {
     case FrameCodec::kRaw: {
       const size_t expected = static_cast<size_t>(expected_width) * expected_height * 3;
       if (size != expected)
         return InvalidArgumentError("raw frame has " + std::to_string(size) + " bytes; " +
-                                    SizeText(expected_width, expected_height) + " RGB needs " + std::to_string(expected));
+                                    SizeText(expected_width, expected_height) + " RGB needs " +
+                                    std::to_string(expected));
       rgb->create(expected_height, expected_width, CV_8UC3);
       std::memcpy(rgb->data, data, size);
       return Status::Ok();
@@ -229,7 +233,8 @@ Status DecodeFrame(const uint8_t* data, size_t size, FrameCodec codec, int expec
       JpegErrorManager err;
       int width = 0, height = 0;
       switch (JpegDecode(data, size, expected_width, expected_height, rgb, &err, &width, &height)) {
-        case JpegDecodeResult::kOk: return Status::Ok();
+        case JpegDecodeResult::kOk:
+          return Status::Ok();
         case JpegDecodeResult::kError:
           return InvalidArgumentError(std::string("corrupt JPEG: ") + (err.message[0] ? err.message : "bad header"));
         case JpegDecodeResult::kWarning:
@@ -237,10 +242,12 @@ Status DecodeFrame(const uint8_t* data, size_t size, FrameCodec codec, int expec
         case JpegDecodeResult::kWrongSize:
           return InvalidArgumentError("JPEG is " + SizeText(width, height) + ", the session's camera is " +
                                       SizeText(expected_width, expected_height));
-        case JpegDecodeResult::kNotColour: return InvalidArgumentError("JPEG must be 8-bit, 3 components");
+        case JpegDecodeResult::kNotColour:
+          return InvalidArgumentError("JPEG must be 8-bit, 3 components");
         case JpegDecodeResult::kSubsampled:
           return InvalidArgumentError(
-              "JPEG uses chroma subsampling; only 4:4:4 is accepted (subsampled chroma destroys the photometric signal)");
+              "JPEG uses chroma subsampling; only 4:4:4 is accepted (subsampled chroma destroys the photometric "
+              "signal)");
       }
       break;
     }

@@ -31,7 +31,9 @@ uint64_t Spread21(uint32_t v) {
 
 }  // namespace
 
-uint64_t MortonCode(uint32_t x, uint32_t y, uint32_t z) { return Spread21(x) | (Spread21(y) << 1) | (Spread21(z) << 2); }
+uint64_t MortonCode(uint32_t x, uint32_t y, uint32_t z) {
+  return Spread21(x) | (Spread21(y) << 1) | (Spread21(z) << 2);
+}
 
 Status MapChunkCodecOptions::Check() const {
   if (!(voxel_m >= 1e-5 && voxel_m <= 10)) return Violated("voxel_m", voxel_m, "in [1e-5, 10]");
@@ -105,7 +107,8 @@ StatusOr<EncodedMapChunk> EncodeMapChunk(const PointCloud& cloud, const MapChunk
   const int position_att = builder.AddAttribute(draco::GeometryAttribute::POSITION, 3, draco::DT_FLOAT32);
   const int normal_att =
       cloud.HasNormals() ? builder.AddAttribute(draco::GeometryAttribute::NORMAL, 3, draco::DT_FLOAT32) : -1;
-  const int color_att = cloud.HasColors() ? builder.AddAttribute(draco::GeometryAttribute::COLOR, 3, draco::DT_UINT8) : -1;
+  const int color_att =
+      cloud.HasColors() ? builder.AddAttribute(draco::GeometryAttribute::COLOR, 3, draco::DT_UINT8) : -1;
   // Grid value of cell u: origin + u * step, origin = (-half + 0.5) * step (cell centres).
   const double origin = (-static_cast<double>(half) + 0.5) * step;
   out.order.resize(n);
@@ -161,7 +164,8 @@ StatusOr<PointCloud> DecodeMapChunk(const uint8_t* data, size_t size) {
     return DataLossError("corrupt map chunk: Draco version " + std::to_string(data[5]) + "." + std::to_string(data[6]) +
                          ", expected 2.2 or later");
   if (data[7] != 0) return InvalidArgumentError("map chunk is a Draco mesh, not a point cloud");
-  if (data[8] != 0) return InvalidArgumentError("map chunk is not sequentially coded (Draco method " + std::to_string(data[8]) + ")");
+  if (data[8] != 0)
+    return InvalidArgumentError("map chunk is not sequentially coded (Draco method " + std::to_string(data[8]) + ")");
   if ((data[9] | (data[10] << 8)) & 0x8000) return InvalidArgumentError("map chunk carries Draco metadata");
   int32_t claimed_points = 0;
   std::memcpy(&claimed_points, data + kHeaderBytes, sizeof(claimed_points));

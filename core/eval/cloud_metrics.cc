@@ -135,8 +135,7 @@ Status CloudEvalOptions::Check() const {
 
 Status SurfaceSamplingOptions::Check() const {
   std::ostringstream err;
-  if (frame_step < 1)
-    err << "SurfaceSamplingOptions.frame_step = " << frame_step << "; violated: >= 1";
+  if (frame_step < 1) err << "SurfaceSamplingOptions.frame_step = " << frame_step << "; violated: >= 1";
   else if (!(voxel_size_m >= 0.0) || !std::isfinite(voxel_size_m))
     err << "SurfaceSamplingOptions.voxel_size_m = " << voxel_size_m << "; violated: in [0, inf)";
   if (err.str().empty()) return Status::Ok();
@@ -172,8 +171,7 @@ StatusOr<CloudMetrics> EvaluateCloud(const std::vector<Eigen::Vector3f>& reconst
   metrics.gt_samples = gt_samples.size();
 
   auto parallel_for = [pool](size_t n, const std::function<void(std::ptrdiff_t)>& fn) {
-    if (pool)
-      pool->ParallelFor(0, static_cast<std::ptrdiff_t>(n), fn, /*grain=*/1024);
+    if (pool) pool->ParallelFor(0, static_cast<std::ptrdiff_t>(n), fn, /*grain=*/1024);
     else
       for (size_t i = 0; i < n; ++i) fn(static_cast<std::ptrdiff_t>(i));
   };

@@ -1,6 +1,7 @@
 #include "core/eval/cloud_metrics.h"
 
 #include <unistd.h>
+
 #include <cmath>
 #include <filesystem>
 #include <limits>
@@ -54,10 +55,8 @@ TEST(NearestNeighborGridTest, MatchesBruteForceNearAndFar) {
     // Bounded: the distance when within the bound, infinity otherwise.
     const double bound = 0.03;
     const double bounded = grid.NearestDistance(q, bound);
-    if (truth <= bound)
-      EXPECT_EQ(bounded, truth);
-    else
-      EXPECT_TRUE(std::isinf(bounded));
+    if (truth <= bound) EXPECT_EQ(bounded, truth);
+    else EXPECT_TRUE(std::isinf(bounded));
   }
 }
 

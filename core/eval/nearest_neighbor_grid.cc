@@ -166,8 +166,7 @@ double NearestNeighborGrid::NearestDistance(const Eigen::Vector3f& query, double
     if (e.lower_bound_sq > best_sq) break;
     const Level& l = levels_[static_cast<size_t>(e.level)];
     const Node& node = l.nodes[e.node];
-    if (e.level == 0)
-      ScanNode(node, q, &best_sq, &found);
+    if (e.level == 0) ScanNode(node, q, &best_sq, &found);
     else
       for (uint32_t k = node.begin; k < node.end; ++k) push(e.level - 1, l.children[k]);
   }

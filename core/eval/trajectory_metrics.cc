@@ -18,10 +18,8 @@ Trajectory SortedUnique(const Trajectory& trajectory) {
   Trajectory out;
   out.reserve(sorted.size());
   for (const TimedPose& p : sorted) {
-    if (!out.empty() && out.back().timestamp_s == p.timestamp_s)
-      out.back() = p;
-    else
-      out.push_back(p);
+    if (!out.empty() && out.back().timestamp_s == p.timestamp_s) out.back() = p;
+    else out.push_back(p);
   }
   return out;
 }
@@ -58,10 +56,8 @@ size_t FindClosestIndex(const std::vector<double>& sorted, double t) {
       best = middle;
     }
     if (t == sorted[middle]) return middle;
-    if (sorted[middle] > t)
-      end = middle;
-    else
-      begin = middle + 1;
+    if (sorted[middle] > t) end = middle;
+    else begin = middle + 1;
   }
   return best;
 }

@@ -1,12 +1,13 @@
 #include "core/fusion/fusion.h"
 
-#include <Eigen/Cholesky>
 #include <algorithm>
 #include <array>
 #include <atomic>
 #include <cmath>
-#include <opencv2/imgproc.hpp>
 #include <sstream>
+
+#include <Eigen/Cholesky>
+#include <opencv2/imgproc.hpp>
 
 #include "core/util/check.h"
 #include "core/util/thread_pool.h"
@@ -231,7 +232,8 @@ void BuildStencil(const FusionInput& input, const cv::Mat& normals, const cv::Ma
   }
   const double density = unknowns > 0 ? static_cast<double>(samples) / unknowns : 1.0;
   // Passes that solve with corrected normals get the positions' low frequencies through them too.
-  const double pass_scale = previous != nullptr && options.normal_correction ? options.corrected_pass_position_scale : 1.0;
+  const double pass_scale =
+      previous != nullptr && options.normal_correction ? options.corrected_pass_position_scale : 1.0;
   const float position_weight = static_cast<float>(pass_scale * options.position_weight / std::max(density, 1e-6));
   const float prior_weight = static_cast<float>(options.prior_weight);
   // Test (a): |log(A) - log(B)| > max_depth_jump <=> A / B outside [1 / e^t, e^t].
@@ -507,16 +509,12 @@ class MultigridPreconditioner {
           c->unknown[ci] = 1;
         }
         if (x + 1 < f.w) {
-          if (x % 2 == 0)
-            c->diag[ci] += 2 * f.right[i];  // pair inside the aggregate
-          else
-            c->right[ci] += f.right[i];
+          if (x % 2 == 0) c->diag[ci] += 2 * f.right[i];  // pair inside the aggregate
+          else c->right[ci] += f.right[i];
         }
         if (y + 1 < f.h) {
-          if (y % 2 == 0)
-            c->diag[ci] += 2 * f.down[i];
-          else
-            c->down[ci] += f.down[i];
+          if (y % 2 == 0) c->diag[ci] += 2 * f.down[i];
+          else c->down[ci] += f.down[i];
         }
       }
     for (size_t ci = 0; ci < n; ++ci)
@@ -905,8 +903,7 @@ Status FusionOptions::Check() const {
   else if (!(position_weight > 0 || prior_weight > 0))
     e << "FusionOptions.position_weight and prior_weight are both 0; violated: one > 0";
   else if (!(corrected_pass_position_scale > 0 && corrected_pass_position_scale <= 1))
-    e << "FusionOptions.corrected_pass_position_scale = " << corrected_pass_position_scale
-      << "; violated: in (0, 1]";
+    e << "FusionOptions.corrected_pass_position_scale = " << corrected_pass_position_scale << "; violated: in (0, 1]";
   else if (preconditioner != FusionPreconditioner::kJacobi && preconditioner != FusionPreconditioner::kMultigrid)
     e << "FusionOptions.preconditioner = " << static_cast<int>(preconditioner) << "; violated: kJacobi or kMultigrid";
   else if (max_solver_iterations < 1 || max_solver_iterations > 100000)
@@ -927,8 +924,7 @@ Status FusionOptions::Check() const {
     e << "FusionOptions.min_unsupported_region_px = " << min_unsupported_region_px << "; violated: >= 1";
   else if (!(correction_sigma_px >= 1 && correction_sigma_px <= 200))
     e << "FusionOptions.correction_sigma_px = " << correction_sigma_px << "; violated: in [1, 200]";
-  else if (passes < 1 || passes > 10)
-    e << "FusionOptions.passes = " << passes << "; violated: in [1, 10]";
+  else if (passes < 1 || passes > 10) e << "FusionOptions.passes = " << passes << "; violated: in [1, 10]";
   else if (num_threads < 0 || num_threads > 256)
     e << "FusionOptions.num_threads = " << num_threads << "; violated: in [0, 256]";
   if (!e.str().empty()) return InvalidArgumentError(e.str());

@@ -49,8 +49,9 @@
 
 #include <cstdint>
 #include <memory>
-#include <opencv2/core.hpp>
 #include <vector>
+
+#include <opencv2/core.hpp>
 
 #include "core/geometry/camera.h"
 #include "core/geometry/point_cloud.h"

@@ -5,10 +5,10 @@
 // BM_Fuse reuses one DepthNormalFusion (the per-keyframe cost in a running session); BM_FuseOneShot
 // calls FuseDepthAndNormals (allocates its buffers every call); BM_Fuse*Jacobi uses the diagonal
 // preconditioner for comparison.
-#include <benchmark/benchmark.h>
-
 #include <cstdlib>
 #include <memory>
+
+#include <benchmark/benchmark.h>
 
 #include "core/fusion/fusion.h"
 #include "core/fusion/fusion_testing.h"

@@ -1,13 +1,13 @@
 #include "core/fusion/fusion.h"
 
-#include <gtest/gtest.h>
-
-#include <Eigen/SparseCholesky>
 #include <cmath>
 #include <cstdio>
 #include <map>
-#include <opencv2/imgproc.hpp>
 #include <string>
+
+#include <Eigen/SparseCholesky>
+#include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
 
 #include "core/eval/normal_metrics.h"
 #include "core/fusion/fusion_testing.h"

@@ -3,8 +3,9 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
-#include <opencv2/imgcodecs.hpp>
 #include <random>
+
+#include <opencv2/imgcodecs.hpp>
 
 #include "core/eval/depth_metrics.h"
 #include "core/eval/normal_metrics.h"

@@ -5,8 +5,9 @@
 #pragma once
 
 #include <cstdint>
-#include <opencv2/core.hpp>
 #include <string>
+
+#include <opencv2/core.hpp>
 
 #include "core/fusion/fusion.h"
 #include "core/io/calibration_io.h"

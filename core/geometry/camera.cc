@@ -21,8 +21,7 @@ Status PinholeCamera::Check() const {
     err << "PinholeCamera: width x height = " << width << "x" << height << "; violated: in [1, 16384]";
   else if (!(fx > 0) || !(fy > 0) || !std::isfinite(fx) || !std::isfinite(fy))
     err << "PinholeCamera: fx = " << fx << ", fy = " << fy << "; violated: finite and > 0";
-  else if (!std::isfinite(cx) || !std::isfinite(cy))
-    err << "PinholeCamera: cx, cy must be finite";
+  else if (!std::isfinite(cx) || !std::isfinite(cy)) err << "PinholeCamera: cx, cy must be finite";
   for (double d : distortion)
     if (!std::isfinite(d)) err << "PinholeCamera: distortion must be finite";
   if (err.str().empty()) return Status::Ok();

@@ -10,9 +10,9 @@ namespace prism {
 
 struct PointCloud {
   std::vector<Eigen::Vector3f> positions;
-  std::vector<Eigen::Vector3f> normals;                  // empty or positions.size()
-  std::vector<Eigen::Matrix<uint8_t, 3, 1>> colors;      // empty or positions.size(), RGB
-  std::vector<float> confidences;                        // empty or positions.size()
+  std::vector<Eigen::Vector3f> normals;              // empty or positions.size()
+  std::vector<Eigen::Matrix<uint8_t, 3, 1>> colors;  // empty or positions.size(), RGB
+  std::vector<float> confidences;                    // empty or positions.size()
 
   size_t size() const { return positions.size(); }
   bool empty() const { return positions.empty(); }

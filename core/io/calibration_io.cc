@@ -122,9 +122,11 @@ Status WriteCalibrationYaml(const std::string& path, const RigCalibration& c) {
     for (int r = 0; r < 3; ++r)
       for (int k = 0; k < 3; ++k) xt.at<double>(r, k) = c.crosstalk(r, k);
     fs << "crosstalk" << xt;
-    fs << "lights" << "[";
+    fs << "lights"
+       << "[";
     for (const Light& l : c.lights) {
-      fs << "{" << "name" << l.name << "type" << (l.type == LightType::kPoint ? "point" : "directional");
+      fs << "{"
+         << "name" << l.name << "type" << (l.type == LightType::kPoint ? "point" : "directional");
       WriteVec3(fs, "position", l.position_in_camera);
       WriteVec3(fs, "direction", l.direction_in_camera);
       WriteVec3(fs, "color", l.color);

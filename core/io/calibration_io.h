@@ -27,8 +27,8 @@ enum class LightType { kPoint, kDirectional };
 struct Light {
   std::string name;
   LightType type = LightType::kPoint;
-  Eigen::Vector3d position_in_camera = Eigen::Vector3d::Zero();        // point lights, metres
-  Eigen::Vector3d direction_in_camera = Eigen::Vector3d(0, 0, -1);     // directional, towards the light
+  Eigen::Vector3d position_in_camera = Eigen::Vector3d::Zero();     // point lights, metres
+  Eigen::Vector3d direction_in_camera = Eigen::Vector3d(0, 0, -1);  // directional, towards the light
   Eigen::Vector3d color = Eigen::Vector3d::Ones();
   double intensity = 0.25;
 

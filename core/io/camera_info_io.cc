@@ -4,9 +4,10 @@
 #include <cstdio>
 #include <fstream>
 #include <iterator>
-#include <opencv2/core.hpp>
 #include <sstream>
 #include <vector>
+
+#include <opencv2/core.hpp>
 
 #include "core/io/calibration_io.h"
 

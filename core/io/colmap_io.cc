@@ -116,16 +116,11 @@ StatusOr<ColmapModel> ReadColmapText(const std::string& dir) {
       return InvalidArgumentError(dir + "/cameras.txt: bad line '" + line + "'");
     for (double v; s >> v;) p.push_back(v);
     size_t expected = 0;
-    if (type == "PINHOLE")
-      expected = 4;
-    else if (type == "OPENCV")
-      expected = 8;
-    else if (type == "FULL_OPENCV")
-      expected = 12;
-    else if (type == "SIMPLE_PINHOLE")
-      expected = 3;
-    else
-      return InvalidArgumentError(dir + "/cameras.txt: camera model " + type + " is not supported");
+    if (type == "PINHOLE") expected = 4;
+    else if (type == "OPENCV") expected = 8;
+    else if (type == "FULL_OPENCV") expected = 12;
+    else if (type == "SIMPLE_PINHOLE") expected = 3;
+    else return InvalidArgumentError(dir + "/cameras.txt: camera model " + type + " is not supported");
     if (p.size() != expected)
       return InvalidArgumentError(dir + "/cameras.txt: " + type + " needs " + std::to_string(expected) + " parameters");
     if (type == "SIMPLE_PINHOLE") p.insert(p.begin() + 1, p[0]);

@@ -1,13 +1,13 @@
 #include "core/io/draco_io.h"
 
+#include <fstream>
+#include <iterator>
+#include <vector>
+
 #include <draco/compression/config/compression_shared.h>
 #include <draco/compression/decode.h>
 #include <draco/compression/encode.h>
 #include <draco/point_cloud/point_cloud_builder.h>
-
-#include <fstream>
-#include <iterator>
-#include <vector>
 
 namespace prism {
 

@@ -1,6 +1,5 @@
 // Round trips of the exchange formats: PCD (binary, ASCII, PCL's conventions), Draco .drc (lossless
 // and quantised; Debian's draco_decoder reads ours), COLMAP text models, OpenCV and ROS camera files.
-#include <gtest/gtest.h>
 #include <unistd.h>
 
 #include <cmath>
@@ -10,6 +9,8 @@
 #include <random>
 #include <sstream>
 #include <string>
+
+#include <gtest/gtest.h>
 
 #include "core/io/calibration_io.h"
 #include "core/io/camera_info_io.h"

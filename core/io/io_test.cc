@@ -36,7 +36,8 @@ RigCalibration TestCalibration() {
   c.camera.distortion = {0.01, -0.002, 0.0005, 0.0, 0.0001};
   c.lights[0] = {"red", LightType::kPoint, {-0.1, 0.05, 0}, {0, 0, -1}, {1, 0, 0}, 0.3};
   c.lights[1] = {"green", LightType::kPoint, {0.1, 0.05, 0}, {0, 0, -1}, {0, 1, 0}, 0.25};
-  c.lights[2] = {"blue", LightType::kDirectional, {0, 0, 0}, Eigen::Vector3d(0.1, -0.3, -1).normalized(), {0, 0, 1}, 0.5};
+  c.lights[2] = {"blue", LightType::kDirectional, {0, 0, 0}, Eigen::Vector3d(0.1, -0.3, -1).normalized(), {0, 0, 1},
+                 0.5};
   c.crosstalk << 1.0, 0.12, 0.03, 0.1, 1.0, 0.1, 0.02, 0.15, 1.0;
   return c;
 }
@@ -45,8 +46,8 @@ TEST_F(IoTest, TumTrajectoryRoundTrip) {
   Trajectory traj;
   std::normal_distribution<double> n(0, 1);
   for (int i = 0; i < 20; ++i)
-    traj.push_back({1000.0 + i / 30.0,
-                    Rigid3d(Eigen::Quaterniond(n(rng_), n(rng_), n(rng_), n(rng_)), Eigen::Vector3d(n(rng_), n(rng_), n(rng_)))});
+    traj.push_back({1000.0 + i / 30.0, Rigid3d(Eigen::Quaterniond(n(rng_), n(rng_), n(rng_), n(rng_)),
+                                               Eigen::Vector3d(n(rng_), n(rng_), n(rng_)))});
   ASSERT_TRUE(WriteTumTrajectory(P("t.txt"), traj).ok());
   auto back = ReadTumTrajectory(P("t.txt"));
   ASSERT_TRUE(back.ok()) << back.status();
@@ -54,7 +55,8 @@ TEST_F(IoTest, TumTrajectoryRoundTrip) {
   for (size_t i = 0; i < traj.size(); ++i) {
     EXPECT_NEAR((*back)[i].timestamp_s, traj[i].timestamp_s, 1e-6);
     EXPECT_LT(((*back)[i].world_from_camera.translation - traj[i].world_from_camera.translation).norm(), 1e-7);
-    EXPECT_LT(RotationAngle((*back)[i].world_from_camera.rotation * traj[i].world_from_camera.rotation.conjugate()), 1e-7);
+    EXPECT_LT(RotationAngle((*back)[i].world_from_camera.rotation * traj[i].world_from_camera.rotation.conjugate()),
+              1e-7);
   }
 }
 

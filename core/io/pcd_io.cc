@@ -164,26 +164,16 @@ StatusOr<PointCloud> ReadPointCloudPcd(const std::string& path) {
     record += static_cast<size_t>(fields[i].size) * fields[i].count;
     const std::string& n = fields[i].name;
     const int idx = static_cast<int>(i);
-    if (n == "x")
-      ix = idx;
-    else if (n == "y")
-      iy = idx;
-    else if (n == "z")
-      iz = idx;
-    else if (n == "normal_x")
-      inx = idx;
-    else if (n == "normal_y")
-      iny = idx;
-    else if (n == "normal_z")
-      inz = idx;
-    else if ((n == "rgb" || n == "rgba") && fields[i].size == 4)
-      irgb = idx;
-    else if (n == "r")
-      ir = idx;
-    else if (n == "g")
-      ig = idx;
-    else if (n == "b")
-      ib = idx;
+    if (n == "x") ix = idx;
+    else if (n == "y") iy = idx;
+    else if (n == "z") iz = idx;
+    else if (n == "normal_x") inx = idx;
+    else if (n == "normal_y") iny = idx;
+    else if (n == "normal_z") inz = idx;
+    else if ((n == "rgb" || n == "rgba") && fields[i].size == 4) irgb = idx;
+    else if (n == "r") ir = idx;
+    else if (n == "g") ig = idx;
+    else if (n == "b") ib = idx;
   }
   if (ix < 0 || iy < 0 || iz < 0) return InvalidArgumentError(path + ": needs fields x y z");
   const bool has_normals = inx >= 0 && iny >= 0 && inz >= 0;

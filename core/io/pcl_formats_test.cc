@@ -1,15 +1,16 @@
 // Interoperability with PCL: the PLY and PCD files Prism writes open in PCL's own readers
 // (pcl::io::loadPLYFile / loadPCDFile into PointXYZRGBNormal) with the same values, and the PCD files
 // PCL writes (binary, ASCII) open in Prism's reader.
-#include <gtest/gtest.h>
-#include <pcl/io/pcd_io.h>
-#include <pcl/io/ply_io.h>
-#include <pcl/point_types.h>
 #include <unistd.h>
 
 #include <filesystem>
 #include <random>
 #include <string>
+
+#include <gtest/gtest.h>
+#include <pcl/io/pcd_io.h>
+#include <pcl/io/ply_io.h>
+#include <pcl/point_types.h>
 
 #include "core/io/pcd_io.h"
 #include "core/io/ply_io.h"

@@ -28,11 +28,20 @@ PlyType ParseType(const std::string& s) {
 
 int TypeSize(PlyType t) {
   switch (t) {
-    case PlyType::kInt8: case PlyType::kUInt8: return 1;
-    case PlyType::kInt16: case PlyType::kUInt16: return 2;
-    case PlyType::kInt32: case PlyType::kUInt32: case PlyType::kFloat32: return 4;
-    case PlyType::kFloat64: return 8;
-    default: return 0;
+    case PlyType::kInt8:
+    case PlyType::kUInt8:
+      return 1;
+    case PlyType::kInt16:
+    case PlyType::kUInt16:
+      return 2;
+    case PlyType::kInt32:
+    case PlyType::kUInt32:
+    case PlyType::kFloat32:
+      return 4;
+    case PlyType::kFloat64:
+      return 8;
+    default:
+      return 0;
   }
 }
 
@@ -66,15 +75,56 @@ class PlyReader {
     if (!in_.read(reinterpret_cast<char*>(buf), n)) return false;
     if (format_ == PlyFormat::kBinaryBig) std::reverse(buf, buf + n);
     switch (t) {
-      case PlyType::kInt8: { int8_t x; std::memcpy(&x, buf, 1); *v = x; break; }
-      case PlyType::kUInt8: { uint8_t x; std::memcpy(&x, buf, 1); *v = x; break; }
-      case PlyType::kInt16: { int16_t x; std::memcpy(&x, buf, 2); *v = x; break; }
-      case PlyType::kUInt16: { uint16_t x; std::memcpy(&x, buf, 2); *v = x; break; }
-      case PlyType::kInt32: { int32_t x; std::memcpy(&x, buf, 4); *v = x; break; }
-      case PlyType::kUInt32: { uint32_t x; std::memcpy(&x, buf, 4); *v = x; break; }
-      case PlyType::kFloat32: { float x; std::memcpy(&x, buf, 4); *v = x; break; }
-      case PlyType::kFloat64: { double x; std::memcpy(&x, buf, 8); *v = x; break; }
-      default: return false;
+      case PlyType::kInt8: {
+        int8_t x;
+        std::memcpy(&x, buf, 1);
+        *v = x;
+        break;
+      }
+      case PlyType::kUInt8: {
+        uint8_t x;
+        std::memcpy(&x, buf, 1);
+        *v = x;
+        break;
+      }
+      case PlyType::kInt16: {
+        int16_t x;
+        std::memcpy(&x, buf, 2);
+        *v = x;
+        break;
+      }
+      case PlyType::kUInt16: {
+        uint16_t x;
+        std::memcpy(&x, buf, 2);
+        *v = x;
+        break;
+      }
+      case PlyType::kInt32: {
+        int32_t x;
+        std::memcpy(&x, buf, 4);
+        *v = x;
+        break;
+      }
+      case PlyType::kUInt32: {
+        uint32_t x;
+        std::memcpy(&x, buf, 4);
+        *v = x;
+        break;
+      }
+      case PlyType::kFloat32: {
+        float x;
+        std::memcpy(&x, buf, 4);
+        *v = x;
+        break;
+      }
+      case PlyType::kFloat64: {
+        double x;
+        std::memcpy(&x, buf, 8);
+        *v = x;
+        break;
+      }
+      default:
+        return false;
     }
     return true;
   }
@@ -95,7 +145,8 @@ StatusOr<PlyData> ParsePly(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) return NotFoundError("cannot open PLY '" + path + "'");
   std::string line;
-  if (!std::getline(in, line) || line.substr(0, 3) != "ply") return InvalidArgumentError("'" + path + "' is not a PLY file");
+  if (!std::getline(in, line) || line.substr(0, 3) != "ply")
+    return InvalidArgumentError("'" + path + "' is not a PLY file");
   PlyFormat format = PlyFormat::kAscii;
   std::vector<PlyElement> elements;
   bool header_done = false;
@@ -227,7 +278,8 @@ StatusOr<TriangleMesh> ReadOff(const std::string& path) {
     return end != tokens[pos++].c_str() && *end == '\0';
   };
   double nv, nf, ne;
-  if (!next(&nv) || !next(&nf) || !next(&ne) || nv < 0 || nf < 0) return InvalidArgumentError(path + ": bad OFF counts");
+  if (!next(&nv) || !next(&nf) || !next(&ne) || nv < 0 || nf < 0)
+    return InvalidArgumentError(path + ": bad OFF counts");
   TriangleMesh mesh;
   for (int i = 0; i < static_cast<int>(nv); ++i) {
     Eigen::Vector3d v;
@@ -318,7 +370,8 @@ Status WritePointCloudPly(const std::string& path, const PointCloud& cloud) {
   if (cloud.HasConfidences()) out << "property float confidence\n";
   out << "end_header\n";
   std::vector<char> buf;
-  const size_t stride = 12 + (cloud.HasNormals() ? 12 : 0) + (cloud.HasColors() ? 3 : 0) + (cloud.HasConfidences() ? 4 : 0);
+  const size_t stride =
+      12 + (cloud.HasNormals() ? 12 : 0) + (cloud.HasColors() ? 3 : 0) + (cloud.HasConfidences() ? 4 : 0);
   buf.resize(stride * cloud.size());
   char* p = buf.data();
   for (size_t i = 0; i < cloud.size(); ++i) {

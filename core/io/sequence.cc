@@ -42,15 +42,16 @@ StatusOr<std::vector<IndexEntry>> ReadIndex(const std::string& path, bool requir
       return InvalidArgumentError(path + ":" + std::to_string(line_no) + ": file must be relative to the sequence");
     out.push_back(e);
   }
-  std::sort(out.begin(), out.end(), [](const IndexEntry& a, const IndexEntry& b) { return a.timestamp_s < b.timestamp_s; });
+  std::sort(out.begin(), out.end(),
+            [](const IndexEntry& a, const IndexEntry& b) { return a.timestamp_s < b.timestamp_s; });
   return out;
 }
 
 // Nearest entry within kMaxAssociationS, or empty string.
 std::string Nearest(const std::vector<IndexEntry>& index, double t) {
   if (index.empty()) return "";
-  auto it = std::lower_bound(index.begin(), index.end(), t,
-                             [](const IndexEntry& e, double v) { return e.timestamp_s < v; });
+  auto it =
+      std::lower_bound(index.begin(), index.end(), t, [](const IndexEntry& e, double v) { return e.timestamp_s < v; });
   const IndexEntry* best = nullptr;
   if (it != index.end()) best = &*it;
   if (it != index.begin()) {
@@ -153,8 +154,8 @@ StatusOr<SequenceWriter> SequenceWriter::Create(const std::string& dir, const Ri
   return SequenceWriter(dir);
 }
 
-Status SequenceWriter::WriteFrame(double timestamp_s, const cv::Mat& rgb, const cv::Mat& depth,
-                                  const cv::Mat& normals, const cv::Mat& mask) const {
+Status SequenceWriter::WriteFrame(double timestamp_s, const cv::Mat& rgb, const cv::Mat& depth, const cv::Mat& normals,
+                                  const cv::Mat& mask) const {
   const std::string name = FrameName(timestamp_s);
   if (!rgb.empty()) PRISM_RETURN_IF_ERROR(WriteRgbImage(dir_ + "/rgb/" + name, rgb));
   if (!depth.empty()) PRISM_RETURN_IF_ERROR(WriteDepthPng(dir_ + "/depth/" + name, depth));

@@ -43,8 +43,7 @@ StatusOr<Trajectory> ReadTumTrajectory(const std::string& path) {
     for (char& c : line)
       if (c == ',') c = ' ';
     if (!ParseNumbers(line, &v) || v.size() != 8)
-      return InvalidArgumentError(path + ":" + std::to_string(line_no) +
-                                  ": expected 'timestamp tx ty tz qx qy qz qw'");
+      return InvalidArgumentError(path + ":" + std::to_string(line_no) + ": expected 'timestamp tx ty tz qx qy qz qw'");
     const Eigen::Quaterniond q(v[7], v[4], v[5], v[6]);
     if (q.norm() < 1e-6) return InvalidArgumentError(path + ":" + std::to_string(line_no) + ": zero quaternion");
     traj.push_back({v[0], Rigid3d(q, Eigen::Vector3d(v[1], v[2], v[3]))});

@@ -21,13 +21,12 @@
 #include <utility>
 #include <vector>
 
+#include <Eigen/Eigenvalues>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 #include <pcl/registration/gicp.h>
 #include <pcl/registration/icp.h>
 #include <pcl/search/kdtree.h>
-
-#include <Eigen/Eigenvalues>
 
 namespace prism {
 namespace {

@@ -45,15 +45,17 @@ void BM_EstimateNormals(benchmark::State& state, const std::string& preset, bool
   }
 }
 // Per keyframe in a session (the session's depth scale known): one thread, and two.
-BENCHMARK_CAPTURE(BM_EstimateNormals, multicolor_sphere_session_scale, std::string("sphere-multicolor-sideways"), false, 0)
+BENCHMARK_CAPTURE(BM_EstimateNormals, multicolor_sphere_session_scale, std::string("sphere-multicolor-sideways"), false,
+                  0)
     ->Unit(benchmark::kMillisecond);
-BENCHMARK_CAPTURE(BM_EstimateNormals, multicolor_sphere_session_scale_2threads, std::string("sphere-multicolor-sideways"),
-                  false, 2)
+BENCHMARK_CAPTURE(BM_EstimateNormals, multicolor_sphere_session_scale_2threads,
+                  std::string("sphere-multicolor-sideways"), false, 2)
     ->Unit(benchmark::kMillisecond);
 BENCHMARK_CAPTURE(BM_EstimateNormals, bunny_session_scale_2threads, std::string("bunny-multicolor-forward"), false, 2)
     ->Unit(benchmark::kMillisecond);
 // A keyframe that also estimates the depth scale (a session's first keyframes).
-BENCHMARK_CAPTURE(BM_EstimateNormals, multicolor_sphere_estimating_scale, std::string("sphere-multicolor-sideways"), true, 2)
+BENCHMARK_CAPTURE(BM_EstimateNormals, multicolor_sphere_estimating_scale, std::string("sphere-multicolor-sideways"),
+                  true, 2)
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace

@@ -2,8 +2,8 @@
 
 #include <algorithm>
 #include <array>
-#include <functional>
 #include <cmath>
+#include <functional>
 #include <numeric>
 #include <random>
 #include <sstream>
@@ -18,14 +18,13 @@
 namespace prism {
 namespace {
 
-
 // One pixel used for fitting.
 struct FitPixel {
   int x, y;
-  Eigen::Vector3d q;       // demixed colour (per light band), [0, 1] units
-  Eigen::Vector3d n0;      // prior normal, camera frame
-  Eigen::Vector3d ray;     // (u, v, 1) ray of the pixel
-  double inverse_depth;    // dense prior
+  Eigen::Vector3d q;     // demixed colour (per light band), [0, 1] units
+  Eigen::Vector3d n0;    // prior normal, camera frame
+  Eigen::Vector3d ray;   // (u, v, 1) ray of the pixel
+  double inverse_depth;  // dense prior
   double support = 1.0;
   int label = -1;
 };
@@ -87,8 +86,8 @@ Eigen::Vector2d Chromaticity(const Eigen::Vector3d& v) {
 
 // k-means with BIC model selection on 2D chromaticities; returns centres.
 std::vector<Eigen::Vector2d> ClusterChromaticities(const std::vector<Eigen::Vector2d>& samples,
-                                                   const std::vector<float>& weights, int max_clusters, double min_sigma,
-                                                   uint32_t seed) {
+                                                   const std::vector<float>& weights, int max_clusters,
+                                                   double min_sigma, uint32_t seed) {
   const int n = static_cast<int>(samples.size());
   if (n == 0) return {};
   cv::Mat data(n, 2, CV_32F);
@@ -108,7 +107,8 @@ std::vector<Eigen::Vector2d> ClusterChromaticities(const std::vector<Eigen::Vect
     double sse = 0;
     for (int i = 0; i < n; ++i) {
       const int c = labels.at<int>(i);
-      const double dx = data.at<float>(i, 0) - centres.at<float>(c, 0), dy = data.at<float>(i, 1) - centres.at<float>(c, 1);
+      const double dx = data.at<float>(i, 0) - centres.at<float>(c, 0),
+                   dy = data.at<float>(i, 1) - centres.at<float>(c, 1);
       sse += weights[i] * (dx * dx + dy * dy);
     }
     // Isotropic Gaussian per cluster, shared variance; parameters: k centres (2 each) + k-1 weights.
@@ -137,7 +137,6 @@ int Nearest(const std::vector<Eigen::Vector2d>& centres, const Eigen::Vector2d& 
   }
   return best;
 }
-
 
 // Row kernels of the per-pixel solve: plain float arrays, no branches, so that the compiler
 // vectorises them.
@@ -230,11 +229,12 @@ void NearestChromaticityRow(int w, const float* const* s, const float* __restric
 
 // Normalises the solved normals n in place (zero where not solved or degenerate), flips them to
 // face the camera, and computes their confidence. flags: 1 = solved, 2 = unlabelled (added).
-void FinishRow(int w, float ray_x0, float ray_dx, float ray_y, bool calibrated, float saturation_level, float level_scale,
-               float cos_max_prior_deviation, const float* __restrict level, const float* __restrict flags,
-               const float* __restrict b0, const float* __restrict b1, const float* __restrict b2,
-               const float* __restrict p0, const float* __restrict p1, const float* __restrict p2,
-               float* __restrict n0, float* __restrict n1, float* __restrict n2, float* __restrict confidence) {
+void FinishRow(int w, float ray_x0, float ray_dx, float ray_y, bool calibrated, float saturation_level,
+               float level_scale, float cos_max_prior_deviation, const float* __restrict level,
+               const float* __restrict flags, const float* __restrict b0, const float* __restrict b1,
+               const float* __restrict b2, const float* __restrict p0, const float* __restrict p1,
+               const float* __restrict p2, float* __restrict n0, float* __restrict n1, float* __restrict n2,
+               float* __restrict confidence) {
   const float shadow_test = calibrated ? 1.f : 0.f;
   for (int x = 0; x < w; ++x) {
     const float f = flags[x];
@@ -278,7 +278,8 @@ Status PhotometricOptions::Check() const {
   PRISM_RETURN_IF_ERROR(densify.Check());
   PRISM_RETURN_IF_ERROR(prior.Check());
   std::ostringstream e;
-  if (!(min_level >= 0 && min_level <= 255)) e << "PhotometricOptions.min_level = " << min_level << "; violated: in [0, 255]";
+  if (!(min_level >= 0 && min_level <= 255))
+    e << "PhotometricOptions.min_level = " << min_level << "; violated: in [0, 255]";
   else if (!(saturation_level > min_level && saturation_level <= 255))
     e << "PhotometricOptions.saturation_level = " << saturation_level << "; violated: in (min_level, 255]";
   else if (!(image_smoothing_sigma_px >= 0 && image_smoothing_sigma_px <= 5))
@@ -290,14 +291,16 @@ Status PhotometricOptions::Check() const {
   else if (reassignment_rounds < 0 || reassignment_rounds > 10)
     e << "PhotometricOptions.reassignment_rounds = " << reassignment_rounds << "; violated: in [0, 10]";
   else if (!(max_merge_chromaticity_distance >= 0 && max_merge_chromaticity_distance <= 1))
-    e << "PhotometricOptions.max_merge_chromaticity_distance = " << max_merge_chromaticity_distance << "; violated: in [0, 1]";
+    e << "PhotometricOptions.max_merge_chromaticity_distance = " << max_merge_chromaticity_distance
+      << "; violated: in [0, 1]";
   else if (!(min_albedo_edge >= 0 && min_albedo_edge <= 1))
     e << "PhotometricOptions.min_albedo_edge = " << min_albedo_edge << "; violated: in [0, 1]";
   else if (!(min_chromaticity_sigma >= 0 && min_chromaticity_sigma <= 0.5))
     e << "PhotometricOptions.min_chromaticity_sigma = " << min_chromaticity_sigma << "; violated: in [0, 0.5]";
   else if (plane_radius_px < 2 || plane_radius_px > 50)
     e << "PhotometricOptions.plane_radius_px = " << plane_radius_px << "; violated: in [2, 50]";
-  else if (min_plane_samples < 3) e << "PhotometricOptions.min_plane_samples = " << min_plane_samples << "; violated: >= 3";
+  else if (min_plane_samples < 3)
+    e << "PhotometricOptions.min_plane_samples = " << min_plane_samples << "; violated: >= 3";
   else if (!(max_plane_residual > 0 && max_plane_residual <= 1))
     e << "PhotometricOptions.max_plane_residual = " << max_plane_residual << "; violated: in (0, 1]";
   else if (!(min_plane_spread >= 0 && min_plane_spread <= 1))
@@ -308,12 +311,14 @@ Status PhotometricOptions::Check() const {
     e << "PhotometricOptions.fit_pixel_stride = " << fit_pixel_stride << "; violated: in [1, 8]";
   else if (superpixel_downsample < 1 || superpixel_downsample > 4)
     e << "PhotometricOptions.superpixel_downsample = " << superpixel_downsample << "; violated: in [1, 4]";
-  else if (max_clusters < 1 || max_clusters > 16) e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
+  else if (max_clusters < 1 || max_clusters > 16)
+    e << "PhotometricOptions.max_clusters = " << max_clusters << "; violated: in [1, 16]";
   else if (superpixel_size_px < 0 || superpixel_size_px > 100)
     e << "PhotometricOptions.superpixel_size_px = " << superpixel_size_px << "; violated: in [0, 100]";
   else if (max_fit_pixels < 100 || max_fit_pixels > 1000000)
     e << "PhotometricOptions.max_fit_pixels = " << max_fit_pixels << "; violated: in [100, 1e6]";
-  else if (min_cluster_pixels < 10) e << "PhotometricOptions.min_cluster_pixels = " << min_cluster_pixels << "; violated: >= 10";
+  else if (min_cluster_pixels < 10)
+    e << "PhotometricOptions.min_cluster_pixels = " << min_cluster_pixels << "; violated: >= 10";
   else if (!(min_normal_spread >= 0 && min_normal_spread <= 1))
     e << "PhotometricOptions.min_normal_spread = " << min_normal_spread << "; violated: in [0, 1]";
   else if (!(depth_scale > 0)) e << "PhotometricOptions.depth_scale = " << depth_scale << "; violated: > 0";
@@ -357,7 +362,8 @@ double SessionDepthScale::value() const {
   std::vector<double> v = estimates_;
   std::sort(v.begin(), v.end());
   const auto [begin, end] = Group(v);
-  std::vector<double> group(v.begin() + static_cast<std::ptrdiff_t>(begin), v.begin() + static_cast<std::ptrdiff_t>(end));
+  std::vector<double> group(v.begin() + static_cast<std::ptrdiff_t>(begin),
+                            v.begin() + static_cast<std::ptrdiff_t>(end));
   return Median(group);
 }
 
@@ -446,7 +452,8 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
     }
   };
   if (pool && pool->num_threads() > 1) {
-    pool->ParallelFor(0, 2, [&](std::ptrdiff_t chain) { chain == 0 ? depth_chain(nullptr) : colour_chain(); }, 1);
+    pool->ParallelFor(
+        0, 2, [&](std::ptrdiff_t chain) { chain == 0 ? depth_chain(nullptr) : colour_chain(); }, 1);
   } else {
     depth_chain(pool);
     colour_chain();
@@ -554,7 +561,7 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
       const int r = options.plane_radius_px;
       const int y_begin = static_cast<int>(block) * kRowsPerBlock, y_end = std::min(h, y_begin + kRowsPerBlock);
       if (row_begin[y_begin] == row_begin[y_end]) return;
-      constexpr int kMoments = 10;  // 1, x, y, xx, xy, yy, w, xw, yw, ww
+      constexpr int kMoments = 10;                                               // 1, x, y, xx, xy, yy, w, xw, yw, ww
       std::vector<double> column(static_cast<size_t>(kMoments) * w, 0.0);        // [x][k]
       std::vector<double> prefix(static_cast<size_t>(kMoments) * (w + 1), 0.0);  // [x + 1][k]
       auto add_row = [&](int y, double sign) {
@@ -732,7 +739,8 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         samples.push_back(pixel_chroma[i]);
         weights.push_back(1.f);
       }
-    return std::make_pair(ClusterChromaticities(samples, weights, options.max_clusters, min_sigma, options.seed), std::vector<int>());
+    return std::make_pair(ClusterChromaticities(samples, weights, options.max_clusters, min_sigma, options.seed),
+                          std::vector<int>());
   };
 
   std::vector<Eigen::Vector2d> centres;
@@ -756,9 +764,9 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   // on the angle). This uses the noisy prior normals only through an average over many pixels.
   std::vector<Eigen::Vector3d> inverse_albedo;
   constexpr double kCauchyScale = 0.2;  // sine of the angle at which a prior normal counts half
-  std::vector<Eigen::Matrix3d> a;    // A_i at the scale of the last fit_directions call
-  std::vector<Eigen::Matrix3d> apa;  // A_i^T (I - n0 n0^T) A_i
-  std::vector<uint8_t> usable;  // not vector<bool>: written from several threads
+  std::vector<Eigen::Matrix3d> a;       // A_i at the scale of the last fit_directions call
+  std::vector<Eigen::Matrix3d> apa;     // A_i^T (I - n0 n0^T) A_i
+  std::vector<uint8_t> usable;          // not vector<bool>: written from several threads
   // Uses the first `num_pixels` fit pixels (they are shuffled) and `iterations` IRLS rounds.
   struct ChunkSums {
     std::vector<Eigen::Matrix3d> h;
@@ -1041,9 +1049,11 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
         Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
         for (const auto& n : ns[c]) scatter += n * n.transpose();
         scatter /= static_cast<double>(ns[c].size());
-        ok = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(scatter).eigenvalues().minCoeff() * 3 >= options.min_normal_spread;
+        ok = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(scatter).eigenvalues().minCoeff() * 3 >=
+             options.min_normal_spread;
       }
-      if (ok && FitLightingMatrix(cs[c], ns[c], &m) && std::abs(m.determinant()) > 1e-12) result.cluster_lighting[c] = m;
+      if (ok && FitLightingMatrix(cs[c], ns[c], &m) && std::abs(m.determinant()) > 1e-12)
+        result.cluster_lighting[c] = m;
       m_inv[c] = result.cluster_lighting[c].inverse();
     }
     m_inv[k] = global_m.inverse();
@@ -1076,7 +1086,8 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
   std::vector<Eigen::Vector2f> centres_f;
   for (const Eigen::Vector2d& c : centres) centres_f.push_back(c.cast<float>());
   const float cos_max_prior_deviation = static_cast<float>(std::cos(options.max_prior_deviation_deg * M_PI / 180));
-  const float min_level = static_cast<float>(options.min_level), saturation_level = static_cast<float>(options.saturation_level);
+  const float min_level = static_cast<float>(options.min_level),
+              saturation_level = static_cast<float>(options.saturation_level);
   const float level_scale = 1.f / static_cast<float>(3.0 * std::max(1.0, options.min_level));
   const float fscale = static_cast<float>(scale);
   float lx[3], ly[3], lz[3], li[3];

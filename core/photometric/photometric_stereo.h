@@ -119,18 +119,17 @@ struct PhotometricResult {
   cv::Mat dense_inverse_depth;  // CV_32F, the densified prior
   cv::Mat prior_normals;        // CV_32FC3, from the densified prior (empty unless computed)
   int num_clusters = 0;
-  double depth_scale = 1.0;                         // metres per depth unit used (kCalibrated)
-  std::vector<Eigen::Vector3d> cluster_albedo;      // kCalibrated, per cluster
-  std::vector<Eigen::Matrix3d> cluster_lighting;    // kUncalibrated, M_k per cluster
+  double depth_scale = 1.0;                       // metres per depth unit used (kCalibrated)
+  std::vector<Eigen::Vector3d> cluster_albedo;    // kCalibrated, per cluster
+  std::vector<Eigen::Matrix3d> cluster_lighting;  // kUncalibrated, M_k per cluster
 };
 
 // rgb: CV_8UC3 (RGB order). The prior must have the image's size. rig: camera and, in
 // kCalibrated mode, the lights and crosstalk. With a `pool`, the depth-prior and colour/superpixel
 // stages run side by side and the per-pixel and per-fit-pixel loops are spread over it; the result
 // is the same bit for bit with or without it (fixed chunks, sums in a fixed order).
-StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior,
-                                            const RigCalibration& rig, const PhotometricOptions& options,
-                                            ThreadPool* pool = nullptr);
+StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDepthMap& prior, const RigCalibration& rig,
+                                            const PhotometricOptions& options, ThreadPool* pool = nullptr);
 
 // The depth scale (metres per SLAM depth unit) of a session from per-keyframe estimates
 // (PhotometricResult::depth_scale with estimate_depth_scale = true). A single keyframe whose shading

@@ -46,7 +46,8 @@ PooledResult RunOnPreset(const std::string& preset, const PhotometricOptions& ba
     SessionDepthScale session_scale;
     for (int frame : {10, 25, 40, 55}) {
       Keyframe k;
-      k.frame = synth::RenderFrame(setup.scene, setup.rig, t[frame].world_from_camera, setup.render, 100 * seed + frame);
+      k.frame =
+          synth::RenderFrame(setup.scene, setup.rig, t[frame].world_from_camera, setup.render, 100 * seed + frame);
       synth::SemiDenseOptions s;
       s.scale = 0.37;
       s.seed = seed * 7 + frame;
@@ -103,7 +104,8 @@ TEST(PhotometricStereoTest, SameResultWithAndWithoutThreadPool) {
   o.frames = 60;
   const synth::SynthSetup setup = synth::MakePreset("sphere-multicolor-sideways", o).value();
   const Trajectory t = synth::MakeTrajectory(setup.trajectory);
-  const synth::RenderedFrame frame = synth::RenderFrame(setup.scene, setup.rig, t[40].world_from_camera, setup.render, 7);
+  const synth::RenderedFrame frame =
+      synth::RenderFrame(setup.scene, setup.rig, t[40].world_from_camera, setup.render, 7);
   synth::SemiDenseOptions s;
   s.scale = 0.37;
   const InverseDepthMap prior = synth::SimulateSemiDenseDepth(frame.depth, frame.rgb, s);
@@ -232,11 +234,13 @@ TEST(PhotometricStereoTest, DiligentBallFromThreeLights) {
     Eigen::Vector3d n = m_inv * c;
     if (n.norm() < 1e-12) continue;
     n.normalize();
-    est.at<cv::Vec3f>(y, x) = cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
+    est.at<cv::Vec3f>(y, x) =
+        cv::Vec3f(static_cast<float>(n.x()), static_cast<float>(n.y()), static_cast<float>(n.z()));
   }
   const AngularErrorStats e = ComputeNormalError(est, gt, mask).value();
   std::cout << "DiLiGenT ball, lights " << lights[0] << "/" << lights[1] << "/" << lights[2] << ", " << colors.size()
-            << " prior normals: mean " << e.mean_deg << " median " << e.median_deg << " deg over " << e.count << " px\n";
+            << " prior normals: mean " << e.mean_deg << " median " << e.median_deg << " deg over " << e.count
+            << " px\n";
   EXPECT_LT(e.mean_deg, /*max_mean_normal_error_deg=*/8.0);
 }
 

@@ -12,8 +12,8 @@ namespace {
 // One row of a centre's window: the SLICO distance of each pixel to the centre (colour over the
 // centre's normaliser plus squared image distance over the grid step squared), and the pixel joins
 // the centre when closer than to any centre so far. Branch-free on plain arrays: vectorised.
-void AssignRow(int x0, int x1, float cl, float ca, float cb, float cx, float dy, float norm, float spatial_weight, int k,
-               const float* __restrict p0, const float* __restrict p1, const float* __restrict p2,
+void AssignRow(int x0, int x1, float cl, float ca, float cb, float cx, float dy, float norm, float spatial_weight,
+               int k, const float* __restrict p0, const float* __restrict p1, const float* __restrict p2,
                float* __restrict dist, float* __restrict dcol, int* __restrict label) {
   const float dy2 = dy * dy;
   for (int x = x0; x < x1; ++x) {
@@ -111,7 +111,8 @@ int SlicSuperpixels(const cv::Mat& lab, int step_px, int iterations, cv::Mat* la
         float* dist = &distance[base];
         float* dcol = &colour_distance[base];
         int* lab_row = &label[base];
-        AssignRow(x0, x1, c.c[0], c.c[1], c.c[2], c.x, y - c.y, norm, spatial_weight, k, p0, p1, p2, dist, dcol, lab_row);
+        AssignRow(x0, x1, c.c[0], c.c[1], c.c[2], c.x, y - c.y, norm, spatial_weight, k, p0, p1, p2, dist, dcol,
+                  lab_row);
       }
     }
     std::fill(sum.begin(), sum.end(), 0.f);

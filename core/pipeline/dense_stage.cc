@@ -109,9 +109,9 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
     cv::transform(keyframe.rgb, grey, cv::Matx13f(1.0f / 3, 1.0f / 3, 1.0f / 3));
     bright = grey >= options_.min_brightness;
   }
-  PRISM_ASSIGN_OR_RETURN(result.cloud, DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera,
-                                                    keyframe.world_from_keyframe, 1, bright,
-                                                    result.photometric.confidence));
+  PRISM_ASSIGN_OR_RETURN(result.cloud,
+                         DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera,
+                                      keyframe.world_from_keyframe, 1, bright, result.photometric.confidence));
   if (!options_.world_in_slam_units) {
     PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, &result));
   } else {
@@ -139,9 +139,9 @@ Status DenseStage::Merge(const PointCloud& cloud, uint64_t keyframe_id, DenseKey
       if (s.ok()) {
         result->icp_attempted = true;
         result->icp = *s;
-        const bool plausible = result->icp_estimate.translation.norm() <= options_.max_icp_correction_m &&
-                               RotationAngle(result->icp_estimate.rotation) * 180 / M_PI <=
-                                   options_.max_icp_correction_deg;
+        const bool plausible =
+            result->icp_estimate.translation.norm() <= options_.max_icp_correction_m &&
+            RotationAngle(result->icp_estimate.rotation) * 180 / M_PI <= options_.max_icp_correction_deg;
         result->icp_applied = s->converged && s->inlier_fraction >= options_.min_icp_inlier_fraction && plausible;
         if (result->icp_applied) correction = result->icp_estimate;
       }

@@ -74,11 +74,11 @@ struct DenseKeyframe {
 
 struct DenseKeyframeResult {
   uint64_t keyframe_id = 0;
-  PhotometricResult photometric;  // PS normals, confidence, prior normals, depth_scale used
+  PhotometricResult photometric;       // PS normals, confidence, prior normals, depth_scale used
   bool estimated_depth_scale = false;  // this keyframe estimated the scale (photometric.depth_scale)
-  FusionResult fusion;            // fusion.depth is before the depth-edge filter
-  cv::Mat depth;                  // CV_32F fused depth, SLAM units, depth-edge pixels set to 0
-  double metres_per_unit = 1.0;   // session depth scale after this keyframe
+  FusionResult fusion;                 // fusion.depth is before the depth-edge filter
+  cv::Mat depth;                       // CV_32F fused depth, SLAM units, depth-edge pixels set to 0
+  double metres_per_unit = 1.0;        // session depth scale after this keyframe
   // The keyframe cloud in the (metric) world frame before the ICP correction; confidences from PS.
   // While pending (world_in_slam_units, scale not fixed yet) it is in SLAM units and not in the map.
   PointCloud cloud;

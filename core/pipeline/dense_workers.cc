@@ -18,9 +18,7 @@ DenseWorkers::~DenseWorkers() {
   for (auto& t : threads_) t.join();
 }
 
-std::shared_ptr<DenseWorkers::Strand> DenseWorkers::NewStrand() {
-  return std::shared_ptr<Strand>(new Strand(this));
-}
+std::shared_ptr<DenseWorkers::Strand> DenseWorkers::NewStrand() { return std::shared_ptr<Strand>(new Strand(this)); }
 
 size_t DenseWorkers::pending_jobs() const {
   std::lock_guard<std::mutex> lock(mutex_);

@@ -214,9 +214,9 @@ TEST(SessionPipelineTest, UploadWaitsForTheDenseStageAndLiveDropsTheOldestKeyfra
     StatusOr<std::unique_ptr<SessionPipeline>> p = SessionPipeline::Create(seq.rig, options, &workers, log.Sink());
     ASSERT_TRUE(p.ok()) << p.status();
     for (const EncodedFrame& f : seq.frames) ASSERT_TRUE((*p)->Push(f).ok());
-    // Let SLAM run against the closed gate until it stops making progress (no new frame for 2 s; in
-    // sanitizer builds, PRISM_SANITIZED_BUILD, 40 s: SLAM's initialisation step alone takes longer than
-    // 2 s under ASan on a loaded machine. Only this wait is stretched, not the assertions).
+      // Let SLAM run against the closed gate until it stops making progress (no new frame for 2 s; in
+      // sanitizer builds, PRISM_SANITIZED_BUILD, 40 s: SLAM's initialisation step alone takes longer than
+      // 2 s under ASan on a loaded machine. Only this wait is stretched, not the assertions).
 #ifdef PRISM_SANITIZED_BUILD
     constexpr int kStableChecks = 200;
 #else
@@ -283,7 +283,8 @@ TEST(SessionPipelineTest, ADistortedCameraIsUndistortedAndTrackedAccurately) {
   StatusOr<std::unique_ptr<SessionPipeline>> p = SessionPipeline::Create(seq.rig, options, &workers, log.Sink());
   ASSERT_TRUE(p.ok()) << p.status();
   for (const EncodedFrame& f : seq.frames) {
-    while ((*p)->Push(f).code() == StatusCode::kResourceExhausted) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    while ((*p)->Push(f).code() == StatusCode::kResourceExhausted)
+      std::this_thread::sleep_for(std::chrono::milliseconds(2));
   }
   (*p)->Finish();
   ASSERT_TRUE(log.WaitFinished(120000));

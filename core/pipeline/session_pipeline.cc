@@ -24,8 +24,8 @@ Status SessionPipelineOptions::Check() const {
   c.voxel_m = dense.map.voxel_m;
   PRISM_RETURN_IF_ERROR(c.Check());
   if (frame_queue_capacity < 1 || frame_queue_capacity > 1024)
-    return InvalidArgumentError("SessionPipelineOptions.frame_queue_capacity = " + std::to_string(frame_queue_capacity) +
-                                "; violated: in [1, 1024]");
+    return InvalidArgumentError("SessionPipelineOptions.frame_queue_capacity = " +
+                                std::to_string(frame_queue_capacity) + "; violated: in [1, 1024]");
   if (keyframe_queue_capacity < 1 || keyframe_queue_capacity > 256)
     return InvalidArgumentError("SessionPipelineOptions.keyframe_queue_capacity = " +
                                 std::to_string(keyframe_queue_capacity) + "; violated: in [1, 256]");
@@ -97,7 +97,8 @@ Status SessionPipeline::Push(EncodedFrame frame, bool* dropped_oldest) {
       return ResourceExhaustedError("frame queue full (" + std::to_string(frames_.capacity()) +
                                     " frames); wait for frame credits and retry");
     }
-    case PushResult::kClosed: break;
+    case PushResult::kClosed:
+      break;
   }
   std::lock_guard<std::mutex> lock(mutex_);
   ++stats_.frames_rejected;
@@ -183,8 +184,8 @@ void SessionPipeline::SlamLoop() {
       if (!r.ok()) {
         PipelineEvent e;
         e.kind = PipelineEvent::Kind::kError;
-        e.status = Status(r.status().code(), "frame " + std::to_string(frame->sequence_number) + ": " +
-                                                 r.status().message());
+        e.status =
+            Status(r.status().code(), "frame " + std::to_string(frame->sequence_number) + ": " + r.status().message());
         e.has_frame = true;
         e.frame_sequence_number = frame->sequence_number;
         sink_(std::move(e));
@@ -203,7 +204,8 @@ void SessionPipeline::SlamLoop() {
       e.metres_per_unit = metres_per_unit_;
       // By SLAM frame id (a frame the SLAM recorded before failing leaves a gap).
       if (r->frame_id >= 0) {
-        if (reported_.size() <= static_cast<size_t>(r->frame_id)) reported_.resize(static_cast<size_t>(r->frame_id) + 1);
+        if (reported_.size() <= static_cast<size_t>(r->frame_id))
+          reported_.resize(static_cast<size_t>(r->frame_id) + 1);
         reported_[static_cast<size_t>(r->frame_id)] = {true, frame->sequence_number, frame->timestamp_ns, r->state,
                                                        r->world_from_camera};
       }
@@ -352,8 +354,8 @@ void SessionPipeline::DenseJob() {
       }
       PipelineEvent e;
       e.kind = PipelineEvent::Kind::kError;
-      e.status = Status(r.status().code(), "keyframe " + std::to_string(kf.id) + " skipped by the dense stage: " +
-                                               r.status().message());
+      e.status = Status(r.status().code(),
+                        "keyframe " + std::to_string(kf.id) + " skipped by the dense stage: " + r.status().message());
       sink_(std::move(e));
       return;
     }

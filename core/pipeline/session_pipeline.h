@@ -69,13 +69,13 @@ struct PipelineStats {
   uint64_t frames_processed = 0;  // tracked by SLAM
   uint64_t keyframes = 0;         // finished keyframes from SLAM
   uint64_t keyframes_dropped = 0;
-  uint64_t keyframe_waits = 0;     // upload: times SLAM waited for room in the keyframe queue
+  uint64_t keyframe_waits = 0;    // upload: times SLAM waited for room in the keyframe queue
   uint64_t keyframes_failed = 0;  // dense stage errors
   uint64_t chunks = 0;
   uint64_t chunk_bytes = 0;
   uint64_t chunk_points = 0;
   uint64_t map_points = 0;
-  double metres_per_unit = 0;     // 0 until estimated
+  double metres_per_unit = 0;  // 0 until estimated
   double slam_ms_total = 0, dense_ms_total = 0;
 };
 
@@ -112,8 +112,8 @@ class SessionPipeline {
   // INVALID_ARGUMENT on bad options or rig. The SLAM thread starts here; workers must outlive the
   // pipeline.
   static StatusOr<std::unique_ptr<SessionPipeline>> Create(const RigCalibration& rig,
-                                                           const SessionPipelineOptions& options,
-                                                           DenseWorkers* workers, PipelineEventSink sink);
+                                                           const SessionPipelineOptions& options, DenseWorkers* workers,
+                                                           PipelineEventSink sink);
   // Aborts and waits for the SLAM thread and this session's dense jobs.
   ~SessionPipeline();
   SessionPipeline(const SessionPipeline&) = delete;
@@ -151,7 +151,7 @@ class SessionPipeline {
   std::shared_ptr<DenseWorkers::Strand> strand_;
   PipelineEventSink sink_;
   std::unique_ptr<ImageUndistorter> undistorter_;  // rig_'s camera -> the pinhole camera of slam_ and dense_
-  std::unique_ptr<SlamSystem> slam_;   // SLAM thread only
+  std::unique_ptr<SlamSystem> slam_;               // SLAM thread only
   // Per SLAM frame id: the frame's sequence number and timestamp and the pose and state reported
   // (SLAM thread only); compared with the SLAM's final trajectory for the refined poses.
   struct ReportedPose {
@@ -171,9 +171,9 @@ class SessionPipeline {
   std::atomic<double> metres_per_unit_{0.0};
   mutable std::mutex mutex_;
   std::condition_variable keyframe_room_;  // signalled when keyframes_ shrinks or on Abort/Fail
-  std::deque<SlamKeyframe> keyframes_;  // Guarded by mutex_.
-  PipelineStats stats_;                 // Guarded by mutex_.
-  mutable std::mutex map_mutex_;        // held by dense jobs while they write the map
+  std::deque<SlamKeyframe> keyframes_;     // Guarded by mutex_.
+  PipelineStats stats_;                    // Guarded by mutex_.
+  mutable std::mutex map_mutex_;           // held by dense jobs while they write the map
   std::thread slam_thread_;
 };
 

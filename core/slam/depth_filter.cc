@@ -28,7 +28,8 @@ constexpr int kPatchHalf = 2;  // 5 samples
 }  // namespace
 
 Status DepthFilterOptions::Check() const {
-  if (!(min_gradient >= 0 && min_gradient <= 255)) return InvalidArgumentError("DepthFilterOptions: min_gradient must be in [0, 255]");
+  if (!(min_gradient >= 0 && min_gradient <= 255))
+    return InvalidArgumentError("DepthFilterOptions: min_gradient must be in [0, 255]");
   if (!(min_gradient_line_cosine >= 0 && min_gradient_line_cosine < 1))
     return InvalidArgumentError("DepthFilterOptions: min_gradient_line_cosine must be in [0, 1)");
   if (!(max_match_error > 0)) return InvalidArgumentError("DepthFilterOptions: max_match_error must be > 0");
@@ -36,7 +37,8 @@ Status DepthFilterOptions::Check() const {
   if (max_search_px < 4) return InvalidArgumentError("DepthFilterOptions: max_search_px must be >= 4");
   if (!(image_noise_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: image_noise_sigma must be > 0");
   if (!(epipolar_sigma_px > 0)) return InvalidArgumentError("DepthFilterOptions: epipolar_sigma_px must be > 0");
-  if (!(seed_max_relative_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: seed_max_relative_sigma must be > 0");
+  if (!(seed_max_relative_sigma > 0))
+    return InvalidArgumentError("DepthFilterOptions: seed_max_relative_sigma must be > 0");
   if (!(outlier_sigmas > 0)) return InvalidArgumentError("DepthFilterOptions: outlier_sigmas must be > 0");
   if (!(propagation_relative_sigma >= 0))
     return InvalidArgumentError("DepthFilterOptions: propagation_relative_sigma must be >= 0");
@@ -46,7 +48,8 @@ Status DepthFilterOptions::Check() const {
   if (!(min_local_mean >= 0 && min_local_mean <= 255))
     return InvalidArgumentError("DepthFilterOptions: min_local_mean must be in [0, 255]");
   if (!(regularise_sigmas > 0)) return InvalidArgumentError("DepthFilterOptions: regularise_sigmas must be > 0");
-  if (min_neighbours < 0 || min_neighbours > 8) return InvalidArgumentError("DepthFilterOptions: min_neighbours must be in [0, 8]");
+  if (min_neighbours < 0 || min_neighbours > 8)
+    return InvalidArgumentError("DepthFilterOptions: min_neighbours must be in [0, 8]");
   if (min_observations < 0) return InvalidArgumentError("DepthFilterOptions: min_observations must be >= 0");
   if (!(max_relative_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: max_relative_sigma must be > 0");
   return Status::Ok();
@@ -76,7 +79,8 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
                                               const DepthFilterOptions& options) {
   PRISM_RETURN_IF_ERROR(options.Check());
   PRISM_RETURN_IF_ERROR(camera.Check());
-  if (camera.HasDistortion()) return InvalidArgumentError("KeyframeDepth: undistort the images first (camera has distortion)");
+  if (camera.HasDistortion())
+    return InvalidArgumentError("KeyframeDepth: undistort the images first (camera has distortion)");
   if (rgb.type() != CV_8UC3 || rgb.cols != camera.width || rgb.rows != camera.height)
     return InvalidArgumentError("KeyframeDepth: the image must be CV_8UC3 of the camera's size");
   KeyframeDepth kd;
@@ -184,7 +188,8 @@ void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& 
   }
 }
 
-DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3d& frame_from_keyframe, ThreadPool* pool) {
+DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3d& frame_from_keyframe,
+                                       ThreadPool* pool) {
   DepthUpdateStats total;
   if (frame_grey_j.type() != CV_32F || frame_grey_j.cols != camera_.width || frame_grey_j.rows != camera_.height)
     return total;
@@ -272,7 +277,8 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       if (!Inside(grey_j_, x - kPatchHalf * std::abs(dk.x()) - 1, y - kPatchHalf * std::abs(dk.y()) - 1, 0) ||
           !Inside(grey_j_, x + kPatchHalf * std::abs(dk.x()) + 1, y + kPatchHalf * std::abs(dk.y()) + 1, 0))
         continue;
-      for (int i = -kPatchHalf; i <= kPatchHalf; ++i) kp[i + kPatchHalf] = SampleBilinear(grey_j_, x + i * dk.x(), y + i * dk.y());
+      for (int i = -kPatchHalf; i <= kPatchHalf; ++i)
+        kp[i + kPatchHalf] = SampleBilinear(grey_j_, x + i * dk.x(), y + i * dk.y());
       const float grad_along = 0.5f * (kp[kPatchHalf + 1] - kp[kPatchHalf - 1]);
 
       const Eigen::Vector3f a = R * ray;

@@ -72,11 +72,11 @@ struct DepthFilterOptions {
 };
 
 struct DepthUpdateStats {
-  int searched = 0;      // pixels whose line was searched
-  int fused = 0;         // observations fused
-  int outliers = 0;      // observations rejected as outliers
-  int no_match = 0;      // searches without an acceptable match
-  int dropped = 0;       // estimates dropped (too many outliers)
+  int searched = 0;  // pixels whose line was searched
+  int fused = 0;     // observations fused
+  int outliers = 0;  // observations rejected as outliers
+  int no_match = 0;  // searches without an acceptable match
+  int dropped = 0;   // estimates dropped (too many outliers)
 };
 
 class KeyframeDepth {
@@ -134,7 +134,7 @@ class KeyframeDepth {
   PinholeCamera camera_;
   DepthFilterOptions options_;
   cv::Mat rgb_;
-  cv::Mat grey_j_;     // CV_32F
+  cv::Mat grey_j_;  // CV_32F
   cv::Mat grad_x_, grad_y_;
   cv::Mat candidate_;  // CV_8U, 1 = high-gradient bright pixel
   int num_candidates_ = 0;

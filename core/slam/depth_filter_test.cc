@@ -95,10 +95,11 @@ TEST_P(DepthFilterPresetTest, ConvergesFromAWideSeedWithTruePoses) {
     KeyframeDepth::NormalisedGrey(f.rgb, options, &j, &mean);
     const DepthUpdateStats s = kd->Update(j, seq.FrameFromKeyframe(frame, 0), nullptr);
     const DepthError e = Evaluate(kd->ToInverseDepthMap(1, 1.0), key.depth);
-    std::printf("%s frame %2d: searched %6d fused %6d outliers %5d no_match %6d dropped %4d | any-estimate %6d "
-                "median %.4f p90 %.4f\n",
-                c.preset.c_str(), frame, s.searched, s.fused, s.outliers, s.no_match, s.dropped, e.count, e.median_rel,
-                e.p90_rel);
+    std::printf(
+        "%s frame %2d: searched %6d fused %6d outliers %5d no_match %6d dropped %4d | any-estimate %6d "
+        "median %.4f p90 %.4f\n",
+        c.preset.c_str(), frame, s.searched, s.fused, s.outliers, s.no_match, s.dropped, e.count, e.median_rel,
+        e.p90_rel);
   }
   kd->Regularise();
   const DepthError e = Evaluate(kd->ToInverseDepthMap(), key.depth);
@@ -112,7 +113,8 @@ INSTANTIATE_TEST_SUITE_P(DarkRoomPresets, DepthFilterPresetTest,
                          // Measured: sphere 2441 points at 1.0%, bunny 6288 at 4.5% (forward motion: the
                          // bunny sits near the epipole, where disparities are small).
                          ::testing::Values(FilterCase{"sphere-uniform-sideways", /*max_median_rel_error=*/0.02, 2000},
-                                           FilterCase{"bunny-multicolor-forward", /*max_median_rel_error=*/0.06, 4000}));
+                                           FilterCase{"bunny-multicolor-forward", /*max_median_rel_error=*/0.06,
+                                                      4000}));
 
 TEST(DepthFilterOptions, RejectsInvalidValues) {
   DepthFilterOptions o;

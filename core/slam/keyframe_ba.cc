@@ -45,14 +45,11 @@ Status DirectBaOptions::Check() const {
   std::ostringstream e;
   if (max_iterations < 1 || max_iterations > 100)
     e << "DirectBaOptions.max_iterations = " << max_iterations << "; violated: in [1, 100]";
-  else if (!(huber > 0))
-    e << "DirectBaOptions.huber = " << huber << "; violated: > 0";
-  else if (!(outlier > huber))
-    e << "DirectBaOptions.outlier = " << outlier << "; violated: > huber";
+  else if (!(huber > 0)) e << "DirectBaOptions.huber = " << huber << "; violated: > 0";
+  else if (!(outlier > huber)) e << "DirectBaOptions.outlier = " << outlier << "; violated: > huber";
   else if (pyramid_levels < 1 || pyramid_levels > 5)
     e << "DirectBaOptions.pyramid_levels = " << pyramid_levels << "; violated: in [1, 5]";
-  else if (border_px < 2)
-    e << "DirectBaOptions.border_px = " << border_px << "; violated: >= 2";
+  else if (border_px < 2) e << "DirectBaOptions.border_px = " << border_px << "; violated: >= 2";
   else if (!(function_tolerance > 0))
     e << "DirectBaOptions.function_tolerance = " << function_tolerance << "; violated: > 0";
   if (e.str().empty()) return Status::Ok();
@@ -181,146 +178,149 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         value = std::numeric_limits<double>::quiet_NaN();
       lint[static_cast<size_t>(i)] = static_cast<float>(value);
     }
-  const int rounds = level == 0 ? 2 : 1;
-  for (int round = 0; round < rounds; ++round) {
-    double lambda = 1e-3;
-    double cost = evaluate(poses, rho, &count, &sq);
-    for (int it = 0; it < options.max_iterations; ++it) {
-      ++summary.iterations;
-      Eigen::MatrixXd hcc = Eigen::MatrixXd::Zero(dim, dim);
-      Eigen::VectorXd bc = Eigen::VectorXd::Zero(dim);
-      std::fill(hpp.begin(), hpp.end(), 0.0);
-      std::fill(bp.begin(), bp.end(), 0.0);
-      for (int i = 0; i < num_points; ++i) {
-        const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-        const double r = rho[static_cast<size_t>(i)];
-        Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-        hc.setZero();
-        if (r > 0 && !std::isnan(lint[static_cast<size_t>(i)])) {
-          const Pose& h = poses[static_cast<size_t>(p.host)];
-          const Eigen::Vector3d q = ray[static_cast<size_t>(i)] / r;  // host camera, host units
-          for (int t = 0; t < num_kf; ++t) {
-            if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
-            const Pose& tp = poses[static_cast<size_t>(t)];
-            Eigen::Vector3d pt;
-            if (!project(poses, i, r, t, &pt)) continue;
-            const Eigen::Vector2d px = lcam.Project(pt);
-            if (!lcam.InImage(px, border)) continue;
-            double value;
-            Eigen::Vector2d g;
-            if (!SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g)) continue;
-            const double res = value - lint[static_cast<size_t>(i)];
-            const double e = std::abs(res);
-            const double w = e <= options.huber ? 1.0 : options.huber / e;
-            const double iz = 1.0 / pt.z();
-            Eigen::Matrix<double, 2, 3> du_dp;
-            du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
-            const Eigen::RowVector3d j_pt = g.transpose() * du_dp;  // d residual / d point in target
-            const Eigen::Matrix3d rt_t = tp.rotation.transpose();
-            // Target pose: right rotation perturbation and centre.
-            Eigen::Matrix<double, 1, 6> j_target;
-            j_target.head<3>() = j_pt * Skew(pt);
-            j_target.tail<3>() = -j_pt * rt_t;
-            // Host pose: x = c_h + s_h R_h exp(w) q.
-            Eigen::Matrix<double, 1, 6> j_host;
-            j_host.head<3>() = -j_pt * rt_t * h.scale * h.rotation * Skew(q);
-            j_host.tail<3>() = j_pt * rt_t;
-            const double j_rho = j_pt * (rt_t * (h.scale * (h.rotation * (-ray[static_cast<size_t>(i)] / (r * r)))));
-            hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
-            bp[static_cast<size_t>(i)] += w * j_rho * res;
-            const int kh = p.host, kt = t;
-            if (kt > 0) {
-              const int o = 6 * (kt - 1);
-              hcc.block<6, 6>(o, o) += w * j_target.transpose() * j_target;
-              bc.segment<6>(o) += w * j_target.transpose() * res;
-              hc.segment<6>(o) += w * j_target.transpose() * j_rho;
-            }
-            if (kh > 0) {
-              const int o = 6 * (kh - 1);
-              hcc.block<6, 6>(o, o) += w * j_host.transpose() * j_host;
-              bc.segment<6>(o) += w * j_host.transpose() * res;
-              hc.segment<6>(o) += w * j_host.transpose() * j_rho;
-            }
-            if (kh > 0 && kt > 0) {
-              const int oh = 6 * (kh - 1), ot = 6 * (kt - 1);
-              hcc.block<6, 6>(oh, ot) += w * j_host.transpose() * j_target;
-              hcc.block<6, 6>(ot, oh) += w * j_target.transpose() * j_host;
+    const int rounds = level == 0 ? 2 : 1;
+    for (int round = 0; round < rounds; ++round) {
+      double lambda = 1e-3;
+      double cost = evaluate(poses, rho, &count, &sq);
+      for (int it = 0; it < options.max_iterations; ++it) {
+        ++summary.iterations;
+        Eigen::MatrixXd hcc = Eigen::MatrixXd::Zero(dim, dim);
+        Eigen::VectorXd bc = Eigen::VectorXd::Zero(dim);
+        std::fill(hpp.begin(), hpp.end(), 0.0);
+        std::fill(bp.begin(), bp.end(), 0.0);
+        for (int i = 0; i < num_points; ++i) {
+          const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+          const double r = rho[static_cast<size_t>(i)];
+          Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+          hc.setZero();
+          if (r > 0 && !std::isnan(lint[static_cast<size_t>(i)])) {
+            const Pose& h = poses[static_cast<size_t>(p.host)];
+            const Eigen::Vector3d q = ray[static_cast<size_t>(i)] / r;  // host camera, host units
+            for (int t = 0; t < num_kf; ++t) {
+              if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
+              const Pose& tp = poses[static_cast<size_t>(t)];
+              Eigen::Vector3d pt;
+              if (!project(poses, i, r, t, &pt)) continue;
+              const Eigen::Vector2d px = lcam.Project(pt);
+              if (!lcam.InImage(px, border)) continue;
+              double value;
+              Eigen::Vector2d g;
+              if (!SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g)) continue;
+              const double res = value - lint[static_cast<size_t>(i)];
+              const double e = std::abs(res);
+              const double w = e <= options.huber ? 1.0 : options.huber / e;
+              const double iz = 1.0 / pt.z();
+              Eigen::Matrix<double, 2, 3> du_dp;
+              du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
+              const Eigen::RowVector3d j_pt = g.transpose() * du_dp;  // d residual / d point in target
+              const Eigen::Matrix3d rt_t = tp.rotation.transpose();
+              // Target pose: right rotation perturbation and centre.
+              Eigen::Matrix<double, 1, 6> j_target;
+              j_target.head<3>() = j_pt * Skew(pt);
+              j_target.tail<3>() = -j_pt * rt_t;
+              // Host pose: x = c_h + s_h R_h exp(w) q.
+              Eigen::Matrix<double, 1, 6> j_host;
+              j_host.head<3>() = -j_pt * rt_t * h.scale * h.rotation * Skew(q);
+              j_host.tail<3>() = j_pt * rt_t;
+              const double j_rho = j_pt * (rt_t * (h.scale * (h.rotation * (-ray[static_cast<size_t>(i)] / (r * r)))));
+              hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
+              bp[static_cast<size_t>(i)] += w * j_rho * res;
+              const int kh = p.host, kt = t;
+              if (kt > 0) {
+                const int o = 6 * (kt - 1);
+                hcc.block<6, 6>(o, o) += w * j_target.transpose() * j_target;
+                bc.segment<6>(o) += w * j_target.transpose() * res;
+                hc.segment<6>(o) += w * j_target.transpose() * j_rho;
+              }
+              if (kh > 0) {
+                const int o = 6 * (kh - 1);
+                hcc.block<6, 6>(o, o) += w * j_host.transpose() * j_host;
+                bc.segment<6>(o) += w * j_host.transpose() * res;
+                hc.segment<6>(o) += w * j_host.transpose() * j_rho;
+              }
+              if (kh > 0 && kt > 0) {
+                const int oh = 6 * (kh - 1), ot = 6 * (kt - 1);
+                hcc.block<6, 6>(oh, ot) += w * j_host.transpose() * j_target;
+                hcc.block<6, 6>(ot, oh) += w * j_target.transpose() * j_host;
+              }
             }
           }
         }
-      }
-      hcc.block<3, 3>(3, 3) += gauge_weight * baseline * baseline.transpose();
-      bc.segment<3>(3) += gauge_weight * baseline * baseline.dot(poses[1].centre - centre1_initial);
+        hcc.block<3, 3>(3, 3) += gauge_weight * baseline * baseline.transpose();
+        bc.segment<3>(3) += gauge_weight * baseline * baseline.dot(poses[1].centre - centre1_initial);
 
-      bool accepted = false;
-      for (int attempt = 0; attempt < 8 && !accepted; ++attempt) {
-        Eigen::MatrixXd s = hcc;
-        Eigen::VectorXd b = bc;
-        std::vector<double> hinv(static_cast<size_t>(num_points), 0.0);
-        for (int i = 0; i < num_points; ++i) {
-          const double h = hpp[static_cast<size_t>(i)] * (1 + lambda);
-          if (!(h > 1e-12)) continue;
-          hinv[static_cast<size_t>(i)] = 1.0 / h;
-          const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-          s.selfadjointView<Eigen::Lower>().rankUpdate(hc, -hinv[static_cast<size_t>(i)]);
-          b.noalias() -= hc * (hinv[static_cast<size_t>(i)] * bp[static_cast<size_t>(i)]);
+        bool accepted = false;
+        for (int attempt = 0; attempt < 8 && !accepted; ++attempt) {
+          Eigen::MatrixXd s = hcc;
+          Eigen::VectorXd b = bc;
+          std::vector<double> hinv(static_cast<size_t>(num_points), 0.0);
+          for (int i = 0; i < num_points; ++i) {
+            const double h = hpp[static_cast<size_t>(i)] * (1 + lambda);
+            if (!(h > 1e-12)) continue;
+            hinv[static_cast<size_t>(i)] = 1.0 / h;
+            const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+            s.selfadjointView<Eigen::Lower>().rankUpdate(hc, -hinv[static_cast<size_t>(i)]);
+            b.noalias() -= hc * (hinv[static_cast<size_t>(i)] * bp[static_cast<size_t>(i)]);
+          }
+          for (int d = 0; d < dim; ++d) s(d, d) += lambda * std::max(1e-6, hcc(d, d));
+          const Eigen::VectorXd dc = s.selfadjointView<Eigen::Lower>().ldlt().solve(-b);
+          if (!dc.allFinite()) {
+            lambda *= 10;
+            continue;
+          }
+          std::vector<Pose> np = poses;
+          for (int k = 1; k < num_kf; ++k) {
+            const Eigen::Matrix<double, 6, 1> d = dc.segment<6>(6 * (k - 1));
+            np[static_cast<size_t>(k)].rotation =
+                poses[static_cast<size_t>(k)].rotation * ExpSo3(d.head<3>()).toRotationMatrix();
+            np[static_cast<size_t>(k)].centre = poses[static_cast<size_t>(k)].centre + d.tail<3>();
+          }
+          std::vector<double> nr = rho;
+          for (int i = 0; i < num_points; ++i) {
+            if (hinv[static_cast<size_t>(i)] == 0) continue;
+            const double d =
+                -hinv[static_cast<size_t>(i)] * (bp[static_cast<size_t>(i)] + hcp[static_cast<size_t>(i)].dot(dc));
+            // Keep the inverse depth positive (a step to <= 0 is halved towards it).
+            nr[static_cast<size_t>(i)] = rho[static_cast<size_t>(i)] + d > 0.2 * rho[static_cast<size_t>(i)]
+                                             ? rho[static_cast<size_t>(i)] + d
+                                             : 0.2 * rho[static_cast<size_t>(i)];
+          }
+          int nc = 0;
+          double nsq = 0;
+          const double ncost = evaluate(np, nr, &nc, &nsq);
+          if (ncost < cost) {
+            const double decrease = (cost - ncost) / std::max(1e-300, cost);
+            poses.swap(np);
+            rho.swap(nr);
+            cost = ncost;
+            lambda = std::max(1e-7, lambda / 3);
+            accepted = true;
+            if (decrease < options.function_tolerance) it = options.max_iterations;
+          } else {
+            lambda *= 5;
+          }
         }
-        for (int d = 0; d < dim; ++d) s(d, d) += lambda * std::max(1e-6, hcc(d, d));
-        const Eigen::VectorXd dc = s.selfadjointView<Eigen::Lower>().ldlt().solve(-b);
-        if (!dc.allFinite()) {
-          lambda *= 10;
-          continue;
-        }
-        std::vector<Pose> np = poses;
-        for (int k = 1; k < num_kf; ++k) {
-          const Eigen::Matrix<double, 6, 1> d = dc.segment<6>(6 * (k - 1));
-          np[static_cast<size_t>(k)].rotation = poses[static_cast<size_t>(k)].rotation * ExpSo3(d.head<3>()).toRotationMatrix();
-          np[static_cast<size_t>(k)].centre = poses[static_cast<size_t>(k)].centre + d.tail<3>();
-        }
-        std::vector<double> nr = rho;
-        for (int i = 0; i < num_points; ++i) {
-          if (hinv[static_cast<size_t>(i)] == 0) continue;
-          const double d = -hinv[static_cast<size_t>(i)] * (bp[static_cast<size_t>(i)] + hcp[static_cast<size_t>(i)].dot(dc));
-          // Keep the inverse depth positive (a step to <= 0 is halved towards it).
-          nr[static_cast<size_t>(i)] = rho[static_cast<size_t>(i)] + d > 0.2 * rho[static_cast<size_t>(i)]
-                                           ? rho[static_cast<size_t>(i)] + d
-                                           : 0.2 * rho[static_cast<size_t>(i)];
-        }
-        int nc = 0;
-        double nsq = 0;
-        const double ncost = evaluate(np, nr, &nc, &nsq);
-        if (ncost < cost) {
-          const double decrease = (cost - ncost) / std::max(1e-300, cost);
-          poses.swap(np);
-          rho.swap(nr);
-          cost = ncost;
-          lambda = std::max(1e-7, lambda / 3);
-          accepted = true;
-          if (decrease < options.function_tolerance) it = options.max_iterations;
-        } else {
-          lambda *= 5;
+        if (!accepted) break;
+      }
+      if (round + 1 == rounds) break;
+      // Drop residuals above the outlier threshold, then solve again.
+      for (int i = 0; i < num_points; ++i) {
+        const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+        for (int t = 0; t < num_kf; ++t) {
+          if (t == p.host) continue;
+          Eigen::Vector3d pt;
+          if (!project(poses, i, rho[static_cast<size_t>(i)], t, &pt)) continue;
+          const Eigen::Vector2d px = lcam.Project(pt);
+          double value;
+          Eigen::Vector2d g;
+          if (!lcam.InImage(px, border) ||
+              !SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g))
+            continue;
+          if (std::abs(value - lint[static_cast<size_t>(i)]) > options.outlier)
+            active[static_cast<size_t>(i) * num_kf + t] = 0;
         }
       }
-      if (!accepted) break;
     }
-    if (round + 1 == rounds) break;
-    // Drop residuals above the outlier threshold, then solve again.
-    for (int i = 0; i < num_points; ++i) {
-      const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-      for (int t = 0; t < num_kf; ++t) {
-        if (t == p.host) continue;
-        Eigen::Vector3d pt;
-        if (!project(poses, i, rho[static_cast<size_t>(i)], t, &pt)) continue;
-        const Eigen::Vector2d px = lcam.Project(pt);
-        double value;
-        Eigen::Vector2d g;
-        if (!lcam.InImage(px, border) ||
-            !SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g))
-          continue;
-        if (std::abs(value - lint[static_cast<size_t>(i)]) > options.outlier) active[static_cast<size_t>(i) * num_kf + t] = 0;
-      }
-    }
-  }
   }
   evaluate(poses, rho, &count, &sq);
   summary.final_rms = count > 0 ? std::sqrt(sq / count) : 0;

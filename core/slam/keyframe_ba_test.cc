@@ -54,8 +54,9 @@ Window MakeWindow(const std::string& preset) {
         if (f.depth.at<float>(y, x) > 0) inverse_depth.at<float>(y, x) = 1.0f / f.depth.at<float>(y, x);
     const float min_mean = static_cast<float>(depth_options.min_local_mean);
     // Gradient^2 floor 36: flat or dark cells give no point.
-    SelectCellPoints(j, inverse_depth, k, 12, 36.0f, [&](int x, int y) { return mean.at<float>(y, x) >= min_mean; },
-                     &w.truth.points);
+    SelectCellPoints(
+        j, inverse_depth, k, 12, 36.0f, [&](int x, int y) { return mean.at<float>(y, x) >= min_mean; },
+        &w.truth.points);
   }
   w.ok = true;
   return w;
@@ -89,7 +90,7 @@ double ScaleRatio(const DirectBaProblem& p, const DirectBaProblem& truth) {
 // keyframes. SlamSystem uses the adjustment for the small corrections it makes (see the README).
 constexpr double kMaxCentreErrorFromTruth = 0.08;  // of the spacing
 constexpr double kMaxScaleErrorFromTruth = 0.015;
-constexpr double kMaxCentreErrorGrowth = 0.03;     // of the spacing, from the perturbed start
+constexpr double kMaxCentreErrorGrowth = 0.03;  // of the spacing, from the perturbed start
 
 class KeyframeBaPresetTest : public ::testing::TestWithParam<std::string> {};
 
@@ -102,8 +103,8 @@ TEST_P(KeyframeBaPresetTest, StaysNearTheTruthAndLowersTheErrorFromAPerturbedSta
   StatusOr<DirectBaSummary> s0 = AdjustKeyframeWindowDirect(DirectBaOptions(), &from_truth);
   ASSERT_TRUE(s0.ok()) << s0.status();
   const double truth_drift = CentreError(from_truth, w.truth);
-  std::printf("%s from the truth: centre error %.4f of the spacing, scale %.4f, RMS %.2f -> %.2f\n",
-              GetParam().c_str(), truth_drift, ScaleRatio(from_truth, w.truth), s0->initial_rms, s0->final_rms);
+  std::printf("%s from the truth: centre error %.4f of the spacing, scale %.4f, RMS %.2f -> %.2f\n", GetParam().c_str(),
+              truth_drift, ScaleRatio(from_truth, w.truth), s0->initial_rms, s0->final_rms);
   EXPECT_LE(truth_drift, kMaxCentreErrorFromTruth);
   EXPECT_NEAR(ScaleRatio(from_truth, w.truth), 1.0, kMaxScaleErrorFromTruth);
   EXPECT_LT(s0->final_rms, s0->initial_rms);
@@ -112,7 +113,8 @@ TEST_P(KeyframeBaPresetTest, StaysNearTheTruthAndLowersTheErrorFromAPerturbedSta
   // by 0.2 deg; every inverse depth 5% off at random.
   DirectBaProblem start = w.truth;
   const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
-  const Eigen::Vector3d side = (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
+  const Eigen::Vector3d side =
+      (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
   for (int k = 2; k < 4; ++k) {
     Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
     p.translation = c0 + 0.97 * (p.translation - c0) + side;

@@ -57,9 +57,8 @@ Status PoseGraphOptions::Check() const {
   return Status::Ok();
 }
 
-StatusOr<PoseGraphSummary> OptimisePoseGraph(const std::vector<PoseGraphEdge>& edges,
-                                             const PoseGraphOptions& options, std::vector<Sim3d>* world_from_node,
-                                             const std::vector<bool>& fixed_in) {
+StatusOr<PoseGraphSummary> OptimisePoseGraph(const std::vector<PoseGraphEdge>& edges, const PoseGraphOptions& options,
+                                             std::vector<Sim3d>* world_from_node, const std::vector<bool>& fixed_in) {
   PRISM_RETURN_IF_ERROR(options.Check());
   std::vector<Sim3d>& nodes = *world_from_node;
   const int n = static_cast<int>(nodes.size());
@@ -111,7 +110,8 @@ StatusOr<PoseGraphSummary> OptimisePoseGraph(const std::vector<PoseGraphEdge>& e
           Vector7d d = Vector7d::Zero();
           d(k) = kStep;
           const Vector7d plus = side == 0 ? EdgeResidual(e, Retract(ti, d), tj) : EdgeResidual(e, ti, Retract(tj, d));
-          const Vector7d minus = side == 0 ? EdgeResidual(e, Retract(ti, -d), tj) : EdgeResidual(e, ti, Retract(tj, -d));
+          const Vector7d minus =
+              side == 0 ? EdgeResidual(e, Retract(ti, -d), tj) : EdgeResidual(e, ti, Retract(tj, -d));
           jac[side].col(k) = (plus - minus) / (2 * kStep);
         }
       }

@@ -43,8 +43,7 @@ struct PoseGraphSummary {
 // Optimises `world_from_node` in place. Nodes with fixed[i] (default: node 0 only when `fixed` is
 // empty) keep their value. INVALID_ARGUMENT on edges naming missing nodes, non-positive sigmas or
 // scales, or an empty graph.
-StatusOr<PoseGraphSummary> OptimisePoseGraph(const std::vector<PoseGraphEdge>& edges,
-                                             const PoseGraphOptions& options, std::vector<Sim3d>* world_from_node,
-                                             const std::vector<bool>& fixed = {});
+StatusOr<PoseGraphSummary> OptimisePoseGraph(const std::vector<PoseGraphEdge>& edges, const PoseGraphOptions& options,
+                                             std::vector<Sim3d>* world_from_node, const std::vector<bool>& fixed = {});
 
 }  // namespace prism

@@ -89,8 +89,8 @@ TEST(PoseGraphTest, LoopEdgeCorrectsScaleDrift) {
   StatusOr<PoseGraphSummary> s = OptimisePoseGraph(edges, PoseGraphOptions(), &nodes);
   ASSERT_TRUE(s.ok()) << s.status();
   const double closed_error = MaxPositionError(nodes, truth);
-  std::cout << "open chain max position error " << open_error << ", after the loop edge " << closed_error
-            << " (cost " << s->initial_cost << " -> " << s->final_cost << ", " << s->iterations << " iterations)\n";
+  std::cout << "open chain max position error " << open_error << ", after the loop edge " << closed_error << " (cost "
+            << s->initial_cost << " -> " << s->final_cost << ", " << s->iterations << " iterations)\n";
   EXPECT_GT(open_error, 0.2);
   EXPECT_LT(closed_error, /*max_fraction_of_open_error=*/0.2 * open_error);
   EXPECT_LT(s->final_cost, s->initial_cost);

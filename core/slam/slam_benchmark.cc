@@ -44,8 +44,8 @@ const Frames* GetFrames(const std::string& preset) {
   f->frames.resize(o.frames);
   ThreadPool pool;
   pool.ParallelFor(0, o.frames, [&](std::ptrdiff_t i) {
-    f->frames[i] = synth::RenderFrame(f->setup.scene, f->setup.rig, f->trajectory[i].world_from_camera,
-                                      f->setup.render, 1000003ull + static_cast<uint64_t>(i));
+    f->frames[i] = synth::RenderFrame(f->setup.scene, f->setup.rig, f->trajectory[i].world_from_camera, f->setup.render,
+                                      1000003ull + static_cast<uint64_t>(i));
   });
   return (cache[preset] = std::move(f)).get();
 }
@@ -112,9 +112,9 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
     }
     keyframes = (*slam)->num_keyframes();
   }
-  state.counters["ms_per_frame"] = benchmark::Counter(
-      static_cast<double>(f->frames.size()) * state.iterations(),
-      benchmark::Counter::kIsRate | benchmark::Counter::kInvert, benchmark::Counter::kIs1000);
+  state.counters["ms_per_frame"] =
+      benchmark::Counter(static_cast<double>(f->frames.size()) * state.iterations(),
+                         benchmark::Counter::kIsRate | benchmark::Counter::kInvert, benchmark::Counter::kIs1000);
   // The spread over the frames: keyframes (propagation, adjustment) are the slow ones.
   std::sort(frame_ms.begin(), frame_ms.end());
   if (!frame_ms.empty()) {
@@ -152,13 +152,13 @@ BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sidewa
 // Every standard preset, everything on one core (the depth filter's pool has one thread): the
 // per-preset figures of the speed bar (tracking and mapping together within 33 ms keeps up with 30 fps
 // on one core, so a second core is spare).
-#define PRISM_SLAM_PRESET_BENCHMARK(NAME, PRESET)                                         \
-  BENCHMARK_CAPTURE(BM_SlamSequence, preset_##NAME, std::string(PRESET), true)          \
-      ->Arg(1)                                                                            \
-      ->Unit(benchmark::kMillisecond)                                                     \
-      ->Iterations(1)                                                                     \
-      ->UseRealTime()                                                                     \
-      ->Repetitions(3)                                                                    \
+#define PRISM_SLAM_PRESET_BENCHMARK(NAME, PRESET)                              \
+  BENCHMARK_CAPTURE(BM_SlamSequence, preset_##NAME, std::string(PRESET), true) \
+      ->Arg(1)                                                                 \
+      ->Unit(benchmark::kMillisecond)                                          \
+      ->Iterations(1)                                                          \
+      ->UseRealTime()                                                          \
+      ->Repetitions(3)                                                         \
       ->ReportAggregatesOnly(true)
 PRISM_SLAM_PRESET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
 PRISM_SLAM_PRESET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");

@@ -229,11 +229,12 @@ Status SetSlamOption(const std::string& key_in, const std::string& value_in, Sla
 Status ApplySlamConfig(const std::string& text, const std::string& source, SlamOptions* options) {
   SlamOptions result = *options;
   std::set<std::string> seen;
-  PRISM_RETURN_IF_ERROR(ForEachKeyValueLine(text, source, "=", [&](const std::string& key_in, const std::string& value) {
-    const std::string key = NormaliseKey(key_in);
-    if (!seen.insert(key).second) return InvalidArgumentError("SLAM option '" + key + "' given twice");
-    return SetSlamOption(key, value, &result);
-  }));
+  PRISM_RETURN_IF_ERROR(
+      ForEachKeyValueLine(text, source, "=", [&](const std::string& key_in, const std::string& value) {
+        const std::string key = NormaliseKey(key_in);
+        if (!seen.insert(key).second) return InvalidArgumentError("SLAM option '" + key + "' given twice");
+        return SetSlamOption(key, value, &result);
+      }));
   if (Status s = result.Check(); !s.ok()) return InvalidArgumentError(source + ": " + s.message());
   *options = result;
   return Status::Ok();

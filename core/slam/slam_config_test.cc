@@ -1,12 +1,12 @@
 #include "core/slam/slam_config.h"
 
+#include <unistd.h>
+
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <set>
 #include <string>
-
-#include <unistd.h>
 
 #include <gtest/gtest.h>
 
@@ -90,7 +90,8 @@ TEST(SlamConfigTest, BadInputIsRefusedWithItsLineAndLeavesTheOptionsUnchanged) {
     std::string text, expect;
   };
   const Case cases[] = {
-      {"loop_closure = false\ntracker.min_gradiant = 4\n", "cfg:2: unknown SLAM option 'tracker.min_gradiant' (nearest: 'tracker.min_gradient'"},
+      {"loop_closure = false\ntracker.min_gradiant = 4\n",
+       "cfg:2: unknown SLAM option 'tracker.min_gradiant' (nearest: 'tracker.min_gradient'"},
       {"keyframe_window = 6.5\n", "cfg:1: SLAM option 'keyframe_window': bad value '6.5' (expected an integer)"},
       {"keyframe_window = 99999999999\n", "bad value '99999999999'"},
       {"keyframe_distance_fraction = nan\n", "bad value 'nan' (expected a finite number)"},

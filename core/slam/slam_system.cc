@@ -33,32 +33,38 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(tracker.Check());
   PRISM_RETURN_IF_ERROR(wide_baseline_tracker.Check());
   PRISM_RETURN_IF_ERROR(depth.Check());
-  if (!(keyframe_distance_fraction > 0)) return InvalidArgumentError("SlamOptions: keyframe_distance_fraction must be > 0");
+  if (!(keyframe_distance_fraction > 0))
+    return InvalidArgumentError("SlamOptions: keyframe_distance_fraction must be > 0");
   if (!(keyframe_min_visible_fraction >= 0 && keyframe_min_visible_fraction <= 1))
     return InvalidArgumentError("SlamOptions: keyframe_min_visible_fraction must be in [0, 1]");
-  if (!(keyframe_max_rotation_deg > 0)) return InvalidArgumentError("SlamOptions: keyframe_max_rotation_deg must be > 0");
+  if (!(keyframe_max_rotation_deg > 0))
+    return InvalidArgumentError("SlamOptions: keyframe_max_rotation_deg must be > 0");
   if (init_min_frames < 2) return InvalidArgumentError("SlamOptions: init_min_frames must be >= 2");
-  if (!(init_min_parallax_fraction > 0)) return InvalidArgumentError("SlamOptions: init_min_parallax_fraction must be > 0");
-  if (init_max_frames < init_min_frames) return InvalidArgumentError("SlamOptions: init_max_frames must be >= init_min_frames");
+  if (!(init_min_parallax_fraction > 0))
+    return InvalidArgumentError("SlamOptions: init_min_parallax_fraction must be > 0");
+  if (init_max_frames < init_min_frames)
+    return InvalidArgumentError("SlamOptions: init_max_frames must be >= init_min_frames");
   if (relocalise_max_keyframes < 1) return InvalidArgumentError("SlamOptions: relocalise_max_keyframes must be >= 1");
   if (!(new_pixel_relative_sigma > 0)) return InvalidArgumentError("SlamOptions: new_pixel_relative_sigma must be > 0");
   if (tracker_refresh_frames < 1) return InvalidArgumentError("SlamOptions: tracker_refresh_frames must be >= 1");
   if (loop_min_keyframe_gap < 2) return InvalidArgumentError("SlamOptions: loop_min_keyframe_gap must be >= 2");
-  if (!(loop_max_distance_fraction > 0)) return InvalidArgumentError("SlamOptions: loop_max_distance_fraction must be > 0");
+  if (!(loop_max_distance_fraction > 0))
+    return InvalidArgumentError("SlamOptions: loop_max_distance_fraction must be > 0");
   if (!(loop_max_angle_deg > 0 && loop_max_angle_deg <= 180))
     return InvalidArgumentError("SlamOptions: loop_max_angle_deg must be in (0, 180]");
   if (loop_max_candidates < 1) return InvalidArgumentError("SlamOptions: loop_max_candidates must be >= 1");
   if (!(loop_max_rotation_inconsistency_deg > 0))
     return InvalidArgumentError("SlamOptions: loop_max_rotation_inconsistency_deg must be > 0");
   if (loop_min_depth_matches < 10) return InvalidArgumentError("SlamOptions: loop_min_depth_matches must be >= 10");
-  for (double sigma : {odometry_rotation_sigma, odometry_translation_sigma, odometry_log_scale_sigma, loop_rotation_sigma,
-                       loop_translation_sigma, loop_log_scale_sigma})
+  for (double sigma : {odometry_rotation_sigma, odometry_translation_sigma, odometry_log_scale_sigma,
+                       loop_rotation_sigma, loop_translation_sigma, loop_log_scale_sigma})
     if (!(sigma > 0)) return InvalidArgumentError("SlamOptions: pose-graph sigmas must be > 0");
   if (!(max_step_rotation_deg > 0) || !(max_step_translation_fraction > 0))
     return InvalidArgumentError("SlamOptions: max_step_rotation_deg and max_step_translation_fraction must be > 0");
   if (keyframe_window < 3) return InvalidArgumentError("SlamOptions: keyframe_window must be >= 3");
   if (keyframe_window_cell_px < 4) return InvalidArgumentError("SlamOptions: keyframe_window_cell_px must be >= 4");
-  if (keyframe_window_min_points < 10) return InvalidArgumentError("SlamOptions: keyframe_window_min_points must be >= 10");
+  if (keyframe_window_min_points < 10)
+    return InvalidArgumentError("SlamOptions: keyframe_window_min_points must be >= 10");
   PRISM_RETURN_IF_ERROR(keyframe_window_ba.Check());
   if (final_adjustment_max_keyframes < 3)
     return InvalidArgumentError("SlamOptions: final_adjustment_max_keyframes must be >= 3");
@@ -68,9 +74,12 @@ Status SlamOptions::Check() const {
 
 const char* SlamStateName(SlamState state) {
   switch (state) {
-    case SlamState::kInitializing: return "initializing";
-    case SlamState::kTracking: return "tracking";
-    case SlamState::kLost: return "lost";
+    case SlamState::kInitializing:
+      return "initializing";
+    case SlamState::kTracking:
+      return "tracking";
+    case SlamState::kLost:
+      return "lost";
   }
   return "unknown";
 }
@@ -169,7 +178,8 @@ StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& r
                                                          ThreadPool* pool) {
   PRISM_RETURN_IF_ERROR(options.Check());
   PRISM_RETURN_IF_ERROR(rig.camera.Check());
-  if (rig.camera.HasDistortion()) return InvalidArgumentError("SlamSystem: undistort the images first (camera has distortion)");
+  if (rig.camera.HasDistortion())
+    return InvalidArgumentError("SlamSystem: undistort the images first (camera has distortion)");
   auto impl = std::make_unique<Impl>();
   impl->rig = rig;
   impl->options = options;
@@ -279,7 +289,8 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   }
   cv::Mat K = (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
   cv::Mat inlier_mask;
-  cv::Mat E = cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.0 * cam.width / 512.0, inlier_mask);
+  cv::Mat E =
+      cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.0 * cam.width / 512.0, inlier_mask);
   if (E.rows != 3 || E.cols != 3) {
     *why = "essential matrix estimation failed";
     return false;
@@ -443,23 +454,24 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   has_prev = init_frames.size() >= 2;
   prev_frame_from_kf = poses[poses.size() - 2];
   PRISM_LOG(INFO) << "slam: initialised on frames " << first.frame_id << ".." << init_frames.back().frame_id
-                  << ", parallax " << parallax << " px, " << points.size() << " points, converged "
-                  << 100 * converged << "%";
+                  << ", parallax " << parallax << " px, " << points.size() << " points, converged " << 100 * converged
+                  << "%";
   return true;
 }
 
 Status SlamSystem::Impl::RefreshTracker() { return SetTrackerKeyframe(keyframes.back().rgb, *current_depth); }
 
 Status SlamSystem::Impl::SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDepth& depth) {
-  return tracker->SetKeyframe(rgb, depth.ToInverseDepthMap(options.tracking_min_observations,
-                                                           options.tracking_max_relative_sigma));
+  return tracker->SetKeyframe(
+      rgb, depth.ToInverseDepthMap(options.tracking_min_observations, options.tracking_max_relative_sigma));
 }
 
 StatusOr<KeyframeDepth> SlamSystem::Impl::PropagateForTracking(const cv::Mat& rgb, const KeyframeDepth& source,
                                                                const Rigid3d& this_from_source) {
   PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, KeyframeDepth::Create(rgb, rig.camera, options.depth));
   kd.PropagateFrom(source, this_from_source, options.new_pixel_relative_sigma);
-  if (!SetTrackerKeyframe(rgb, kd).ok()) return FailedPreconditionError("too few points with depth in the new keyframe");
+  if (!SetTrackerKeyframe(rgb, kd).ok())
+    return FailedPreconditionError("too few points with depth in the new keyframe");
   return kd;
 }
 
@@ -491,8 +503,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
       std::ostringstream m;
       m << "implausible jump from the predicted pose ("
         << RotationAngle(tr.frame_from_keyframe.rotation * guess.rotation.inverse()) * kRadToDeg << " deg, "
-        << (tr.frame_from_keyframe.translation - guess.translation).norm() * mean_idepth_now
-        << " of the mean depth)";
+        << (tr.frame_from_keyframe.translation - guess.translation).norm() * mean_idepth_now << " of the mean depth)";
       tr.ok = false;
       tr.lost_reason = m.str();
     }
@@ -506,8 +517,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     if (lost_count >= options.relocalise_after_lost_frames && Relocalise(rgb, &reloc_pose, &reloc_kf)) {
       // Resume from the keyframe found: a new keyframe at this frame, seeded from its depth. The frame
       // is recorded first (MakeKeyframe marks it), and taken back if the new keyframe is unusable.
-      PRISM_ASSIGN_OR_RETURN(KeyframeDepth source,
-                             KeyframeDepth::Create(keyframes[static_cast<size_t>(reloc_kf)].rgb, rig.camera, options.depth));
+      PRISM_ASSIGN_OR_RETURN(KeyframeDepth source, KeyframeDepth::Create(keyframes[static_cast<size_t>(reloc_kf)].rgb,
+                                                                         rig.camera, options.depth));
       source.Seed(keyframes[static_cast<size_t>(reloc_kf)].final_depth.inverse_depth, 0.05, 2);
       rec.frame_from_keyframe = reloc_pose;
       rec.result.keyframe_id = reloc_kf;
@@ -525,8 +536,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
       frames.pop_back();
       // The current keyframe stays; restore the tracker's copy of it (MakeKeyframe replaced it).
       PRISM_RETURN_IF_ERROR(RefreshTracker());
-      reloc_failure = " (relocalised against keyframe " + std::to_string(reloc_kf) + " but " +
-                      std::string(made.message()) + ")";
+      reloc_failure =
+          " (relocalised against keyframe " + std::to_string(reloc_kf) + " but " + std::string(made.message()) + ")";
       rec = FrameRecord();
       rec.result.frame_id = frame_id;
       rec.result.timestamp = timestamp;
@@ -694,7 +705,8 @@ void SlamSystem::Impl::CloseLoops(int index) {
     if (!kj.finished) continue;
     const double distance = (kj.world_from_keyframe.translation - kk.world_from_keyframe.translation).norm();
     const double angle =
-        std::acos(std::clamp(axis_k.dot(kj.world_from_keyframe.rotation * Eigen::Vector3d::UnitZ()), -1.0, 1.0)) * kRadToDeg;
+        std::acos(std::clamp(axis_k.dot(kj.world_from_keyframe.rotation * Eigen::Vector3d::UnitZ()), -1.0, 1.0)) *
+        kRadToDeg;
     if (distance < options.loop_max_distance_fraction * mean_depth && angle < options.loop_max_angle_deg)
       candidates.push_back({distance / mean_depth + angle / options.loop_max_angle_deg, j});
   }
@@ -731,7 +743,8 @@ void SlamSystem::Impl::CloseLoops(int index) {
   for (size_t i = 0; i < keyframes.size(); ++i) keyframes[i].world_from_keyframe = nodes[i];
   // Poses of tracked frames follow their keyframes.
   for (FrameRecord& f : frames)
-    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= 0) f.result.world_from_camera = WorldFromFrame(f);
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= 0)
+      f.result.world_from_camera = WorldFromFrame(f);
   PRISM_LOG(INFO) << "slam: pose graph " << keyframes.size() << " keyframes, " << graph_edges.size() << " edges, cost "
                   << summary->initial_cost << " -> " << summary->final_cost << " in " << summary->iterations
                   << " iterations";
@@ -765,11 +778,10 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     const cv::Mat& var = maps[static_cast<size_t>(k)].variance;
     if (d.empty()) continue;
     const double max_sigma = options.tracking_max_relative_sigma;
-    SelectCellPoints(problem.grey_j[static_cast<size_t>(k)], d, k, options.keyframe_window_cell_px, 0.0f,
-                     [&](int x, int y) {
-                       return var.empty() || std::sqrt(var.at<float>(y, x)) <= max_sigma * d.at<float>(y, x);
-                     },
-                     &problem.points);
+    SelectCellPoints(
+        problem.grey_j[static_cast<size_t>(k)], d, k, options.keyframe_window_cell_px, 0.0f,
+        [&](int x, int y) { return var.empty() || std::sqrt(var.at<float>(y, x)) <= max_sigma * d.at<float>(y, x); },
+        &problem.points);
   }
   if (static_cast<int>(problem.points.size()) < options.keyframe_window_min_points) return;
   std::vector<float> initial_inverse_depth;
@@ -805,11 +817,13 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   }
   if (options.repropagate_after_adjustment && !at_finish) RepropagateNewestKeyframe();
   for (FrameRecord& f : frames)
-    if (f.result.state == SlamState::kTracking && f.result.keyframe_id > first) f.result.world_from_camera = WorldFromFrame(f);
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id > first)
+      f.result.world_from_camera = WorldFromFrame(f);
   ++keyframe_adjustments;
-  PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1
-                   << ": " << problem.points.size() << " points, " << summary->residuals << " residuals, RMS " << summary->initial_rms << " -> "
-                   << summary->final_rms << " in " << summary->iterations << " iterations";
+  PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1 << ": "
+                   << problem.points.size() << " points, " << summary->residuals << " residuals, RMS "
+                   << summary->initial_rms << " -> " << summary->final_rms << " in " << summary->iterations
+                   << " iterations";
 }
 
 void SlamSystem::Impl::RepropagateNewestKeyframe() {
@@ -848,7 +862,8 @@ bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, in
     candidates.push_back({d, k.id});
   }
   std::sort(candidates.begin(), candidates.end());
-  if (static_cast<int>(candidates.size()) > options.relocalise_max_keyframes) candidates.resize(options.relocalise_max_keyframes);
+  if (static_cast<int>(candidates.size()) > options.relocalise_max_keyframes)
+    candidates.resize(options.relocalise_max_keyframes);
   for (const auto& [d, id] : candidates) {
     const Keyframe& k = keyframes[static_cast<size_t>(id)];
     if (!reloc_tracker->SetKeyframe(k.rgb, k.final_depth).ok()) continue;
@@ -920,8 +935,9 @@ PointCloud SlamSystem::SemiDenseCloud() const {
   PointCloud cloud;
   const PinholeCamera& cam = impl_->rig.camera;
   for (const Impl::Keyframe& k : impl_->keyframes) {
-    InverseDepthMap depth = k.finished ? k.final_depth
-                                       : (impl_->current_depth ? impl_->current_depth->ToInverseDepthMap() : InverseDepthMap());
+    InverseDepthMap depth =
+        k.finished ? k.final_depth
+                   : (impl_->current_depth ? impl_->current_depth->ToInverseDepthMap() : InverseDepthMap());
     if (depth.inverse_depth.empty()) continue;
     for (int y = 0; y < cam.height; ++y) {
       const float* d = depth.inverse_depth.ptr<float>(y);

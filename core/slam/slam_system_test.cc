@@ -38,9 +38,9 @@ bool Render(const std::string& preset, int frames, int supersampling, Rendered* 
   out->frames.resize(frames);
   ThreadPool pool;
   pool.ParallelFor(0, frames, [&](std::ptrdiff_t i) {
-    out->frames[i] = synth::RenderFrame(out->setup.scene, out->setup.rig, out->trajectory[i].world_from_camera,
-                                        out->setup.render,
-                                        /*noise_seed=*/1000003ull + static_cast<uint64_t>(i));  // as prism-synth --seed 1
+    out->frames[i] =
+        synth::RenderFrame(out->setup.scene, out->setup.rig, out->trajectory[i].world_from_camera, out->setup.render,
+                           /*noise_seed=*/1000003ull + static_cast<uint64_t>(i));  // as prism-synth --seed 1
   });
   return true;
 }
@@ -116,10 +116,11 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   ASSERT_FALSE(rel.empty());
   std::nth_element(rel.begin(), rel.begin() + rel.size() / 2, rel.end());
   const double depth_median = rel[rel.size() / 2];
-  std::printf("%s: %zu frames, %zu keyframes, %d loop closures, ATE %.4f m = %.3f%% of %.3f m, depth median rel "
-              "error %.4f on %zu pixels\n",
-              c.preset.c_str(), estimate.size(), keyframes.size(), (*slam)->num_loop_closures(), ate->error_m.rmse,
-              ate_percent, ate->trajectory_length_m, depth_median, rel.size());
+  std::printf(
+      "%s: %zu frames, %zu keyframes, %d loop closures, ATE %.4f m = %.3f%% of %.3f m, depth median rel "
+      "error %.4f on %zu pixels\n",
+      c.preset.c_str(), estimate.size(), keyframes.size(), (*slam)->num_loop_closures(), ate->error_m.rmse, ate_percent,
+      ate->trajectory_length_m, depth_median, rel.size());
   EXPECT_GE((*slam)->num_loop_closures(), c.min_loop_closures);
   EXPECT_LE(ate_percent, c.max_ate_percent_of_path);
   EXPECT_LE(depth_median, c.max_depth_median_rel_error);
@@ -161,7 +162,8 @@ INSTANTIATE_TEST_SUITE_P(DarkRoomPresets, SlamSystemPresetTest,
                          [](const ::testing::TestParamInfo<SlamCase>& info) {
                            std::string n = info.param.preset;
                            std::replace(n.begin(), n.end(), '-', '_');
-                           if (info.param.supersampling > 1) n += "_supersampled" + std::to_string(info.param.supersampling);
+                           if (info.param.supersampling > 1)
+                             n += "_supersampled" + std::to_string(info.param.supersampling);
                            return n;
                          });
 

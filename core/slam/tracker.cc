@@ -340,10 +340,8 @@ Status TrackerOptions::Check() const {
     e << "TrackerOptions.convergence_threshold = " << convergence_threshold << "; violated: > 0";
   else if (!(image_noise_sigma > 0))
     e << "TrackerOptions.image_noise_sigma = " << image_noise_sigma << "; violated: > 0";
-  else if (!(huber_threshold > 0))
-    e << "TrackerOptions.huber_threshold = " << huber_threshold << "; violated: > 0";
-  else if (!(inlier_threshold > 0))
-    e << "TrackerOptions.inlier_threshold = " << inlier_threshold << "; violated: > 0";
+  else if (!(huber_threshold > 0)) e << "TrackerOptions.huber_threshold = " << huber_threshold << "; violated: > 0";
+  else if (!(inlier_threshold > 0)) e << "TrackerOptions.inlier_threshold = " << inlier_threshold << "; violated: > 0";
   else if (normal_window_radius_px < 1 || normal_window_radius_px > 8)
     e << "TrackerOptions.normal_window_radius_px = " << normal_window_radius_px << "; violated: in [1, 8]";
   else if (!(normal_max_depth_jump > 0 && normal_max_depth_jump <= 1))
@@ -354,22 +352,17 @@ Status TrackerOptions::Check() const {
     e << "TrackerOptions.max_shading_ratio = " << max_shading_ratio << "; violated: > 1";
   else if (local_mean_radius_px < 1 || local_mean_radius_px > 32)
     e << "TrackerOptions.local_mean_radius_px = " << local_mean_radius_px << "; violated: in [1, 32]";
-  else if (!(local_mean_floor > 0))
-    e << "TrackerOptions.local_mean_floor = " << local_mean_floor << "; violated: > 0";
+  else if (!(local_mean_floor > 0)) e << "TrackerOptions.local_mean_floor = " << local_mean_floor << "; violated: > 0";
   else if (!(min_local_mean >= 0 && min_local_mean <= 255))
     e << "TrackerOptions.min_local_mean = " << min_local_mean << "; violated: in [0, 255]";
-  else if (!(affine_prior_a >= 0))
-    e << "TrackerOptions.affine_prior_a = " << affine_prior_a << "; violated: >= 0";
-  else if (!(affine_prior_b >= 0))
-    e << "TrackerOptions.affine_prior_b = " << affine_prior_b << "; violated: >= 0";
+  else if (!(affine_prior_a >= 0)) e << "TrackerOptions.affine_prior_a = " << affine_prior_a << "; violated: >= 0";
+  else if (!(affine_prior_b >= 0)) e << "TrackerOptions.affine_prior_b = " << affine_prior_b << "; violated: >= 0";
   else if (!(min_visible_fraction >= 0 && min_visible_fraction <= 1))
     e << "TrackerOptions.min_visible_fraction = " << min_visible_fraction << "; violated: in [0, 1]";
   else if (!(min_inlier_fraction >= 0 && min_inlier_fraction <= 1))
     e << "TrackerOptions.min_inlier_fraction = " << min_inlier_fraction << "; violated: in [0, 1]";
-  else if (!(max_affine_gain > 1))
-    e << "TrackerOptions.max_affine_gain = " << max_affine_gain << "; violated: > 1";
-  else if (!(max_residual_rms > 0))
-    e << "TrackerOptions.max_residual_rms = " << max_residual_rms << "; violated: > 0";
+  else if (!(max_affine_gain > 1)) e << "TrackerOptions.max_affine_gain = " << max_affine_gain << "; violated: > 1";
+  else if (!(max_residual_rms > 0)) e << "TrackerOptions.max_residual_rms = " << max_residual_rms << "; violated: > 0";
   if (!e.str().empty()) return InvalidArgumentError(e.str());
   return Status::Ok();
 }
@@ -529,8 +522,8 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
   for (int l = 0; l < options_.pyramid_levels; ++l) {
     if (static_cast<int>(kf.levels[l].points.size()) < kMinPoints) {
       std::ostringstream e;
-      e << "Tracker::SetKeyframe: only " << kf.levels[l].points.size() << " points at pyramid level " << l
-        << " (need " << kMinPoints << "): too little texture or depth";
+      e << "Tracker::SetKeyframe: only " << kf.levels[l].points.size() << " points at pyramid level " << l << " (need "
+        << kMinPoints << "): too little texture or depth";
       return FailedPreconditionError(e.str());
     }
   }
@@ -543,8 +536,8 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
   if (!has_keyframe_) return FailedPreconditionError("Tracker::Track: no keyframe set");
   if (rgb.type() != CV_8UC3 || rgb.cols != camera_.width || rgb.rows != camera_.height) {
     std::ostringstream e;
-    e << "Tracker::Track: the image must be CV_8UC3 " << camera_.width << "x" << camera_.height << ", got "
-      << rgb.cols << "x" << rgb.rows << " type " << rgb.type();
+    e << "Tracker::Track: the image must be CV_8UC3 " << camera_.width << "x" << camera_.height << ", got " << rgb.cols
+      << "x" << rgb.rows << " type " << rgb.type();
     return InvalidArgumentError(e.str());
   }
   const int levels = options_.pyramid_levels;
@@ -602,9 +595,8 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
       const double prior_energy = [&](const State& s) {
         return options_.estimate_affine_brightness ? prior(6) * s.a * s.a + prior(7) * s.b * s.b : 0.0;
       }(candidate);
-      const double current_prior = options_.estimate_affine_brightness
-                                       ? prior(6) * state.a * state.a + prior(7) * state.b * state.b
-                                       : 0.0;
+      const double current_prior =
+          options_.estimate_affine_brightness ? prior(6) * state.a * state.a + prior(7) * state.b * state.b : 0.0;
       if (next.energy + prior_energy < current.energy + current_prior) {
         state = candidate;
         current = std::move(next);

@@ -23,7 +23,8 @@ void BM_Track(benchmark::State& state, const std::string& preset, int gap,
     return;
   }
   const Trajectory t = synth::MakeTrajectory(setup->trajectory);
-  const synth::RenderedFrame key = synth::RenderFrame(setup->scene, setup->rig, t[0].world_from_camera, setup->render, 1);
+  const synth::RenderedFrame key =
+      synth::RenderFrame(setup->scene, setup->rig, t[0].world_from_camera, setup->render, 1);
   const synth::RenderedFrame frame =
       synth::RenderFrame(setup->scene, setup->rig, t[gap].world_from_camera, setup->render, 2);
   InverseDepthMap depth;
@@ -79,10 +80,10 @@ BENCHMARK_CAPTURE(BM_Track, bunny_gap1_predicted_shading, std::string("bunny-mul
 
 // Every standard preset with the SLAM's tracker settings, consecutive frames (the per-preset figures
 // of the tracking bar: 10 ms = 100 frames/s on one core).
-#define PRISM_TRACK_PRESET_BENCHMARK(NAME, PRESET)                                                        \
+#define PRISM_TRACK_PRESET_BENCHMARK(NAME, PRESET)                                                                \
   BENCHMARK_CAPTURE(BM_Track, preset_##NAME, std::string(PRESET), 1, ShadingModel::kLocalMeanNormalisation, true) \
-      ->Unit(benchmark::kMillisecond)                                                                    \
-      ->Repetitions(5)                                                                                   \
+      ->Unit(benchmark::kMillisecond)                                                                             \
+      ->Repetitions(5)                                                                                            \
       ->ReportAggregatesOnly(true)
 PRISM_TRACK_PRESET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
 PRISM_TRACK_PRESET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");

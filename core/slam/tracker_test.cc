@@ -118,12 +118,13 @@ TEST_P(TrackerPresetTest, TracksFramesAgainstGroundTruth) {
       StatusOr<TrackingResult> r = tracker->Track(f.rgb, guess);
       ASSERT_TRUE(r.ok()) << r.status();
       const PoseError e = Compare(r->frame_from_keyframe, truth);
-      std::printf("%s gap %2d %s: t_err %.3f mm (baseline %.1f mm, %.2f%%) r_err %.4f deg | ok %d rms %.2f vis %.2f "
-                  "inl %.2f a %.3f b %.2f it %d/%d/%d/%d %s\n",
-                  c.preset.c_str(), frame, from_identity ? "identity" : "velocity", 1e3 * e.translation_m,
-                  1e3 * e.baseline_m, 100 * e.translation_m / e.baseline_m, e.rotation_deg, r->ok, r->residual_rms,
-                  r->visible_fraction, r->inlier_fraction, r->affine_a, r->affine_b, r->iterations[0],
-                  r->iterations[1], r->iterations[2], r->iterations[3], r->lost_reason.c_str());
+      std::printf(
+          "%s gap %2d %s: t_err %.3f mm (baseline %.1f mm, %.2f%%) r_err %.4f deg | ok %d rms %.2f vis %.2f "
+          "inl %.2f a %.3f b %.2f it %d/%d/%d/%d %s\n",
+          c.preset.c_str(), frame, from_identity ? "identity" : "velocity", 1e3 * e.translation_m, 1e3 * e.baseline_m,
+          100 * e.translation_m / e.baseline_m, e.rotation_deg, r->ok, r->residual_rms, r->visible_fraction,
+          r->inlier_fraction, r->affine_a, r->affine_b, r->iterations[0], r->iterations[1], r->iterations[2],
+          r->iterations[3], r->lost_reason.c_str());
       EXPECT_TRUE(r->ok) << r->lost_reason;
       EXPECT_LT(e.translation_m, max_translation_error_m)
           << "frame " << frame << (from_identity ? " from identity" : "");
@@ -136,20 +137,21 @@ TEST_P(TrackerPresetTest, TracksFramesAgainstGroundTruth) {
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(DarkRoomPresets, TrackerPresetTest,
-                         ::testing::Values(TrackCase{"sphere-multicolor-sideways", 320, 240, /*max_translation_error_m=*/0.003,
-                                                     /*max_rotation_error_deg=*/0.3},
-                                           TrackCase{"bunny-multicolor-forward", 320, 240, /*max_translation_error_m=*/0.009,
-                                                     /*max_rotation_error_deg=*/0.8},
-                                           // Measured 0.5-3.9 mm (3.5-21% of the baseline), 0.05-0.41 deg.
-                                           TrackCase{"torus-textured-forward", 320, 240, /*max_translation_error_m=*/0.006,
-                                                     /*max_rotation_error_deg=*/0.65}),
-                         [](const ::testing::TestParamInfo<TrackCase>& info) {
-                           std::string name = info.param.preset;
-                           for (char& ch : name)
-                             if (ch == '-') ch = '_';
-                           return name;
-                         });
+INSTANTIATE_TEST_SUITE_P(
+    DarkRoomPresets, TrackerPresetTest,
+    ::testing::Values(TrackCase{"sphere-multicolor-sideways", 320, 240, /*max_translation_error_m=*/0.003,
+                                /*max_rotation_error_deg=*/0.3},
+                      TrackCase{"bunny-multicolor-forward", 320, 240, /*max_translation_error_m=*/0.009,
+                                /*max_rotation_error_deg=*/0.8},
+                      // Measured 0.5-3.9 mm (3.5-21% of the baseline), 0.05-0.41 deg.
+                      TrackCase{"torus-textured-forward", 320, 240, /*max_translation_error_m=*/0.006,
+                                /*max_rotation_error_deg=*/0.65}),
+    [](const ::testing::TestParamInfo<TrackCase>& info) {
+      std::string name = info.param.preset;
+      for (char& ch : name)
+        if (ch == '-') ch = '_';
+      return name;
+    });
 
 // ShadingModel::kPredictedShading (the rig predicts each point's shading change, on top of the
 // local-mean normalisation). Measured 0.32-1.82 mm / <= 0.22 deg (sphere), 1.53-6.31 mm / <= 0.57 deg
@@ -213,7 +215,8 @@ TEST(TrackerTest, HugeMotionIsReportedLost) {
   StatusOr<Tracker> tracker = Tracker::Create(seq.setup.rig.camera, TrackerOptions());
   ASSERT_TRUE(tracker.ok()) << tracker.status();
   ASSERT_TRUE(tracker->SetKeyframe(key.rgb, GroundTruthInverseDepth(key.depth)).ok());
-  const Rigid3d turned(Eigen::Quaterniond(Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitY())), Eigen::Vector3d::Zero());
+  const Rigid3d turned(Eigen::Quaterniond(Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitY())),
+                       Eigen::Vector3d::Zero());
   StatusOr<TrackingResult> r = tracker->Track(seq.Render(1).rgb, turned);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_FALSE(r->ok);
@@ -226,7 +229,8 @@ TEST(TrackerTest, HugeMotionIsReportedLost) {
       synth::RenderFrame(seq.setup.scene, seq.setup.rig, world_from_away, seq.setup.render, /*noise_seed=*/5);
   r = tracker->Track(away.rgb, Rigid3d());
   ASSERT_TRUE(r.ok()) << r.status();
-  EXPECT_FALSE(r->ok) << "residual RMS " << r->residual_rms << ", inliers " << r->inlier_fraction << ", a " << r->affine_a;
+  EXPECT_FALSE(r->ok) << "residual RMS " << r->residual_rms << ", inliers " << r->inlier_fraction << ", a "
+                      << r->affine_a;
   std::printf("turned away: %s\n", r->lost_reason.c_str());
 }
 

@@ -40,8 +40,7 @@ StatusOr<cv::Mat> ImageUndistorter::Remap(const cv::Mat& image, int interpolatio
   cv::Mat out;
   if (interpolation == cv::INTER_NEAREST)
     cv::remap(image, out, map_x_, map_y_, cv::INTER_NEAREST, cv::BORDER_REPLICATE);
-  else
-    cv::remap(image, out, map1_, map2_, interpolation, cv::BORDER_REPLICATE);
+  else cv::remap(image, out, map1_, map2_, interpolation, cv::BORDER_REPLICATE);
   return out;
 }
 

@@ -39,7 +39,7 @@ class ImageUndistorter {
   StatusOr<cv::Mat> Remap(const cv::Mat& image, int interpolation) const;
 
   PinholeCamera distorted_, camera_;
-  cv::Mat map1_, map2_;  // fixed-point maps (cv::convertMaps), empty for no distortion
+  cv::Mat map1_, map2_;    // fixed-point maps (cv::convertMaps), empty for no distortion
   cv::Mat map_x_, map_y_;  // float maps, for the nearest-neighbour remap
 };
 

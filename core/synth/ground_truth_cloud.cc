@@ -17,12 +17,15 @@ StatusOr<PointCloud> GroundTruthCloud(const Sequence& seq, const GroundTruthClou
   PRISM_RETURN_IF_ERROR(options.Check());
   if (!seq.has_calibration) return FailedPreconditionError("sequence has no camera.yaml");
   struct Voxel {
-    Eigen::Vector3d position = Eigen::Vector3d::Zero(), normal = Eigen::Vector3d::Zero(), color = Eigen::Vector3d::Zero();
+    Eigen::Vector3d position = Eigen::Vector3d::Zero(), normal = Eigen::Vector3d::Zero(),
+                    color = Eigen::Vector3d::Zero();
     int count = 0;
   };
   std::unordered_map<uint64_t, Voxel> voxels;
   auto key = [&](const Eigen::Vector3d& p) {
-    const auto q = [&](double v) { return static_cast<uint64_t>(static_cast<int64_t>(std::floor(v / options.voxel_m)) & 0x1FFFFF); };
+    const auto q = [&](double v) {
+      return static_cast<uint64_t>(static_cast<int64_t>(std::floor(v / options.voxel_m)) & 0x1FFFFF);
+    };
     return (q(p.x()) << 42) | (q(p.y()) << 21) | q(p.z());
   };
   const PinholeCamera& cam = seq.calibration.camera;

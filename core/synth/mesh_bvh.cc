@@ -1,10 +1,10 @@
 #include "core/synth/mesh_bvh.h"
 
-#include "core/util/check.h"
-
 #include <algorithm>
 #include <cmath>
 #include <limits>
+
+#include "core/util/check.h"
 
 namespace prism::synth {
 namespace {
@@ -203,8 +203,8 @@ bool MeshBvh::Traverse(const Eigen::Vector3d& origin, const Eigen::Vector3d& dir
     const Eigen::Vector3d& v0 = mesh_.vertices[f[0]];
     hit->t = closest;
     hit->geometric_normal = (mesh_.vertices[f[1]] - v0).cross(mesh_.vertices[f[2]] - v0).normalized();
-    const Eigen::Vector3d n = (1 - best_u - best_v) * mesh_.vertex_normals[f[0]] +
-                              best_u * mesh_.vertex_normals[f[1]] + best_v * mesh_.vertex_normals[f[2]];
+    const Eigen::Vector3d n = (1 - best_u - best_v) * mesh_.vertex_normals[f[0]] + best_u * mesh_.vertex_normals[f[1]] +
+                              best_v * mesh_.vertex_normals[f[2]];
     hit->normal = n.normalized();
   }
   return true;

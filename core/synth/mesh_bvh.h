@@ -13,7 +13,7 @@ namespace prism::synth {
 
 struct RayHit {
   double t = 0;
-  Eigen::Vector3d normal;           // shading normal (unit), same frame as the ray
+  Eigen::Vector3d normal;            // shading normal (unit), same frame as the ray
   Eigen::Vector3d geometric_normal;  // unit
 };
 

@@ -20,9 +20,9 @@ namespace {
 
 // Albedo per light band. Values are what a white light would give in each band.
 const std::vector<Eigen::Vector3d>& Palette() {
-  static const std::vector<Eigen::Vector3d> p = {
-      {0.85, 0.25, 0.20}, {0.25, 0.75, 0.30}, {0.20, 0.35, 0.85}, {0.85, 0.80, 0.25},
-      {0.80, 0.30, 0.75}, {0.30, 0.80, 0.80}, {0.80, 0.80, 0.80}};
+  static const std::vector<Eigen::Vector3d> p = {{0.85, 0.25, 0.20}, {0.25, 0.75, 0.30}, {0.20, 0.35, 0.85},
+                                                 {0.85, 0.80, 0.25}, {0.80, 0.30, 0.75}, {0.30, 0.80, 0.80},
+                                                 {0.80, 0.80, 0.80}};
   return p;
 }
 
@@ -126,21 +126,36 @@ const std::vector<PresetDef>& Definitions() {
     std::vector<PresetDef> d;
     d.push_back({{"bunny-multicolor-forward", "Stanford bunny, multi-coloured regions, forward start (the demo)"},
                  [](const Ctx& c, Scene* s) { return AddMesh(c, "bunny00.off", 1, 1, 200, MultiColor(c.seed), s); },
-                 TrajectoryStart::kForward, 0.08, 120, nullptr});
+                 TrajectoryStart::kForward,
+                 0.08,
+                 120,
+                 nullptr});
     d.push_back({{"bunny-multicolor-orbit",
                   "Stanford bunny, multi-coloured regions, forward start, then a full orbit and 40 deg beyond "
                   "(returns to where it started: loop closure; use >= 450 frames)"},
                  [](const Ctx& c, Scene* s) { return AddMesh(c, "bunny00.off", 1, 1, 200, MultiColor(c.seed), s); },
-                 TrajectoryStart::kForward, 0.08, 400, nullptr});
+                 TrajectoryStart::kForward,
+                 0.08,
+                 400,
+                 nullptr});
     d.push_back({{"sphere-uniform-sideways", "uniform-albedo sphere, sideways start"},
-                 [](const Ctx& c, Scene* s) { return AddSphere(c, Uniform(), s); }, TrajectoryStart::kSideways, 0.1,
-                 120, nullptr});
+                 [](const Ctx& c, Scene* s) { return AddSphere(c, Uniform(), s); },
+                 TrajectoryStart::kSideways,
+                 0.1,
+                 120,
+                 nullptr});
     d.push_back({{"sphere-uniform-forward", "uniform-albedo sphere, forward start"},
-                 [](const Ctx& c, Scene* s) { return AddSphere(c, Uniform(), s); }, TrajectoryStart::kForward, 0.1,
-                 120, nullptr});
+                 [](const Ctx& c, Scene* s) { return AddSphere(c, Uniform(), s); },
+                 TrajectoryStart::kForward,
+                 0.1,
+                 120,
+                 nullptr});
     d.push_back({{"sphere-multicolor-sideways", "multi-coloured sphere, sideways start"},
                  [](const Ctx& c, Scene* s) { return AddSphere(c, MultiColor(c.seed), s); },
-                 TrajectoryStart::kSideways, 0.1, 120, nullptr});
+                 TrajectoryStart::kSideways,
+                 0.1,
+                 120,
+                 nullptr});
     d.push_back({{"torus-textured-forward", "textured torus lying on the ground, forward start"},
                  [](const Ctx& c, Scene* s) {
                    SceneObject o;
@@ -151,7 +166,10 @@ const std::vector<PresetDef>& Definitions() {
                    s->AddObject(o);
                    return Status::Ok();
                  },
-                 TrajectoryStart::kForward, 0.03, 120, nullptr});
+                 TrajectoryStart::kForward,
+                 0.03,
+                 120,
+                 nullptr});
     d.push_back({{"relief-uniform-sideways", "uniform-albedo bumpy relief on the ground, sideways start"},
                  [](const Ctx& c, Scene* s) {
                    SceneObject o;
@@ -161,7 +179,10 @@ const std::vector<PresetDef>& Definitions() {
                    s->AddObject(o);
                    return Status::Ok();
                  },
-                 TrajectoryStart::kSideways, 0.02, 120, nullptr});
+                 TrajectoryStart::kSideways,
+                 0.02,
+                 120,
+                 nullptr});
     d.push_back({{"boxes-multicolor-forward", "three multi-coloured boxes, forward start"},
                  [](const Ctx& c, Scene* s) {
                    const double sizes[3][3] = {{0.06, 0.05, 0.05}, {0.04, 0.07, 0.035}, {0.035, 0.035, 0.08}};
@@ -177,22 +198,37 @@ const std::vector<PresetDef>& Definitions() {
                    }
                    return Status::Ok();
                  },
-                 TrajectoryStart::kForward, 0.05, 120, nullptr});
+                 TrajectoryStart::kForward,
+                 0.05,
+                 120,
+                 nullptr});
     d.push_back({{"bunny-uniform-sideways", "Stanford bunny, uniform albedo, sideways start"},
                  [](const Ctx& c, Scene* s) { return AddMesh(c, "bunny00.off", 1, 1, 200, Uniform(), s); },
-                 TrajectoryStart::kSideways, 0.08, 120, nullptr});
-    d.push_back({{"dragon-multicolor-sideways", "Chinese dragon (10k vertices), multi-coloured, sideways start"},
-                 [](const Ctx& c, Scene* s) {
-                   return AddMesh(c, "ChineseDragon-10kv.off", 1, 1, 90, MultiColor(c.seed), s);
-                 },
-                 TrajectoryStart::kSideways, 0.08, 120, nullptr});
-    d.push_back({{"armadillo-textured-forward", "armadillo, textured albedo, forward start"},
-                 [](const Ctx& c, Scene* s) { return AddMesh(c, "armadillo.off", 1, 1, 180, Textured(c.seed), s, 0.25); },
-                 TrajectoryStart::kForward, 0.08, 120, nullptr});
+                 TrajectoryStart::kSideways,
+                 0.08,
+                 120,
+                 nullptr});
+    d.push_back(
+        {{"dragon-multicolor-sideways", "Chinese dragon (10k vertices), multi-coloured, sideways start"},
+         [](const Ctx& c, Scene* s) { return AddMesh(c, "ChineseDragon-10kv.off", 1, 1, 90, MultiColor(c.seed), s); },
+         TrajectoryStart::kSideways,
+         0.08,
+         120,
+         nullptr});
+    d.push_back(
+        {{"armadillo-textured-forward", "armadillo, textured albedo, forward start"},
+         [](const Ctx& c, Scene* s) { return AddMesh(c, "armadillo.off", 1, 1, 180, Textured(c.seed), s, 0.25); },
+         TrajectoryStart::kForward,
+         0.08,
+         120,
+         nullptr});
     d.push_back({{"sphere-robust-sideways",
                   "multi-coloured sphere with ambient light, mild specularity and more noise (robustness)"},
                  [](const Ctx& c, Scene* s) { return AddSphere(c, MultiColor(c.seed), s, 0.15); },
-                 TrajectoryStart::kSideways, 0.1, 120, [](SynthSetup* setup) {
+                 TrajectoryStart::kSideways,
+                 0.1,
+                 120,
+                 [](SynthSetup* setup) {
                    setup->render.ambient = 0.05;
                    setup->render.noise_sigma = 2.0;
                  }});
@@ -207,8 +243,7 @@ Status PresetOptions::Check() const {
   std::ostringstream e;
   if (width < 16 || width > 4096 || height < 16 || height > 4096)
     e << "PresetOptions size = " << width << "x" << height << "; violated: each in [16, 4096]";
-  else if (frames < 2 || frames > 100000)
-    e << "PresetOptions.frames = " << frames << "; violated: in [2, 100000]";
+  else if (frames < 2 || frames > 100000) e << "PresetOptions.frames = " << frames << "; violated: in [2, 100000]";
   if (e.str().empty()) return Status::Ok();
   return InvalidArgumentError(e.str());
 }
@@ -232,9 +267,7 @@ RigCalibration MakeDefaultRig(int width, int height) {
   rig.lights[1] = {"green", LightType::kPoint, {0.20, 0.08, 0.0}, {0, 0, -1}, {0, 1, 0}, 0.10};
   rig.lights[2] = {"blue", LightType::kPoint, {0.0, -0.20, 0.0}, {0, 0, -1}, {0, 0, 1}, 0.13};
   // Response of camera channel (row) to light (column): the sensor's dyes overlap.
-  rig.crosstalk << 1.00, 0.12, 0.02,
-                   0.10, 1.00, 0.14,
-                   0.03, 0.12, 1.00;
+  rig.crosstalk << 1.00, 0.12, 0.02, 0.10, 1.00, 0.14, 0.03, 0.12, 1.00;
   return rig;
 }
 

@@ -187,7 +187,8 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
       for (int c = 0; c < 3; ++c) {
         rad[x][c] = static_cast<float>(radiance[c]);
         const double signal = 255.0 * radiance[c];
-        const double sigma = std::sqrt(options.noise_sigma * options.noise_sigma + options.shot_noise * std::max(0.0, signal));
+        const double sigma =
+            std::sqrt(options.noise_sigma * options.noise_sigma + options.shot_noise * std::max(0.0, signal));
         const double v = std::round(signal + sigma * gauss());
         rgb[x][c] = static_cast<uint8_t>(std::min(255.0, std::max(0.0, v)));
       }

@@ -9,9 +9,15 @@ int Scene::AddObject(SceneObject object) {
   Bound b;
   b.centre = object.world_from_object.translation;
   switch (object.shape) {
-    case ShapeKind::kPlane: b.radius = object.half_extents_m.head<2>().norm(); break;
-    case ShapeKind::kSphere: b.radius = object.radius_m; break;
-    case ShapeKind::kBox: b.radius = object.half_extents_m.norm(); break;
+    case ShapeKind::kPlane:
+      b.radius = object.half_extents_m.head<2>().norm();
+      break;
+    case ShapeKind::kSphere:
+      b.radius = object.radius_m;
+      break;
+    case ShapeKind::kBox:
+      b.radius = object.half_extents_m.norm();
+      break;
     case ShapeKind::kMesh: {
       const Eigen::Vector3d lo = object.mesh->bounds_min(), hi = object.mesh->bounds_max();
       b.centre = object.world_from_object * (0.5 * (lo + hi));

@@ -19,22 +19,22 @@ enum class ShapeKind { kPlane, kSphere, kBox, kMesh };
 struct SceneObject {
   ShapeKind shape = ShapeKind::kSphere;
   Rigid3d world_from_object;
-  double radius_m = 0.1;                                   // kSphere
+  double radius_m = 0.1;                                             // kSphere
   Eigen::Vector3d half_extents_m = Eigen::Vector3d::Constant(0.05);  // kBox; kPlane uses x, y (z ignored)
-  std::shared_ptr<const MeshBvh> mesh;                      // kMesh, vertices in metres, object frame
+  std::shared_ptr<const MeshBvh> mesh;                               // kMesh, vertices in metres, object frame
   AlbedoOptions albedo;
-  double specular = 0.0;     // Blinn-Phong weight (0 = Lambertian)
-  double shininess = 40.0;   // Blinn-Phong exponent
-  bool is_object = true;     // false for the ground: mask label 64 instead of 255
+  double specular = 0.0;    // Blinn-Phong weight (0 = Lambertian)
+  double shininess = 40.0;  // Blinn-Phong exponent
+  bool is_object = true;    // false for the ground: mask label 64 instead of 255
 };
 
 struct SurfaceHit {
-  double t = 0;                     // ray parameter (distance when the direction is unit)
+  double t = 0;  // ray parameter (distance when the direction is unit)
   int object = -1;
   Eigen::Vector3d point_in_world;
-  Eigen::Vector3d normal_in_world;  // shading normal, facing the ray origin
+  Eigen::Vector3d normal_in_world;            // shading normal, facing the ray origin
   Eigen::Vector3d geometric_normal_in_world;  // facing the ray origin
-  Eigen::Vector3d point_in_object;  // for the albedo texture
+  Eigen::Vector3d point_in_object;            // for the albedo texture
 };
 
 class Scene {

@@ -10,11 +10,14 @@ namespace prism::synth {
 
 Status SemiDenseOptions::Check() const {
   std::ostringstream e;
-  if (!(min_gradient >= 0 && min_gradient <= 255)) e << "SemiDenseOptions.min_gradient = " << min_gradient << "; violated: in [0, 255]";
-  else if (!(relative_noise >= 0 && relative_noise <= 0.5)) e << "SemiDenseOptions.relative_noise = " << relative_noise << "; violated: in [0, 0.5]";
+  if (!(min_gradient >= 0 && min_gradient <= 255))
+    e << "SemiDenseOptions.min_gradient = " << min_gradient << "; violated: in [0, 255]";
+  else if (!(relative_noise >= 0 && relative_noise <= 0.5))
+    e << "SemiDenseOptions.relative_noise = " << relative_noise << "; violated: in [0, 0.5]";
   else if (!(scale > 0)) e << "SemiDenseOptions.scale = " << scale << "; violated: > 0";
   else if (!(dropout >= 0 && dropout < 1)) e << "SemiDenseOptions.dropout = " << dropout << "; violated: in [0, 1)";
-  else if (!(outlier_fraction >= 0 && outlier_fraction <= 0.5)) e << "SemiDenseOptions.outlier_fraction = " << outlier_fraction << "; violated: in [0, 0.5]";
+  else if (!(outlier_fraction >= 0 && outlier_fraction <= 0.5))
+    e << "SemiDenseOptions.outlier_fraction = " << outlier_fraction << "; violated: in [0, 0.5]";
   if (e.str().empty()) return Status::Ok();
   return InvalidArgumentError(e.str());
 }

@@ -26,7 +26,8 @@ void BM_RenderFrame(benchmark::State& state, const std::string& preset) {
     ++i;
     benchmark::DoNotOptimize(f.rgb.data);
   }
-  state.counters["frames_per_s"] = benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
+  state.counters["frames_per_s"] =
+      benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
 }
 BENCHMARK_CAPTURE(BM_RenderFrame, sphere, std::string("sphere-uniform-sideways"))->Unit(benchmark::kMillisecond);
 BENCHMARK_CAPTURE(BM_RenderFrame, bunny, std::string("bunny-multicolor-forward"))->Unit(benchmark::kMillisecond);

@@ -230,9 +230,8 @@ TEST(TrajectoryTest, ForwardAndSidewaysStartsMoveAsNamed) {
 class SynthesizeTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("prism_synth_test_" + std::to_string(::getpid()) + "_" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    dir_ = fs::temp_directory_path() / ("prism_synth_test_" + std::to_string(::getpid()) + "_" +
+                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
     fs::remove_all(dir_);
   }
   void TearDown() override { fs::remove_all(dir_); }
@@ -261,8 +260,9 @@ TEST_F(SynthesizeTest, WrittenPosesDepthAndNormalsAreTheOnesUsed) {
     EXPECT_NEAR(seq->groundtruth[i].timestamp_s, used[i].timestamp_s, 1e-9);
     EXPECT_LT((seq->groundtruth[i].world_from_camera.translation - used[i].world_from_camera.translation).norm(),
               /*max_written_position_error_m=*/1e-8);
-    EXPECT_LT(RotationAngle(seq->groundtruth[i].world_from_camera.rotation * used[i].world_from_camera.rotation.conjugate()),
-              /*max_written_rotation_error_rad=*/1e-8);
+    EXPECT_LT(
+        RotationAngle(seq->groundtruth[i].world_from_camera.rotation * used[i].world_from_camera.rotation.conjugate()),
+        /*max_written_rotation_error_rad=*/1e-8);
   }
   // Depth and normals re-read from disk match a fresh render of the same pose.
   const RenderedFrame f = RenderFrame(setup.scene, setup.rig, used[3].world_from_camera, setup.render, 0);
@@ -272,7 +272,8 @@ TEST_F(SynthesizeTest, WrittenPosesDepthAndNormalsAreTheOnesUsed) {
   for (int y = 0; y < depth.rows; ++y)
     for (int x = 0; x < depth.cols; ++x) {
       if (f.depth.at<float>(y, x) <= 0) continue;
-      max_depth_err = std::max(max_depth_err, static_cast<double>(std::abs(depth.at<float>(y, x) - f.depth.at<float>(y, x))));
+      max_depth_err =
+          std::max(max_depth_err, static_cast<double>(std::abs(depth.at<float>(y, x) - f.depth.at<float>(y, x))));
       const cv::Vec3f a = normals.at<cv::Vec3f>(y, x), b = f.normals.at<cv::Vec3f>(y, x);
       max_angle = std::max(max_angle, AngleDeg(Eigen::Vector3d(a[0], a[1], a[2]), Eigen::Vector3d(b[0], b[1], b[2])));
     }
@@ -285,7 +286,8 @@ TEST_F(SynthesizeTest, WrittenPosesDepthAndNormalsAreTheOnesUsed) {
   for (int y = 0; y < depth.rows; y += 3)
     for (int x = 0; x < depth.cols; x += 3) {
       if (mask.at<uint8_t>(y, x) != 64) continue;
-      const Eigen::Vector3d p = pose * (seq->calibration.camera.Unproject(Eigen::Vector2d(x, y)) * depth.at<float>(y, x));
+      const Eigen::Vector3d p =
+          pose * (seq->calibration.camera.Unproject(Eigen::Vector2d(x, y)) * depth.at<float>(y, x));
       EXPECT_NEAR(p.z(), 0.0, /*max_ground_height_error_m=*/1e-3);
       ++ground;
     }

@@ -47,7 +47,8 @@ StatusOr<SynthesizeSummary> SynthesizeSequence(const SynthSetup& setup, uint32_t
   if (!fs.isOpened()) return UnavailableError("cannot write '" + out_dir + "/scene.yaml'");
   fs << "preset" << setup.preset << "description" << setup.description << "seed" << static_cast<int>(seed);
   fs << "frames" << summary.frames << "fps" << setup.trajectory.fps;
-  fs << "object_centre" << "[:" << centre.x() << centre.y() << centre.z() << "]";
+  fs << "object_centre"
+     << "[:" << centre.x() << centre.y() << centre.z() << "]";
   fs << "object_radius_m" << summary.object_radius_m;
   fs << "path_length_m" << summary.path_length_m;
   fs << "ambient" << setup.render.ambient << "noise_sigma" << setup.render.noise_sigma;

@@ -15,7 +15,7 @@ namespace prism::synth {
 
 struct SynthesizeSummary {
   int frames = 0;
-  double seconds = 0.0;          // wall time of rendering and writing
+  double seconds = 0.0;  // wall time of rendering and writing
   double path_length_m = 0.0;
   double object_radius_m = 0.0;  // radius of the sphere bounding the object(s)
 };

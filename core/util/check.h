@@ -39,10 +39,10 @@ struct CheckVoidify {
 }  // namespace internal
 }  // namespace prism
 
-#define PRISM_CHECK(condition)                \
-  (condition) ? (void)0                       \
-              : ::prism::internal::CheckVoidify() & \
-                    ::prism::internal::CheckFailure(__FILE__, __LINE__, #condition).stream()
+#define PRISM_CHECK(condition) \
+  (condition)                  \
+      ? (void)0                \
+      : ::prism::internal::CheckVoidify() & ::prism::internal::CheckFailure(__FILE__, __LINE__, #condition).stream()
 
 #define PRISM_CHECK_EQ(a, b) PRISM_CHECK((a) == (b)) << #a " = " << (a) << ", " #b " = " << (b) << " "
 #define PRISM_CHECK_LT(a, b) PRISM_CHECK((a) < (b)) << #a " = " << (a) << ", " #b " = " << (b) << " "

@@ -12,10 +12,14 @@ std::atomic<int> g_min_level{static_cast<int>(LogLevel::kInfo)};
 
 const char* LevelName(LogLevel level) {
   switch (level) {
-    case LogLevel::kDebug: return "DEBUG";
-    case LogLevel::kInfo: return "INFO";
-    case LogLevel::kWarning: return "WARN";
-    case LogLevel::kError: return "ERROR";
+    case LogLevel::kDebug:
+      return "DEBUG";
+    case LogLevel::kInfo:
+      return "INFO";
+    case LogLevel::kWarning:
+      return "WARN";
+    case LogLevel::kError:
+      return "ERROR";
   }
   return "?";
 }
@@ -28,15 +32,15 @@ namespace internal {
 LogMessage::LogMessage(LogLevel level, const char* file, int line) : level_(level) {
   const auto now = std::chrono::system_clock::now();
   const std::time_t t = std::chrono::system_clock::to_time_t(now);
-  const int ms = static_cast<int>(
-      std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()).count() % 1000);
+  const int ms =
+      static_cast<int>(std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()).count() % 1000);
   std::tm tm{};
   gmtime_r(&t, &tm);
   char stamp[32];
   std::strftime(stamp, sizeof(stamp), "%Y-%m-%dT%H:%M:%S", &tm);
   const char* base = std::strrchr(file, '/');
-  stream_ << stamp << "." << (ms < 100 ? (ms < 10 ? "00" : "0") : "") << ms << "Z " << LevelName(level_)
-          << " " << (base ? base + 1 : file) << ":" << line << "] ";
+  stream_ << stamp << "." << (ms < 100 ? (ms < 10 ? "00" : "0") : "") << ms << "Z " << LevelName(level_) << " "
+          << (base ? base + 1 : file) << ":" << line << "] ";
 }
 LogMessage::~LogMessage() {
   stream_ << "\n";

@@ -30,7 +30,6 @@ class LogMessage {
 #define PRISM_LOG_LEVEL_INFO ::prism::LogLevel::kInfo
 #define PRISM_LOG_LEVEL_WARNING ::prism::LogLevel::kWarning
 #define PRISM_LOG_LEVEL_ERROR ::prism::LogLevel::kError
-#define PRISM_LOG(level)                                             \
-  if (PRISM_LOG_LEVEL_##level < ::prism::MinLogLevel()) {            \
-  } else                                                             \
-    ::prism::internal::LogMessage(PRISM_LOG_LEVEL_##level, __FILE__, __LINE__).stream()
+#define PRISM_LOG(level)                                  \
+  if (PRISM_LOG_LEVEL_##level < ::prism::MinLogLevel()) { \
+  } else ::prism::internal::LogMessage(PRISM_LOG_LEVEL_##level, __FILE__, __LINE__).stream()

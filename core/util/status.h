@@ -62,8 +62,8 @@ std::ostream& operator<<(std::ostream& os, const Status& status);
 template <typename T>
 class [[nodiscard]] StatusOr {
  public:
-  StatusOr(const T& value) : value_(value) {}            // NOLINT: implicit by design
-  StatusOr(T&& value) : value_(std::move(value)) {}      // NOLINT
+  StatusOr(const T& value) : value_(value) {}             // NOLINT: implicit by design
+  StatusOr(T&& value) : value_(std::move(value)) {}       // NOLINT
   StatusOr(Status status) : status_(std::move(status)) {  // NOLINT
     PRISM_CHECK(!status_.ok()) << "StatusOr constructed from an OK status without a value";
   }
@@ -99,9 +99,9 @@ class [[nodiscard]] StatusOr {
 #define PRISM_STATUS_CONCAT_(a, b) PRISM_STATUS_CONCAT_INNER_(a, b)
 
 // Returns the status from the enclosing function when `expr` is not OK.
-#define PRISM_RETURN_IF_ERROR(expr)              \
-  do {                                           \
-    ::prism::Status prism_status_ = (expr);      \
+#define PRISM_RETURN_IF_ERROR(expr)                \
+  do {                                             \
+    ::prism::Status prism_status_ = (expr);        \
     if (!prism_status_.ok()) return prism_status_; \
   } while (0)
 

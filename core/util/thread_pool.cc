@@ -34,8 +34,8 @@ void ThreadPool::WorkerLoop() {
   }
 }
 
-void ThreadPool::ParallelFor(std::ptrdiff_t begin, std::ptrdiff_t end,
-                             const std::function<void(std::ptrdiff_t)>& fn, std::ptrdiff_t grain) {
+void ThreadPool::ParallelFor(std::ptrdiff_t begin, std::ptrdiff_t end, const std::function<void(std::ptrdiff_t)>& fn,
+                             std::ptrdiff_t grain) {
   if (end <= begin) return;
   if (grain < 1) grain = 1;
   std::atomic<std::ptrdiff_t> next{begin};

@@ -49,7 +49,8 @@ TEST(CheckTest, FailedCheckThrowsWithMessage) {
 TEST(ThreadPoolTest, ParallelForVisitsEveryIndexOnce) {
   ThreadPool pool(3);
   std::vector<std::atomic<int>> hits(1000);
-  pool.ParallelFor(0, 1000, [&](std::ptrdiff_t i) { hits[i]++; }, 7);
+  pool.ParallelFor(
+      0, 1000, [&](std::ptrdiff_t i) { hits[i]++; }, 7);
   for (auto& h : hits) EXPECT_EQ(h.load(), 1);
 }
 

@@ -69,7 +69,7 @@ struct Camera {
 struct Light {
   std::string name;
   bool directional = false;
-  std::array<double, 3> position_in_camera{0, 0, 0};   // metres, point lights
+  std::array<double, 3> position_in_camera{0, 0, 0};    // metres, point lights
   std::array<double, 3> direction_in_camera{0, 0, -1};  // towards the light, directional lights
   std::array<double, 3> color{1, 1, 1};
   double intensity = 0.25;
@@ -77,7 +77,7 @@ struct Light {
 
 struct Rig {
   Camera camera;
-  std::array<Light, 3> lights;                      // red, green, blue
+  std::array<Light, 3> lights;                                 // red, green, blue
   std::array<double, 9> crosstalk{1, 0, 0, 0, 1, 0, 0, 0, 1};  // row-major (camera channel, light)
 };
 
