@@ -14,6 +14,7 @@ PACKAGES=(
   libjpeg-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   clang  # libFuzzer targets (PRISM_FUZZ) and the sanitizer builds
+  clang-format  # the format_check test
   libcgal-demo
   python3 python3-numpy python3-dev pybind11-dev python3-yaml
   python3-open3d docker-compose
