@@ -87,6 +87,8 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"init_min_converged_fraction", &o.init_min_converged_fraction});
   f.push_back({"init_min_parallax_fraction", &o.init_min_parallax_fraction});
   f.push_back({"init_max_frames", &o.init_max_frames});
+  f.push_back({"init_track_normalised", &o.init_track_normalised});
+  f.push_back({"init_min_feature_local_mean", &o.init_min_feature_local_mean});
   f.push_back({"init_residual_factor", &o.init_residual_factor});
   f.push_back({"new_pixel_relative_sigma", &o.new_pixel_relative_sigma});
   f.push_back({"tracker_refresh_frames", &o.tracker_refresh_frames});

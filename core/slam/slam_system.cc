@@ -27,6 +27,24 @@ cv::Mat ToGrey8(const cv::Mat& rgb) {
   return grey;
 }
 
+// The initialisation's KLT image (SlamOptions::init_track_normalised) and, when `local_mean` is
+// given, the raw box mean of the depth filter's normalisation.
+cv::Mat KltImage(const cv::Mat& rgb, const SlamOptions& options, cv::Mat* local_mean) {
+  if (!options.init_track_normalised) {
+    cv::Mat grey = ToGrey8(rgb);
+    if (local_mean != nullptr) {
+      const int k = 2 * options.depth.local_mean_radius_px + 1;
+      cv::blur(grey, *local_mean, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+    }
+    return grey;
+  }
+  cv::Mat j, mean, j8;
+  KeyframeDepth::NormalisedGrey(rgb, options.depth, &j, &mean);
+  j.convertTo(j8, CV_8U);  // J is about 128 on average; saturates at 255
+  if (local_mean != nullptr) *local_mean = mean;
+  return j8;
+}
+
 }  // namespace
 
 Status SlamOptions::Check() const {
@@ -44,6 +62,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: init_min_parallax_fraction must be > 0");
   if (init_max_frames < init_min_frames)
     return InvalidArgumentError("SlamOptions: init_max_frames must be >= init_min_frames");
+  if (!(init_min_feature_local_mean >= 0 && init_min_feature_local_mean <= 255))
+    return InvalidArgumentError("SlamOptions: init_min_feature_local_mean must be in [0, 255]");
   if (relocalise_max_keyframes < 1) return InvalidArgumentError("SlamOptions: relocalise_max_keyframes must be >= 1");
   if (!(new_pixel_relative_sigma > 0)) return InvalidArgumentError("SlamOptions: new_pixel_relative_sigma must be > 0");
   if (tracker_refresh_frames < 1) return InvalidArgumentError("SlamOptions: tracker_refresh_frames must be >= 1");
@@ -221,9 +241,12 @@ StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::M
 void SlamSystem::Impl::ResetInit(int64_t frame_id, double timestamp, const cv::Mat& rgb) {
   init_frames.clear();
   init_frames.push_back({frame_id, timestamp, rgb.clone()});
-  init_prev_grey = ToGrey8(rgb);
+  cv::Mat local_mean, feature_mask;
+  const bool masked = options.init_min_feature_local_mean > 0;
+  init_prev_grey = KltImage(rgb, options, masked ? &local_mean : nullptr);
+  if (masked) cv::compare(local_mean, options.init_min_feature_local_mean, feature_mask, cv::CMP_GE);
   init_points0.clear();
-  cv::goodFeaturesToTrack(init_prev_grey, init_points0, 800, 0.01, std::max(4, rig.camera.width / 64));
+  cv::goodFeaturesToTrack(init_prev_grey, init_points0, 800, 0.01, std::max(4, rig.camera.width / 64), feature_mask);
   init_points = init_points0;
 }
 
@@ -239,7 +262,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::Initialise(int64_t frame_id, double 
     return rec.result;
   }
   init_frames.push_back({frame_id, timestamp, rgb.clone()});
-  cv::Mat grey = ToGrey8(rgb);
+  cv::Mat grey = KltImage(rgb, options, nullptr);
   std::vector<cv::Point2f> next;
   std::vector<uint8_t> status;
   std::vector<float> err;
