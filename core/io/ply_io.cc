@@ -58,6 +58,14 @@ struct PlyElement {
   std::vector<PlyProperty> properties;
 };
 
+// The scalar of type T stored (host byte order) at `buf`.
+template <typename T>
+double Load(const unsigned char* buf) {
+  T x;
+  std::memcpy(&x, buf, sizeof(T));
+  return static_cast<double>(x);
+}
+
 class PlyReader {
  public:
   explicit PlyReader(std::istream& in, PlyFormat format) : in_(in), format_(format) {}
@@ -75,54 +83,30 @@ class PlyReader {
     if (!in_.read(reinterpret_cast<char*>(buf), n)) return false;
     if (format_ == PlyFormat::kBinaryBig) std::reverse(buf, buf + n);
     switch (t) {
-      case PlyType::kInt8: {
-        int8_t x;
-        std::memcpy(&x, buf, 1);
-        *v = x;
+      case PlyType::kInt8:
+        *v = Load<int8_t>(buf);
         break;
-      }
-      case PlyType::kUInt8: {
-        uint8_t x;
-        std::memcpy(&x, buf, 1);
-        *v = x;
+      case PlyType::kUInt8:
+        *v = Load<uint8_t>(buf);
         break;
-      }
-      case PlyType::kInt16: {
-        int16_t x;
-        std::memcpy(&x, buf, 2);
-        *v = x;
+      case PlyType::kInt16:
+        *v = Load<int16_t>(buf);
         break;
-      }
-      case PlyType::kUInt16: {
-        uint16_t x;
-        std::memcpy(&x, buf, 2);
-        *v = x;
+      case PlyType::kUInt16:
+        *v = Load<uint16_t>(buf);
         break;
-      }
-      case PlyType::kInt32: {
-        int32_t x;
-        std::memcpy(&x, buf, 4);
-        *v = x;
+      case PlyType::kInt32:
+        *v = Load<int32_t>(buf);
         break;
-      }
-      case PlyType::kUInt32: {
-        uint32_t x;
-        std::memcpy(&x, buf, 4);
-        *v = x;
+      case PlyType::kUInt32:
+        *v = Load<uint32_t>(buf);
         break;
-      }
-      case PlyType::kFloat32: {
-        float x;
-        std::memcpy(&x, buf, 4);
-        *v = x;
+      case PlyType::kFloat32:
+        *v = Load<float>(buf);
         break;
-      }
-      case PlyType::kFloat64: {
-        double x;
-        std::memcpy(&x, buf, 8);
-        *v = x;
+      case PlyType::kFloat64:
+        *v = Load<double>(buf);
         break;
-      }
       default:
         return false;
     }
