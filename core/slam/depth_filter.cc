@@ -52,6 +52,10 @@ Status DepthFilterOptions::Check() const {
     return InvalidArgumentError("DepthFilterOptions: min_neighbours must be in [0, 8]");
   if (min_observations < 0) return InvalidArgumentError("DepthFilterOptions: min_observations must be >= 0");
   if (!(max_relative_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: max_relative_sigma must be > 0");
+  if (light_edge_radius_px < 0 || light_edge_radius_px > 16)
+    return InvalidArgumentError("DepthFilterOptions: light_edge_radius_px must be in [0, 16]");
+  if (!(light_edge_low_share >= 0 && light_edge_low_share < light_edge_high_share && light_edge_high_share <= 1))
+    return InvalidArgumentError("DepthFilterOptions: need 0 <= light_edge_low_share < light_edge_high_share <= 1");
   return Status::Ok();
 }
 
@@ -75,8 +79,37 @@ void KeyframeDepth::NormalisedGrey(const cv::Mat& rgb, const DepthFilterOptions&
   }
 }
 
+cv::Mat KeyframeDepth::LightEdgeMask(const cv::Mat& rgb, const Eigen::Matrix3d& crosstalk,
+                                     const DepthFilterOptions& options) {
+  cv::Mat edge = cv::Mat::zeros(rgb.rows, rgb.cols, CV_8U);
+  if (options.light_edge_radius_px <= 0) return edge;
+  // Each light's image: L = crosstalk^-1 c per pixel, smoothed over 3x3 against the noise.
+  const Eigen::Matrix3d unmix = crosstalk.inverse();
+  cv::Mat lights;
+  rgb.convertTo(lights, CV_32FC3);
+  cv::Matx33f m;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) m(r, c) = static_cast<float>(unmix(r, c));
+  cv::transform(lights, lights, m);
+  cv::blur(lights, lights, cv::Size(3, 3), cv::Point(-1, -1), cv::BORDER_REFLECT);
+  std::vector<cv::Mat> light(3);
+  cv::split(lights, light);
+  // The sum has a floor of 10 grey levels: in the dark the shares are noise.
+  cv::Mat total = cv::max(light[0], 0.0f) + cv::max(light[1], 0.0f) + cv::max(light[2], 0.0f) + 10.0f;
+  const int k = 2 * options.light_edge_radius_px + 1;
+  const cv::Mat box = cv::getStructuringElement(cv::MORPH_RECT, cv::Size(k, k));
+  for (const cv::Mat& l : light) {
+    const cv::Mat share = l / total;
+    cv::Mat most, least;
+    cv::dilate(share, most, box);
+    cv::erode(share, least, box);
+    edge |= (most > options.light_edge_high_share) & (least < options.light_edge_low_share);
+  }
+  return edge;
+}
+
 StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeCamera& camera,
-                                              const DepthFilterOptions& options) {
+                                              const DepthFilterOptions& options, const Eigen::Matrix3d& crosstalk) {
   PRISM_RETURN_IF_ERROR(options.Check());
   PRISM_RETURN_IF_ERROR(camera.Check());
   if (camera.HasDistortion())
@@ -96,6 +129,9 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
   const float min_g2 = static_cast<float>(options.min_gradient * options.min_gradient);
   const float min_mean = static_cast<float>(options.min_local_mean);
   const int border = kPatchHalf + 2;
+  if (options.light_edge_radius_px > 0 && std::abs(crosstalk.determinant()) < 1e-9)
+    return InvalidArgumentError("KeyframeDepth: the crosstalk matrix must be invertible for the light edges");
+  const cv::Mat light_edge = LightEdgeMask(rgb, crosstalk, options);
   for (int y = 1; y < h - 1; ++y) {
     const float* up = kd.grey_j_.ptr<float>(y - 1);
     const float* row = kd.grey_j_.ptr<float>(y);
@@ -104,12 +140,14 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
     float* gx = kd.grad_x_.ptr<float>(y);
     float* gy = kd.grad_y_.ptr<float>(y);
     uint8_t* c = kd.candidate_.ptr<uint8_t>(y);
+    const uint8_t* le = light_edge.ptr<uint8_t>(y);
     for (int x = 1; x < w - 1; ++x) {
       gx[x] = 0.5f * (row[x + 1] - row[x - 1]);
       gy[x] = 0.5f * (down[x] - up[x]);
       if (x < border || y < border || x >= w - border || y >= h - border) continue;
       if (m[x] < min_mean) continue;
       if (gx[x] * gx[x] + gy[x] * gy[x] < min_g2) continue;
+      if (le[x]) continue;
       c[x] = 1;
       ++kd.num_candidates_;
     }

@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <vector>
 
+#include <Eigen/Core>
 #include <opencv2/core.hpp>
 
 #include "core/geometry/camera.h"
@@ -63,6 +64,17 @@ struct DepthFilterOptions {
   // neighbours are dropped, in [0, 8].
   double regularise_sigmas = 2.0;
   int min_neighbours = 2;
+  // Light edges (off when light_edge_radius_px is 0). The three lights move with the camera, so the
+  // edges of their cast and attached shadows slide over the surface as it moves: they are not points
+  // of the surface, and a depth triangulated on one is wrong. With a light per colour channel each
+  // light's own image is the colour image unmixed by the crosstalk matrix; a pixel is not estimated
+  // when, within light_edge_radius_px, one light's share of the light at a pixel (3x3 mean) is both
+  // below light_edge_low_share and above light_edge_high_share (that light's shadow edge passes
+  // by). Albedo texture changes every light's image in proportion and so does not trigger it.
+  // Radius in [0, 16]; 0 <= low < high <= 1.
+  int light_edge_radius_px = 0;
+  double light_edge_low_share = 0.05;
+  double light_edge_high_share = 0.12;
   // Output (ToInverseDepthMap): estimates with at least this many fused observations ...
   int min_observations = 2;
   // ... and relative standard deviation sigma / rho at most this, > 0.
@@ -81,9 +93,12 @@ struct DepthUpdateStats {
 
 class KeyframeDepth {
  public:
-  // rgb: CV_8UC3 of the camera's size (no distortion).
+  // rgb: CV_8UC3 (R, G, B) of the camera's size (no distortion). crosstalk: the rig's (channel c, light
+  // l) response matrix, for the light edges (DepthFilterOptions::light_edge_radius_px); must be
+  // invertible when they are on.
   static StatusOr<KeyframeDepth> Create(const cv::Mat& rgb, const PinholeCamera& camera,
-                                        const DepthFilterOptions& options);
+                                        const DepthFilterOptions& options,
+                                        const Eigen::Matrix3d& crosstalk = Eigen::Matrix3d::Identity());
 
   // Seeds every candidate pixel (gradient, bright enough) where `dense_inverse_depth` (CV_32F, 0 = none)
   // is set, with the given relative standard deviation; counts as `observations` fused observations.
@@ -116,6 +131,9 @@ class KeyframeDepth {
   const PinholeCamera& camera() const { return camera_; }
   const DepthFilterOptions& options() const { return options_; }
 
+  // CV_8U, 255 where a light's shadow edge passes within options.light_edge_radius_px (see
+  // DepthFilterOptions; all 0 when the radius is 0). rgb CV_8UC3 (R, G, B); crosstalk invertible.
+  static cv::Mat LightEdgeMask(const cv::Mat& rgb, const Eigen::Matrix3d& crosstalk, const DepthFilterOptions& options);
   // J = 128 I / (box_mean(I) + floor) of an RGB image (grey = channel mean); also the raw local mean.
   static void NormalisedGrey(const cv::Mat& rgb, const DepthFilterOptions& options, cv::Mat* grey_j,
                              cv::Mat* local_mean);

@@ -66,6 +66,9 @@ void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Fie
   f->push_back({p + "min_neighbours", &d.min_neighbours});
   f->push_back({p + "min_observations", &d.min_observations});
   f->push_back({p + "max_relative_sigma", &d.max_relative_sigma});
+  f->push_back({p + "light_edge_radius_px", &d.light_edge_radius_px});
+  f->push_back({p + "light_edge_low_share", &d.light_edge_low_share});
+  f->push_back({p + "light_edge_high_share", &d.light_edge_high_share});
 }
 
 void AddDirectBa(const std::string& p, DirectBaOptions& b, std::vector<Field>* f) {

@@ -382,7 +382,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   const cv::Mat dense = DensifyInverseDepth(sparse, dens);
 
   const InitFrame& first = init_frames.front();
-  StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(first.rgb, cam, options.depth);
+  StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(first.rgb, cam, options.depth, rig.crosstalk);
   if (!kd.ok()) {
     *why = kd.status().ToString();
     return false;
@@ -491,7 +491,7 @@ Status SlamSystem::Impl::SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDe
 
 StatusOr<KeyframeDepth> SlamSystem::Impl::PropagateForTracking(const cv::Mat& rgb, const KeyframeDepth& source,
                                                                const Rigid3d& this_from_source) {
-  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, KeyframeDepth::Create(rgb, rig.camera, options.depth));
+  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, KeyframeDepth::Create(rgb, rig.camera, options.depth, rig.crosstalk));
   kd.PropagateFrom(source, this_from_source, options.new_pixel_relative_sigma);
   if (!SetTrackerKeyframe(rgb, kd).ok())
     return FailedPreconditionError("too few points with depth in the new keyframe");
@@ -541,7 +541,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
       // Resume from the keyframe found: a new keyframe at this frame, seeded from its depth. The frame
       // is recorded first (MakeKeyframe marks it), and taken back if the new keyframe is unusable.
       PRISM_ASSIGN_OR_RETURN(KeyframeDepth source, KeyframeDepth::Create(keyframes[static_cast<size_t>(reloc_kf)].rgb,
-                                                                         rig.camera, options.depth));
+                                                                         rig.camera, options.depth, rig.crosstalk));
       source.Seed(keyframes[static_cast<size_t>(reloc_kf)].final_depth.inverse_depth, 0.05, 2);
       rec.frame_from_keyframe = reloc_pose;
       rec.result.keyframe_id = reloc_kf;
