@@ -83,15 +83,15 @@ cv::Mat KeyframeDepth::LightEdgeMask(const cv::Mat& rgb, const Eigen::Matrix3d& 
                                      const DepthFilterOptions& options) {
   cv::Mat edge = cv::Mat::zeros(rgb.rows, rgb.cols, CV_8U);
   if (options.light_edge_radius_px <= 0) return edge;
-  // Each light's image: L = crosstalk^-1 c per pixel, smoothed over 3x3 against the noise.
+  // Each light's image: L = crosstalk^-1 c per pixel, smoothed over 3x3 against the noise (the mean
+  // is taken first: both are linear).
   const Eigen::Matrix3d unmix = crosstalk.inverse();
   cv::Mat lights;
-  rgb.convertTo(lights, CV_32FC3);
+  cv::boxFilter(rgb, lights, CV_32F, cv::Size(3, 3), cv::Point(-1, -1), true, cv::BORDER_REFLECT);
   cv::Matx33f m;
   for (int r = 0; r < 3; ++r)
     for (int c = 0; c < 3; ++c) m(r, c) = static_cast<float>(unmix(r, c));
   cv::transform(lights, lights, m);
-  cv::blur(lights, lights, cv::Size(3, 3), cv::Point(-1, -1), cv::BORDER_REFLECT);
   std::vector<cv::Mat> light(3);
   cv::split(lights, light);
   // The sum has a floor of 10 grey levels: in the dark the shares are noise.
