@@ -24,13 +24,14 @@ function(prism_add_executable)
   install(TARGETS ${ARG_NAME} RUNTIME DESTINATION bin)
 endfunction()
 
-# prism_add_test(NAME name SRCS ... [LINK ...] [LABELS unit|integration|slow ...])
-# Each GoogleTest case becomes its own CTest test carrying the labels.
+# prism_add_test(NAME name SRCS ... [LINK ...] [LABELS unit|integration|slow ...] [SLOW_FILTER pattern])
+# Each GoogleTest case becomes its own CTest test carrying the labels; the cases matching SLOW_FILTER
+# (a --gtest_filter pattern, e.g. "*orbit*:*supersampled2*") carry the label slow instead.
 function(prism_add_test)
   if(NOT PRISM_BUILD_TESTS)
     return()
   endif()
-  cmake_parse_arguments(ARG "" "NAME;TIMEOUT" "SRCS;LINK;LABELS" ${ARGN})
+  cmake_parse_arguments(ARG "" "NAME;TIMEOUT;SLOW_FILTER" "SRCS;LINK;LABELS" ${ARGN})
   if(NOT ARG_LABELS)
     set(ARG_LABELS unit)
   endif()
@@ -46,9 +47,20 @@ function(prism_add_test)
   target_compile_definitions(${ARG_NAME} PRIVATE
     PRISM_SHARED_DATA_DIR="${PRISM_SHARED_DATA_DIR}"
     PRISM_BINARY_DIR="${CMAKE_BINARY_DIR}")
-  gtest_discover_tests(${ARG_NAME}
-    PROPERTIES LABELS "${ARG_LABELS}" ${timeout_property}
-    DISCOVERY_TIMEOUT 60)
+  if(ARG_SLOW_FILTER)
+    gtest_discover_tests(${ARG_NAME}
+      TEST_FILTER "-${ARG_SLOW_FILTER}"
+      PROPERTIES LABELS "${ARG_LABELS}" ${timeout_property}
+      DISCOVERY_TIMEOUT 60)
+    gtest_discover_tests(${ARG_NAME}
+      TEST_FILTER "${ARG_SLOW_FILTER}"
+      PROPERTIES LABELS slow ${timeout_property}
+      DISCOVERY_TIMEOUT 60)
+  else()
+    gtest_discover_tests(${ARG_NAME}
+      PROPERTIES LABELS "${ARG_LABELS}" ${timeout_property}
+      DISCOVERY_TIMEOUT 60)
+  endif()
 endfunction()
 
 # prism_add_benchmark(NAME name SRCS ... [LINK ...])
