@@ -52,6 +52,8 @@ Status DepthFilterOptions::Check() const {
     return InvalidArgumentError("DepthFilterOptions: min_neighbours must be in [0, 8]");
   if (min_observations < 0) return InvalidArgumentError("DepthFilterOptions: min_observations must be >= 0");
   if (!(max_relative_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: max_relative_sigma must be > 0");
+  if (!(search_sigmas >= 1 && search_sigmas <= 10))
+    return InvalidArgumentError("DepthFilterOptions: search_sigmas must be in [1, 10]");
   if (light_edge_radius_px < 0 || light_edge_radius_px > 16)
     return InvalidArgumentError("DepthFilterOptions: light_edge_radius_px must be in [0, 16]");
   if (!(light_edge_low_share >= 0 && light_edge_low_share < light_edge_high_share && light_edge_high_share <= 1))
@@ -131,7 +133,8 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
   const int border = kPatchHalf + 2;
   if (options.light_edge_radius_px > 0 && std::abs(crosstalk.determinant()) < 1e-9)
     return InvalidArgumentError("KeyframeDepth: the crosstalk matrix must be invertible for the light edges");
-  const cv::Mat light_edge = LightEdgeMask(rgb, crosstalk, options);
+  // Empty when the light edges are off (no mask to allocate and read per keyframe).
+  const cv::Mat light_edge = options.light_edge_radius_px > 0 ? LightEdgeMask(rgb, crosstalk, options) : cv::Mat();
   for (int y = 1; y < h - 1; ++y) {
     const float* up = kd.grey_j_.ptr<float>(y - 1);
     const float* row = kd.grey_j_.ptr<float>(y);
@@ -140,14 +143,14 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
     float* gx = kd.grad_x_.ptr<float>(y);
     float* gy = kd.grad_y_.ptr<float>(y);
     uint8_t* c = kd.candidate_.ptr<uint8_t>(y);
-    const uint8_t* le = light_edge.ptr<uint8_t>(y);
+    const uint8_t* le = light_edge.empty() ? nullptr : light_edge.ptr<uint8_t>(y);
     for (int x = 1; x < w - 1; ++x) {
       gx[x] = 0.5f * (row[x + 1] - row[x - 1]);
       gy[x] = 0.5f * (down[x] - up[x]);
       if (x < border || y < border || x >= w - border || y >= h - border) continue;
       if (m[x] < min_mean) continue;
       if (gx[x] * gx[x] + gy[x] * gy[x] < min_g2) continue;
-      if (le[x]) continue;
+      if (le && le[x]) continue;
       c[x] = 1;
       ++kd.num_candidates_;
     }
@@ -281,6 +284,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const float sigma_i2 = static_cast<float>(options_.image_noise_sigma * options_.image_noise_sigma);
   const float outlier2 = static_cast<float>(options_.outlier_sigmas * options_.outlier_sigmas);
   const int max_search = options_.max_search_px;
+  const float search_sigmas = static_cast<float>(options_.search_sigmas);
   const float seed_max_rel_var =
       static_cast<float>(options_.seed_max_relative_sigma * options_.seed_max_relative_sigma);
 
@@ -322,8 +326,8 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       const Eigen::Vector3f a = R * ray;
       const float rho = px.idepth;
       const float sigma = std::sqrt(px.var);
-      float lo = std::max(rho - 2 * sigma, 0.05f * rho);
-      float hi = rho + 2 * sigma;
+      float lo = std::max(rho - search_sigmas * sigma, 0.05f * rho);
+      float hi = rho + search_sigmas * sigma;
       if (t.z() < 0) hi = std::min(hi, 0.99f * (-a.z() / t.z()));
       if (!(hi > lo)) continue;
       Eigen::Vector2f pa, pb, pm;

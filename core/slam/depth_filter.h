@@ -50,7 +50,14 @@ struct DepthFilterOptions {
   // A pixel without an estimate (a wide seed) takes its first match only when that observation's
   // relative standard deviation is at most this (small baselines wait), > 0.
   double seed_max_relative_sigma = 1.0;
-  // An observation further than this many standard deviations from the estimate is an outlier, > 0.
+  // The epipolar search covers the estimate +- this many standard deviations, in [1, 10].
+  double search_sigmas = 2.0;
+  // An observation further than this many standard deviations (of the estimate and the observation
+  // combined) from the estimate is an outlier, > 0. A match lies within the searched +- search_sigmas,
+  // so with search_sigmas <= outlier_sigmas (the defaults, as in LSD-SLAM's +-2 sigma) no observation is
+  // ever an outlier: a wrong estimate is pulled towards the end of the segment instead. Measured on the
+  // standard presets (seeds 1-3), search_sigmas 3 (outliers 0.4% of the matches) did not improve the
+  // SLAM: 23 of 27 runs within 1% either way, depth within 3% on 10 against 11.
   double outlier_sigmas = 2.5;
   // Propagation into a new keyframe adds this relative standard deviation (prediction noise), >= 0.
   double propagation_relative_sigma = 0.01;

@@ -231,6 +231,55 @@ TEST(KeyframeDepth, LightEdgesAreNotCandidates) {
   EXPECT_FALSE(KeyframeDepth::Create(f.rgb, seq.setup.rig.camera, with, Eigen::Matrix3d::Zero()).ok());
 }
 
+// The search covers the estimate +- search_sigmas standard deviations and the outlier gate is
+// outlier_sigmas of the combined deviation, so a match can only be an outlier when the search reaches past
+// the gate. Every pixel is seeded 40% too near (inverse depth x 1.4, 10% relative sigma, 3 observations):
+// the truth lies 2.9 sigma away. With the default +-2 sigma the truth is outside the search and every
+// match is fused (the estimate is pulled towards the end of the segment); with +-4 sigma the matches
+// at the truth are outliers, and seeds that collect more outliers than observations are dropped.
+TEST(KeyframeDepth, OutliersNeedASearchWiderThanTheGate) {
+  SynthSequence seq;
+  std::string why;
+  if (!MakeSequence("sphere-multicolor-sideways", 40, &seq, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  const synth::RenderedFrame key = seq.Render(0);
+  cv::Mat seed = cv::Mat::zeros(key.depth.size(), CV_32F);
+  for (int y = 0; y < key.depth.rows; ++y)
+    for (int x = 0; x < key.depth.cols; ++x)
+      if (key.depth.at<float>(y, x) > 0) seed.at<float>(y, x) = 1.4f / key.depth.at<float>(y, x);
+  struct Result {
+    DepthUpdateStats total;
+    int output = 0;
+  };
+  auto run = [&](double search_sigmas) {
+    DepthFilterOptions options;
+    options.search_sigmas = search_sigmas;
+    StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(key.rgb, seq.setup.rig.camera, options);
+    EXPECT_TRUE(kd.ok()) << kd.status();
+    Result r;
+    if (!kd.ok()) return r;
+    kd->Seed(seed, 0.1, 3);
+    for (int frame = 1; frame <= 8; ++frame) {
+      const synth::RenderedFrame f = seq.Render(frame);
+      cv::Mat j, mean;
+      KeyframeDepth::NormalisedGrey(f.rgb, options, &j, &mean);
+      const DepthUpdateStats s = kd->Update(j, seq.FrameFromKeyframe(frame, 0), nullptr);
+      r.total.searched += s.searched, r.total.fused += s.fused, r.total.outliers += s.outliers;
+      r.total.dropped += s.dropped;
+    }
+    r.output = kd->NumValid();
+    std::printf("search +-%.0f sigma: searched %d fused %d outliers %d dropped %d, %d estimates left\n", search_sigmas,
+                r.total.searched, r.total.fused, r.total.outliers, r.total.dropped, r.output);
+    return r;
+  };
+  const Result narrow = run(2.0), wide = run(4.0);
+  EXPECT_EQ(narrow.total.outliers, 0);
+  EXPECT_EQ(narrow.total.dropped, 0);
+  // Measured: 27610 outliers of 165094 searches, 132 estimates dropped.
+  EXPECT_GT(wide.total.outliers, wide.total.searched / 10);
+  EXPECT_GT(wide.total.dropped, 50);
+  EXPECT_LT(wide.output, narrow.output);
+}
+
 TEST(DepthFilterOptions, RejectsInvalidValues) {
   DepthFilterOptions o;
   EXPECT_TRUE(o.Check().ok());
@@ -238,6 +287,9 @@ TEST(DepthFilterOptions, RejectsInvalidValues) {
   EXPECT_FALSE(o.Check().ok());
   o = DepthFilterOptions();
   o.max_search_px = 2;
+  EXPECT_FALSE(o.Check().ok());
+  o = DepthFilterOptions();
+  o.search_sigmas = 0.5;
   EXPECT_FALSE(o.Check().ok());
   o = DepthFilterOptions();
   o.light_edge_radius_px = 17;

@@ -57,6 +57,7 @@ void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Fie
   f->push_back({p + "image_noise_sigma", &d.image_noise_sigma});
   f->push_back({p + "epipolar_sigma_px", &d.epipolar_sigma_px});
   f->push_back({p + "seed_max_relative_sigma", &d.seed_max_relative_sigma});
+  f->push_back({p + "search_sigmas", &d.search_sigmas});
   f->push_back({p + "outlier_sigmas", &d.outlier_sigmas});
   f->push_back({p + "propagation_relative_sigma", &d.propagation_relative_sigma});
   f->push_back({p + "local_mean_radius_px", &d.local_mean_radius_px});
