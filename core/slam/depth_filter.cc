@@ -173,6 +173,7 @@ void KeyframeDepth::Seed(const cv::Mat& dense_inverse_depth, double relative_sig
       p.outliers = 0;
     }
   }
+  mean_idepth_ = ComputeMeanInverseDepth();
 }
 
 void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& this_from_previous,
@@ -216,7 +217,8 @@ void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& 
       }
     }
   }
-  const double mean = MeanInverseDepth();
+  mean_idepth_ = ComputeMeanInverseDepth();  // the fill below adds no observed estimate
+  const double mean = mean_idepth_;
   if (mean > 0 && fill_relative_sigma > 0) {
     const float s = static_cast<float>(fill_relative_sigma * mean);
     for (int y = 0; y < h; ++y) {
@@ -257,6 +259,7 @@ DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3
   } else {
     for (int i = 0; i < num_chunks; ++i) run(i);
   }
+  mean_idepth_ = ComputeMeanInverseDepth();
   for (const DepthUpdateStats& s : stats) {
     total.searched += s.searched;
     total.fused += s.fused;
@@ -487,6 +490,7 @@ void KeyframeDepth::Regularise() {
     }
   }
   pixels_.swap(out);
+  mean_idepth_ = ComputeMeanInverseDepth();
 }
 
 InverseDepthMap KeyframeDepth::ToInverseDepthMap() const {
@@ -512,7 +516,7 @@ InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double ma
   return m;
 }
 
-double KeyframeDepth::MeanInverseDepth() const {
+double KeyframeDepth::ComputeMeanInverseDepth() const {
   double s = 0;
   int n = 0;
   for (const Pixel& p : pixels_) {

@@ -127,8 +127,9 @@ class KeyframeDepth {
   InverseDepthMap ToInverseDepthMap() const;
   // Every estimate with at least `min_observations` observations (for tracking).
   InverseDepthMap ToInverseDepthMap(int min_observations, double max_relative_sigma) const;
-  // Mean inverse depth over estimates with >= 1 observation (0 if none).
-  double MeanInverseDepth() const;
+  // Mean inverse depth over estimates with >= 1 observation (0 if none); kept up to date by every
+  // change of the estimates (one pass over the image per change, not per call).
+  double MeanInverseDepth() const { return mean_idepth_; }
   // Number of output estimates, and of estimates with >= 1 observation.
   int NumValid() const;
   int NumCandidates() const { return num_candidates_; }
@@ -156,6 +157,7 @@ class KeyframeDepth {
   KeyframeDepth() = default;
   void UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid3d& frame_from_keyframe, double mean_idepth,
                   DepthUpdateStats* stats);
+  double ComputeMeanInverseDepth() const;
 
   PinholeCamera camera_;
   DepthFilterOptions options_;
@@ -165,6 +167,7 @@ class KeyframeDepth {
   cv::Mat candidate_;  // CV_8U, 1 = high-gradient bright pixel
   int num_candidates_ = 0;
   std::vector<Pixel> pixels_;
+  double mean_idepth_ = 0;  // MeanInverseDepth()
 };
 
 }  // namespace prism

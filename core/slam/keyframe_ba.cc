@@ -39,6 +39,18 @@ bool SampleWithGradient(const cv::Mat& img, double x, double y, double* value, E
   return true;
 }
 
+// The value of SampleWithGradient alone (the same bilinear sum; false where it is false).
+bool SampleValue(const cv::Mat& img, double x, double y, double* value) {
+  if (!(x >= 1 && y >= 1 && x < img.cols - 2 && y < img.rows - 2)) return false;
+  const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+  const double fx = x - x0, fy = y - y0;
+  const float* a = img.ptr<float>(y0) + x0;
+  const float* b = img.ptr<float>(y0 + 1) + x0;
+  *value = (1 - fx) * (1 - fy) * static_cast<double>(a[0]) + fx * (1 - fy) * static_cast<double>(a[1]) +
+           (1 - fx) * fy * static_cast<double>(b[0]) + fx * fy * static_cast<double>(b[1]);
+  return true;
+}
+
 }  // namespace
 
 Status DirectBaOptions::Check() const {
@@ -138,8 +150,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         const Eigen::Vector2d px = lcam.Project(pt);
         if (!lcam.InImage(px, border)) continue;
         double value;
-        Eigen::Vector2d g;
-        if (!SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g)) continue;
+        if (!SampleValue((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value)) continue;
         const double e = std::abs(value - lint[static_cast<size_t>(i)]);
         cost += HuberCost(e, options.huber);
         *sq += e * e;
@@ -312,9 +323,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           if (!project(poses, i, rho[static_cast<size_t>(i)], t, &pt)) continue;
           const Eigen::Vector2d px = lcam.Project(pt);
           double value;
-          Eigen::Vector2d g;
-          if (!lcam.InImage(px, border) ||
-              !SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g))
+          if (!lcam.InImage(px, border) || !SampleValue((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value))
             continue;
           if (std::abs(value - lint[static_cast<size_t>(i)]) > options.outlier)
             active[static_cast<size_t>(i) * num_kf + t] = 0;
