@@ -58,6 +58,7 @@ Status SlamOptions::Check() const {
   if (!(keyframe_max_rotation_deg > 0))
     return InvalidArgumentError("SlamOptions: keyframe_max_rotation_deg must be > 0");
   if (init_min_frames < 2) return InvalidArgumentError("SlamOptions: init_min_frames must be >= 2");
+  if (init_rounds < 1 || init_rounds > 10) return InvalidArgumentError("SlamOptions: init_rounds must be in [1, 10]");
   if (!(init_min_parallax_fraction > 0))
     return InvalidArgumentError("SlamOptions: init_min_parallax_fraction must be > 0");
   if (init_max_frames < init_min_frames)
@@ -394,7 +395,26 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   // passes: the second re-tracks on the refined depth).
   std::vector<Rigid3d> poses(init_frames.size());
   const Rigid3d last_guess(Eigen::Quaterniond(R), t * scale);
-  for (int pass = 0; pass < 2; ++pass) {
+  for (int pass = 0; pass < 1 + options.init_rounds; ++pass) {
+    if (pass >= 2) {
+      // A further round: the depth estimated again from the seed, by stereo with every buffered frame at
+      // the poses of the previous pass, then the frames tracked again on it.
+      StatusOr<KeyframeDepth> fresh = KeyframeDepth::Create(first.rgb, cam, options.depth, rig.crosstalk);
+      if (!fresh.ok()) {
+        *why = fresh.status().ToString();
+        return false;
+      }
+      auto redo = std::make_unique<KeyframeDepth>(std::move(fresh).value());
+      redo->Seed(dense, 0.25, 1);
+      redo->Seed(depth->ToInverseDepthMap(1, 0.5).inverse_depth, 0.25, 1);
+      for (size_t i = 1; i < init_frames.size(); ++i) {
+        cv::Mat j, mean;
+        KeyframeDepth::NormalisedGrey(init_frames[i].rgb, options.depth, &j, &mean);
+        redo->Update(j, poses[i], pool);
+      }
+      redo->Regularise();
+      depth = std::move(redo);
+    }
     Tracker* init = init_tracker.get();
     if (!init->SetKeyframe(first.rgb, depth->ToInverseDepthMap(1, 0.5)).ok()) {
       *why = "too few points to track on the first keyframe";
@@ -404,7 +424,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
     for (size_t i = 1; i < init_frames.size(); ++i) {
       // Constant velocity (pass 1 starts from pass 0's first pose); the last frame of pass 0 starts from
       // the essential-matrix pose.
-      Rigid3d guess = i == 1 ? (pass == 1 ? poses[1] : Rigid3d()) : (prev * prev2.Inverse()) * prev;
+      Rigid3d guess = i == 1 ? (pass >= 1 ? poses[1] : Rigid3d()) : (prev * prev2.Inverse()) * prev;
       const bool from_essential = pass == 0 && i + 1 == init_frames.size();
       if (from_essential) guess = last_guess;
       StatusOr<TrackingResult> tr = init->Track(init_frames[i].rgb, guess);

@@ -119,6 +119,11 @@ struct SlamOptions {
   // While the first depth is rough (tracking the buffered initialisation frames), the tracker's
   // max_residual_rms is multiplied by this, >= 1.
   double init_residual_factor = 2.0;
+  // Rounds of the first keyframe's refinement, in [1, 10]. Round 1: the buffered frames are tracked on
+  // the seed while the depth is refined by stereo with each, then tracked again on the refined depth.
+  // Each further round estimates the depth again (from the seed and the last depth, at 25% relative
+  // sigma) by stereo with every buffered frame at the last poses, and tracks the frames again on it.
+  int init_rounds = 1;
   // High-gradient pixels of a new keyframe that received no propagated depth are seeded at the mean
   // inverse depth with this relative standard deviation and searched along their whole epipolar
   // segment, > 0.

@@ -7,6 +7,7 @@
 #include <string>
 #include <vector>
 
+#include <Eigen/Dense>
 #include <gtest/gtest.h>
 
 #include "core/eval/trajectory_metrics.h"
@@ -233,6 +234,57 @@ TEST(SlamSystem, ReportsLossAndRecovers) {
     ASSERT_TRUE(f.ok());
     EXPECT_EQ(f->state, SlamState::kTracking) << "frame " << i << ": " << f->message;
   }
+}
+
+// The first keyframe's depth against the truth: the tilt c of log(estimated / true inverse depth) =
+// a + b x + c y over the image (normalised coordinates, pixels within 20%), least squares.
+double FirstDepthTilt(const SlamKeyframe& k, const cv::Mat& true_depth, const PinholeCamera& camera) {
+  Eigen::Matrix3d a = Eigen::Matrix3d::Zero();
+  Eigen::Vector3d b = Eigen::Vector3d::Zero();
+  for (int y = 0; y < true_depth.rows; ++y)
+    for (int x = 0; x < true_depth.cols; ++x) {
+      const float d = k.depth.inverse_depth.at<float>(y, x), z = true_depth.at<float>(y, x);
+      if (!(d > 0 && z > 0)) continue;
+      const double e = std::log(d * z);
+      if (std::abs(e) > 0.2) continue;
+      const Eigen::Vector3d j(1, (x - camera.cx) / camera.fx, (y - camera.cy) / camera.fy);
+      a += j * j.transpose();
+      b += j * e;
+    }
+  return a.ldlt().solve(b)(2);
+}
+
+// SlamOptions::init_rounds: on the torus (forward start over a ground plane; here its 120 degrees in
+// 30 frames) the first depth map is tilted across the image's rows (the ground's relief wrong, which
+// the tracker then trades for rotation). Estimating the depth again at the re-tracked poses
+// straightens it. Measured: tilt 0.314 with one round, 0.120 with three. (The 150-frame preset, seed 1:
+// -0.271 and -0.163, the error at the image's top and bottom edge 12.6% and 7.6%.)
+TEST(SlamSystem, MoreInitialisationRoundsStraightenTheFirstDepth) {
+  constexpr double kMaxTiltRatio = 0.7;  // |tilt, 3 rounds| / |tilt, 1 round|; measured 0.38
+  Rendered r;
+  std::string why;
+  if (!Render("torus-textured-forward", 30, /*supersampling=*/1, &r, &why))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  double tilt[2] = {0, 0};
+  for (int run = 0; run < 2; ++run) {
+    SlamOptions options;
+    options.init_rounds = run == 0 ? 1 : 3;
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
+    ASSERT_TRUE(slam.ok()) << slam.status();
+    std::vector<SlamKeyframe> keyframes;
+    for (int i = 0; i < 30; ++i) {
+      ASSERT_TRUE((*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb).ok());
+      for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) keyframes.push_back(std::move(k));
+    }
+    for (SlamKeyframe& k : (*slam)->Finish()) keyframes.push_back(std::move(k));
+    ASSERT_FALSE(keyframes.empty());
+    ASSERT_EQ(keyframes[0].id, 0);
+    tilt[run] =
+        FirstDepthTilt(keyframes[0], r.frames[static_cast<size_t>(keyframes[0].frame_id)].depth, r.setup.rig.camera);
+    std::printf("init_rounds %d: first depth tilt %.4f\n", options.init_rounds, tilt[run]);
+  }
+  EXPECT_GT(std::abs(tilt[0]), 0.15) << "the one-round first depth is tilted (measured 0.31)";
+  EXPECT_LT(std::abs(tilt[1]), kMaxTiltRatio * std::abs(tilt[0]));
 }
 
 }  // namespace
