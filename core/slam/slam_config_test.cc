@@ -105,6 +105,7 @@ TEST(SlamConfigTest, BadInputIsRefusedWithItsLineAndLeavesTheOptionsUnchanged) {
       {"keyframe_window = 2\n", "cfg: SlamOptions: keyframe_window must be >= 3"},
       {"init_min_frames = 20\ninit_max_frames = 10\n", "init_max_frames must be >= init_min_frames"},
       {"init_rounds = 0\n", "init_rounds must be in [1, 10]"},
+      {"final_refinement_neighbours = 6\n", "final_refinement_neighbours must be in [0, 5]"},
   };
   for (const Case& c : cases) {
     SlamOptions o;

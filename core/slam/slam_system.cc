@@ -89,6 +89,10 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(keyframe_window_ba.Check());
   if (final_adjustment_max_keyframes < 3)
     return InvalidArgumentError("SlamOptions: final_adjustment_max_keyframes must be >= 3");
+  if (final_refinement_neighbours < 0 || final_refinement_neighbours > 5)
+    return InvalidArgumentError("SlamOptions: final_refinement_neighbours must be in [0, 5]");
+  if (!(final_refinement_relative_sigma > 0))
+    return InvalidArgumentError("SlamOptions: final_refinement_relative_sigma must be > 0");
   PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
   return Status::Ok();
 }
@@ -1001,6 +1005,42 @@ int SlamSystem::num_keyframes() const { return static_cast<int>(impl_->keyframes
 int SlamSystem::num_loop_closures() const { return impl_->loop_closures; }
 
 int SlamSystem::num_keyframe_adjustments() const { return impl_->keyframe_adjustments; }
+
+void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, std::vector<SlamKeyframe>* keyframes) {
+  Impl& m = *impl_;
+  const int span = neighbours;
+  if (span <= 0 || !(relative_sigma > 0) || keyframes == nullptr) return;
+  const int n = static_cast<int>(m.keyframes.size());
+  std::vector<cv::Mat> grey_j(static_cast<size_t>(n));  // each keyframe's J, computed once
+  for (SlamKeyframe& out : *keyframes) {
+    const int id = out.id;
+    if (id < 0 || id >= n || out.depth.inverse_depth.empty()) continue;
+    const Impl::Keyframe& k = m.keyframes[static_cast<size_t>(id)];
+    StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, m.options.depth, m.rig.crosstalk);
+    if (!kd.ok()) continue;
+    kd->Seed(out.depth.inverse_depth, relative_sigma, 2);
+    const Sim3d& a = k.world_from_keyframe;
+    const Eigen::Matrix3d ra = a.rotation.toRotationMatrix();
+    for (int j = std::max(0, id - span); j <= std::min(n - 1, id + span); ++j) {
+      if (j == id) continue;
+      const Sim3d& b = m.keyframes[static_cast<size_t>(j)].world_from_keyframe;
+      // A point X of keyframe id (its units) is c_a + s_a R_a X in the world; in j's camera, in id's
+      // units: R_b^T R_a X + R_b^T (c_a - c_b) / s_a.
+      const Eigen::Matrix3d rb_t = b.rotation.toRotationMatrix().transpose();
+      const Rigid3d j_from_id(Eigen::Quaterniond(rb_t * ra), rb_t * (a.translation - b.translation) / a.scale);
+      cv::Mat& jj = grey_j[static_cast<size_t>(j)];
+      if (jj.empty()) {
+        cv::Mat mean;
+        KeyframeDepth::NormalisedGrey(m.keyframes[static_cast<size_t>(j)].rgb, m.options.depth, &jj, &mean);
+      }
+      kd->Update(jj, j_from_id, m.pool);
+    }
+    kd->Regularise();
+    out.depth = kd->ToInverseDepthMap();
+    // Only a neighbour's image is used above, not its depth: the order does not matter.
+    if (m.keyframes[static_cast<size_t>(id)].finished) m.keyframes[static_cast<size_t>(id)].final_depth = out.depth;
+  }
+}
 
 std::vector<Sim3d> SlamSystem::KeyframePoses() const {
   std::vector<Sim3d> out;
