@@ -1019,6 +1019,7 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, std
     StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, m.options.depth, m.rig.crosstalk);
     if (!kd.ok()) continue;
     kd->Seed(out.depth.inverse_depth, relative_sigma, 2);
+    const double mean_idepth = kd->MeanInverseDepth();
     const Sim3d& a = k.world_from_keyframe;
     const Eigen::Matrix3d ra = a.rotation.toRotationMatrix();
     for (int j = std::max(0, id - span); j <= std::min(n - 1, id + span); ++j) {
@@ -1028,6 +1029,11 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, std
       // units: R_b^T R_a X + R_b^T (c_a - c_b) / s_a.
       const Eigen::Matrix3d rb_t = b.rotation.toRotationMatrix().transpose();
       const Rigid3d j_from_id(Eigen::Quaterniond(rb_t * ra), rb_t * (a.translation - b.translation) / a.scale);
+      // Only neighbours that see about the same scene (not across a relocalisation): within twice the
+      // keyframe distance and rotation limits.
+      if (j_from_id.translation.norm() * mean_idepth > 2 * m.options.keyframe_distance_fraction + 0.2 ||
+          RotationAngle(j_from_id.rotation) * kRadToDeg > 2 * m.options.keyframe_max_rotation_deg)
+        continue;
       cv::Mat& jj = grey_j[static_cast<size_t>(j)];
       if (jj.empty()) {
         cv::Mat mean;

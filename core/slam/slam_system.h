@@ -272,7 +272,8 @@ class SlamSystem {
   // After Finish: re-estimates the depth of each of `keyframes` (as handed out; matched by id) at the
   // keyframes' final poses (KeyframePoses): its own depth as the prior (relative sigma
   // `relative_sigma`, counted as 2 observations), one stereo update with each of up to `neighbours`
-  // keyframes on either side, then regularised; the system's own copy (SemiDenseCloud) becomes the
+  // keyframes on either side (those within twice keyframe_distance_fraction + 0.2 of its mean depth and
+  // twice keyframe_max_rotation_deg), then regularised; the system's own copy (SemiDenseCloud) becomes the
   // refined depth too. Nothing when neighbours <= 0. prism-slam runs it with SlamOptions::final_refinement_*.
   void RefineKeyframeDepths(int neighbours, double relative_sigma, std::vector<SlamKeyframe>* keyframes);
 
