@@ -111,17 +111,22 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   // Keyframe depth in metres through the trajectory's scale and the keyframe's (pose-graph) scale.
   const std::vector<Sim3d> keyframe_poses = (*slam)->KeyframePoses();
   ASSERT_EQ(keyframe_poses.size(), keyframes.size());
-  std::vector<double> rel;
-  for (const SlamKeyframe& k : keyframes) {
-    const double scale = ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale;
-    const cv::Mat& gt = r.frames[static_cast<size_t>(k.frame_id)].depth;
-    for (int y = 0; y < gt.rows; ++y)
-      for (int x = 0; x < gt.cols; ++x) {
-        const float d = k.depth.inverse_depth.at<float>(y, x);
-        const float z = gt.at<float>(y, x);
-        if (d > 0 && z > 0) rel.push_back(std::abs(scale / d - z) / z);
-      }
-  }
+  // Relative errors of every depth pixel of `ks`.
+  auto relative_errors = [&](const std::vector<SlamKeyframe>& ks) {
+    std::vector<double> out;
+    for (const SlamKeyframe& k : ks) {
+      const double scale = ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale;
+      const cv::Mat& gt = r.frames[static_cast<size_t>(k.frame_id)].depth;
+      for (int y = 0; y < gt.rows; ++y)
+        for (int x = 0; x < gt.cols; ++x) {
+          const float d = k.depth.inverse_depth.at<float>(y, x);
+          const float z = gt.at<float>(y, x);
+          if (d > 0 && z > 0) out.push_back(std::abs(scale / d - z) / z);
+        }
+    }
+    return out;
+  };
+  std::vector<double> rel = relative_errors(keyframes);
   ASSERT_FALSE(rel.empty());
   std::nth_element(rel.begin(), rel.begin() + rel.size() / 2, rel.end());
   const double depth_median = rel[rel.size() / 2];
@@ -129,17 +134,7 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   // --set final_refinement_neighbours=2).
   std::vector<SlamKeyframe> refined = keyframes;
   (*slam)->RefineKeyframeDepths(2, 0.05, &refined);
-  std::vector<double> rel_refined;
-  for (const SlamKeyframe& k : refined) {
-    const double scale = ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale;
-    const cv::Mat& gt = r.frames[static_cast<size_t>(k.frame_id)].depth;
-    for (int y = 0; y < gt.rows; ++y)
-      for (int x = 0; x < gt.cols; ++x) {
-        const float d = k.depth.inverse_depth.at<float>(y, x);
-        const float z = gt.at<float>(y, x);
-        if (d > 0 && z > 0) rel_refined.push_back(std::abs(scale / d - z) / z);
-      }
-  }
+  std::vector<double> rel_refined = relative_errors(refined);
   ASSERT_GT(rel_refined.size(), rel.size() / 2);
   std::nth_element(rel_refined.begin(), rel_refined.begin() + rel_refined.size() / 2, rel_refined.end());
   const double refined_median = rel_refined[rel_refined.size() / 2];
