@@ -277,7 +277,7 @@ int main(int argc, char** argv) {
   // dense stage above ran on each keyframe as handed over).
   const auto refine_start = std::chrono::steady_clock::now();
   (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
-                                &keyframes);
+                                options.final_refinement_rounds, &keyframes);
   const double refine_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
 
   // Outputs.

@@ -125,6 +125,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"final_adjustment_max_keyframes", &o.final_adjustment_max_keyframes});
   f.push_back({"final_refinement_neighbours", &o.final_refinement_neighbours});
   f.push_back({"final_refinement_relative_sigma", &o.final_refinement_relative_sigma});
+  f.push_back({"final_refinement_rounds", &o.final_refinement_rounds});
   AddTracker("tracker.", o.tracker, &f);
   AddTracker("wide_baseline_tracker.", o.wide_baseline_tracker, &f);
   AddDepthFilter("depth.", o.depth, &f);

@@ -106,6 +106,7 @@ TEST(SlamConfigTest, BadInputIsRefusedWithItsLineAndLeavesTheOptionsUnchanged) {
       {"init_min_frames = 20\ninit_max_frames = 10\n", "init_max_frames must be >= init_min_frames"},
       {"init_rounds = 0\n", "init_rounds must be in [1, 10]"},
       {"final_refinement_neighbours = 6\n", "final_refinement_neighbours must be in [0, 5]"},
+      {"final_refinement_rounds = 11\n", "final_refinement_rounds must be in [1, 10]"},
   };
   for (const Case& c : cases) {
     SlamOptions o;

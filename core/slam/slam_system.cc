@@ -93,6 +93,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: final_refinement_neighbours must be in [0, 5]");
   if (!(final_refinement_relative_sigma > 0))
     return InvalidArgumentError("SlamOptions: final_refinement_relative_sigma must be > 0");
+  if (final_refinement_rounds < 1 || final_refinement_rounds > 10)
+    return InvalidArgumentError("SlamOptions: final_refinement_rounds must be in [1, 10]");
   PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
   return Status::Ok();
 }
@@ -1006,45 +1008,61 @@ int SlamSystem::num_loop_closures() const { return impl_->loop_closures; }
 
 int SlamSystem::num_keyframe_adjustments() const { return impl_->keyframe_adjustments; }
 
-void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, std::vector<SlamKeyframe>* keyframes) {
+void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int rounds,
+                                      std::vector<SlamKeyframe>* keyframes) {
   Impl& m = *impl_;
   const int span = neighbours;
   if (span <= 0 || !(relative_sigma > 0) || keyframes == nullptr) return;
   const int n = static_cast<int>(m.keyframes.size());
   std::vector<cv::Mat> grey_j(static_cast<size_t>(n));  // each keyframe's J, computed once
-  for (SlamKeyframe& out : *keyframes) {
-    const int id = out.id;
-    if (id < 0 || id >= n || out.depth.inverse_depth.empty()) continue;
-    const Impl::Keyframe& k = m.keyframes[static_cast<size_t>(id)];
-    StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, m.options.depth, m.rig.crosstalk);
-    if (!kd.ok()) continue;
-    kd->Seed(out.depth.inverse_depth, relative_sigma, 2);
-    const double mean_idepth = kd->MeanInverseDepth();
-    const Sim3d& a = k.world_from_keyframe;
-    const Eigen::Matrix3d ra = a.rotation.toRotationMatrix();
-    for (int j = std::max(0, id - span); j <= std::min(n - 1, id + span); ++j) {
-      if (j == id) continue;
-      const Sim3d& b = m.keyframes[static_cast<size_t>(j)].world_from_keyframe;
-      // A point X of keyframe id (its units) is c_a + s_a R_a X in the world; in j's camera, in id's
-      // units: R_b^T R_a X + R_b^T (c_a - c_b) / s_a.
-      const Eigen::Matrix3d rb_t = b.rotation.toRotationMatrix().transpose();
-      const Rigid3d j_from_id(Eigen::Quaterniond(rb_t * ra), rb_t * (a.translation - b.translation) / a.scale);
-      // Only neighbours that see about the same scene (not across a relocalisation): within twice the
-      // keyframe distance and rotation limits.
-      if (j_from_id.translation.norm() * mean_idepth > 2 * m.options.keyframe_distance_fraction + 0.2 ||
-          RotationAngle(j_from_id.rotation) * kRadToDeg > 2 * m.options.keyframe_max_rotation_deg)
-        continue;
-      cv::Mat& jj = grey_j[static_cast<size_t>(j)];
-      if (jj.empty()) {
-        cv::Mat mean;
-        KeyframeDepth::NormalisedGrey(m.keyframes[static_cast<size_t>(j)].rgb, m.options.depth, &jj, &mean);
-      }
-      kd->Update(jj, j_from_id, m.pool);
+  std::vector<InverseDepthMap> handed_out;              // each round starts from these
+  for (const SlamKeyframe& out : *keyframes) handed_out.push_back(out.depth);
+  const bool readjust = m.options.keyframe_adjustment && m.options.final_adjustment &&
+                        n <= m.options.final_adjustment_max_keyframes && n >= 3 && m.keyframes.back().finished;
+  for (int round = 0; round < std::max(1, rounds); ++round) {
+    if (round > 0) {
+      if (!readjust) break;
+      // The adjustment's points come from the keyframes' (refined) final depths; it uses the same J.
+      for (int k = 0; k < n; ++k)
+        if (!grey_j[static_cast<size_t>(k)].empty())
+          m.keyframes[static_cast<size_t>(k)].grey_j = grey_j[static_cast<size_t>(k)];
+      m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
+      for (size_t i = 0; i < keyframes->size(); ++i) (*keyframes)[i].depth = handed_out[i];
     }
-    kd->Regularise();
-    out.depth = kd->ToInverseDepthMap();
-    // Only a neighbour's image is used above, not its depth: the order does not matter.
-    if (m.keyframes[static_cast<size_t>(id)].finished) m.keyframes[static_cast<size_t>(id)].final_depth = out.depth;
+    for (SlamKeyframe& out : *keyframes) {
+      const int id = out.id;
+      if (id < 0 || id >= n || out.depth.inverse_depth.empty()) continue;
+      const Impl::Keyframe& k = m.keyframes[static_cast<size_t>(id)];
+      StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, m.options.depth, m.rig.crosstalk);
+      if (!kd.ok()) continue;
+      kd->Seed(out.depth.inverse_depth, relative_sigma, 2);
+      const double mean_idepth = kd->MeanInverseDepth();
+      const Sim3d& a = k.world_from_keyframe;
+      const Eigen::Matrix3d ra = a.rotation.toRotationMatrix();
+      for (int j = std::max(0, id - span); j <= std::min(n - 1, id + span); ++j) {
+        if (j == id) continue;
+        const Sim3d& b = m.keyframes[static_cast<size_t>(j)].world_from_keyframe;
+        // A point X of keyframe id (its units) is c_a + s_a R_a X in the world; in j's camera, in id's
+        // units: R_b^T R_a X + R_b^T (c_a - c_b) / s_a.
+        const Eigen::Matrix3d rb_t = b.rotation.toRotationMatrix().transpose();
+        const Rigid3d j_from_id(Eigen::Quaterniond(rb_t * ra), rb_t * (a.translation - b.translation) / a.scale);
+        // Only neighbours that see about the same scene (not across a relocalisation): within twice the
+        // keyframe distance and rotation limits.
+        if (j_from_id.translation.norm() * mean_idepth > 2 * m.options.keyframe_distance_fraction + 0.2 ||
+            RotationAngle(j_from_id.rotation) * kRadToDeg > 2 * m.options.keyframe_max_rotation_deg)
+          continue;
+        cv::Mat& jj = grey_j[static_cast<size_t>(j)];
+        if (jj.empty()) {
+          cv::Mat mean;
+          KeyframeDepth::NormalisedGrey(m.keyframes[static_cast<size_t>(j)].rgb, m.options.depth, &jj, &mean);
+        }
+        kd->Update(jj, j_from_id, m.pool);
+      }
+      kd->Regularise();
+      out.depth = kd->ToInverseDepthMap();
+      // Only a neighbour's image is used above, not its depth: the order does not matter.
+      if (m.keyframes[static_cast<size_t>(id)].finished) m.keyframes[static_cast<size_t>(id)].final_depth = out.depth;
+    }
   }
 }
 

@@ -64,6 +64,9 @@ class SlamSystemPresetTest : public ::testing::TestWithParam<SlamCase> {};
 // RefineKeyframeDepths may not make the median depth error worse by more than this. Measured on the
 // seed-1 presets: it lowers it on every one (see the README).
 constexpr double kRefinementSlack = 0.002;
+// ... and its further rounds (which move the poses) not the trajectory error by more than this many
+// percentage points of the path.
+constexpr double kRoundsAteSlackPercent = 0.05;
 
 TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   const SlamCase& c = GetParam();
@@ -111,11 +114,12 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   // Keyframe depth in metres through the trajectory's scale and the keyframe's (pose-graph) scale.
   const std::vector<Sim3d> keyframe_poses = (*slam)->KeyframePoses();
   ASSERT_EQ(keyframe_poses.size(), keyframes.size());
-  // Relative errors of every depth pixel of `ks`.
-  auto relative_errors = [&](const std::vector<SlamKeyframe>& ks) {
+  // Relative errors of every depth pixel of `ks`, with keyframe poses `poses` and the trajectory's scale
+  // `gt_per_est` (metres per unit).
+  auto relative_errors = [&](const std::vector<SlamKeyframe>& ks, const std::vector<Sim3d>& poses, double gt_per_est) {
     std::vector<double> out;
     for (const SlamKeyframe& k : ks) {
-      const double scale = ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale;
+      const double scale = gt_per_est * poses[static_cast<size_t>(k.id)].scale;
       const cv::Mat& gt = r.frames[static_cast<size_t>(k.frame_id)].depth;
       for (int y = 0; y < gt.rows; ++y)
         for (int x = 0; x < gt.cols; ++x) {
@@ -126,21 +130,46 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
     }
     return out;
   };
-  std::vector<double> rel = relative_errors(keyframes);
+  auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+    return v[v.size() / 2];
+  };
+  const std::vector<double> rel = relative_errors(keyframes, keyframe_poses, ate->gt_from_est.scale);
   ASSERT_FALSE(rel.empty());
-  std::nth_element(rel.begin(), rel.begin() + rel.size() / 2, rel.end());
-  const double depth_median = rel[rel.size() / 2];
-  // The same after RefineKeyframeDepths (2 keyframes on each side, 5% prior: prism-slam's
-  // --set final_refinement_neighbours=2).
+  const double depth_median = median(rel);
+  // The same after one round of RefineKeyframeDepths (2 keyframes on each side, 5% prior: prism-slam's
+  // --set final_refinement_neighbours=2 final_refinement_rounds=1): the poses do not move.
   std::vector<SlamKeyframe> refined = keyframes;
-  (*slam)->RefineKeyframeDepths(2, 0.05, &refined);
-  std::vector<double> rel_refined = relative_errors(refined);
+  (*slam)->RefineKeyframeDepths(2, 0.05, 1, &refined);
+  const std::vector<double> rel_refined = relative_errors(refined, keyframe_poses, ate->gt_from_est.scale);
   ASSERT_GT(rel_refined.size(), rel.size() / 2);
-  std::nth_element(rel_refined.begin(), rel_refined.begin() + rel_refined.size() / 2, rel_refined.end());
-  const double refined_median = rel_refined[rel_refined.size() / 2];
-  std::printf("%s: depth median rel error %.4f after RefineKeyframeDepths, on %zu pixels\n", c.preset.c_str(),
-              refined_median, rel_refined.size());
+  const double refined_median = median(rel_refined);
+  std::printf("%s: depth median rel error %.4f after one round of RefineKeyframeDepths, on %zu pixels\n",
+              c.preset.c_str(), refined_median, rel_refined.size());
   EXPECT_LE(refined_median, depth_median + kRefinementSlack);
+  EXPECT_EQ((*slam)->num_keyframe_adjustments(), adjustments_before_finish + (final_adjustment ? 1 : 0));
+  // prism-slam's default rounds: between rounds the final adjustment runs again on the refined depths,
+  // which moves the keyframe poses and the trajectory; both are scored again.
+  const SlamOptions defaults;
+  std::vector<SlamKeyframe> rounds = keyframes;
+  (*slam)->RefineKeyframeDepths(defaults.final_refinement_neighbours, defaults.final_refinement_relative_sigma,
+                                defaults.final_refinement_rounds, &rounds);
+  EXPECT_EQ((*slam)->num_keyframe_adjustments(),
+            adjustments_before_finish + (final_adjustment ? defaults.final_refinement_rounds : 0));
+  Trajectory estimate_after_rounds;
+  for (const SlamFrameResult& f : (*slam)->Trajectory())
+    if (f.state == SlamState::kTracking) estimate_after_rounds.push_back({f.timestamp, f.world_from_camera});
+  StatusOr<AteResult> ate_rounds = ComputeAte(r.trajectory, estimate_after_rounds, eo);
+  ASSERT_TRUE(ate_rounds.ok()) << ate_rounds.status();
+  const double ate_rounds_percent = 100 * ate_rounds->error_m.rmse / ate_rounds->trajectory_length_m;
+  const std::vector<double> rel_rounds =
+      relative_errors(rounds, (*slam)->KeyframePoses(), ate_rounds->gt_from_est.scale);
+  ASSERT_GT(rel_rounds.size(), rel.size() / 2);
+  const double rounds_median = median(rel_rounds);
+  std::printf("%s: after %d rounds: ATE %.3f%% of path, depth median rel error %.4f on %zu pixels\n", c.preset.c_str(),
+              defaults.final_refinement_rounds, ate_rounds_percent, rounds_median, rel_rounds.size());
+  EXPECT_LE(rounds_median, refined_median + kRefinementSlack);
+  EXPECT_LE(ate_rounds_percent, ate_percent + kRoundsAteSlackPercent);
   std::printf(
       "%s: %zu frames, %zu keyframes, %d loop closures, ATE %.4f m = %.3f%% of %.3f m, depth median rel "
       "error %.4f on %zu pixels\n",
