@@ -195,6 +195,12 @@ struct SlamSystem::Impl {
   // The direct adjustment of keyframes first..newest (keyframe_ba.h): after a new keyframe over the
   // window (SlamOptions::keyframe_adjustment), after Finish over all keyframes (final_adjustment).
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
+  // The adjustment of all keyframes at once is possible: adjustment on, every keyframe finished, at most
+  // final_adjustment_max_keyframes of them.
+  bool CanAdjustAllKeyframes() const {
+    return options.keyframe_adjustment && !keyframes.empty() &&
+           static_cast<int>(keyframes.size()) <= options.final_adjustment_max_keyframes && keyframes.back().finished;
+  }
   // After an adjustment: the newest keyframe's depth propagated again, along the adjusted pose.
   void RepropagateNewestKeyframe();
   // The pose of the most recent tracked frame (identity before any).
@@ -961,10 +967,7 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
 
 void SlamSystem::AdjustAllKeyframes() {
   Impl& m = *impl_;
-  const int n = static_cast<int>(m.keyframes.size());
-  if (m.final_adjustment_done || !m.options.keyframe_adjustment || n > m.options.final_adjustment_max_keyframes ||
-      m.keyframes.empty() || !m.keyframes.back().finished)
-    return;
+  if (m.final_adjustment_done || !m.CanAdjustAllKeyframes()) return;
   m.final_adjustment_done = true;
   m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
 }
@@ -1017,8 +1020,7 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
   std::vector<cv::Mat> grey_j(static_cast<size_t>(n));  // each keyframe's J, computed once
   std::vector<InverseDepthMap> handed_out;              // each round starts from these
   for (const SlamKeyframe& out : *keyframes) handed_out.push_back(out.depth);
-  const bool readjust = m.options.keyframe_adjustment && m.options.final_adjustment &&
-                        n <= m.options.final_adjustment_max_keyframes && n >= 3 && m.keyframes.back().finished;
+  const bool readjust = m.options.final_adjustment && m.CanAdjustAllKeyframes() && n >= 3;
   for (int round = 0; round < std::max(1, rounds); ++round) {
     if (round > 0) {
       if (!readjust) break;
