@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <memory>
 #include <sstream>
 
@@ -46,20 +47,26 @@ void WithGradients(const cv::Mat& grey, cv::Mat* out) {
   const int w = grey.cols, h = grey.rows;
   for (int y = 0; y < h; ++y) {
     const float* row = grey.ptr<float>(y);
-    const float* up = grey.ptr<float>(std::max(y - 1, 0));
-    const float* down = grey.ptr<float>(std::min(y + 1, h - 1));
     float* o = out->ptr<float>(y);
-    const bool border_row = y == 0 || y == h - 1;
-    for (int x = 0; x < w; ++x) {
-      o[3 * x] = row[x];
-      if (border_row || x == 0 || x == w - 1) {
+    if (y == 0 || y == h - 1) {
+      for (int x = 0; x < w; ++x) {
+        o[3 * x] = row[x];
         o[3 * x + 1] = 0;
         o[3 * x + 2] = 0;
-      } else {
-        o[3 * x + 1] = 0.5f * (row[x + 1] - row[x - 1]);
-        o[3 * x + 2] = 0.5f * (down[x] - up[x]);
       }
+      continue;
     }
+    const float* up = grey.ptr<float>(y - 1);
+    const float* down = grey.ptr<float>(y + 1);
+    o[0] = row[0];
+    o[1] = o[2] = 0;
+    for (int x = 1; x < w - 1; ++x) {
+      o[3 * x] = row[x];
+      o[3 * x + 1] = 0.5f * (row[x + 1] - row[x - 1]);
+      o[3 * x + 2] = 0.5f * (down[x] - up[x]);
+    }
+    o[3 * (w - 1)] = row[w - 1];
+    o[3 * (w - 1) + 1] = o[3 * (w - 1) + 2] = 0;
   }
 }
 
@@ -229,9 +236,50 @@ struct State {
   double a = 0, b = 0;
 };
 
-// `lights`: non-null for ShadingModel::kPredictedShading.
-Evaluation Evaluate(const TrackingKeyframe::Level& level, const cv::Mat& frame, const State& state,
-                    const TrackerOptions& options, const RigLights* lights) {
+// Four floats as one SIMD register (a GCC / Clang vector extension; plain code where there is none).
+typedef float Float4 __attribute__((vector_size(16)));
+
+inline Float4 Load4(const float* p) {
+  Float4 v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+
+// sum_i (x_i y_i) z_i: summed in float in 16 lanes over blocks of 256 points (independent lanes
+// hide the adds' latency), the blocks in double.
+double TripleSum(const float* x, const float* y, const float* z, int n) {
+  double sum = 0;
+  for (int begin = 0; begin < n; begin += 256) {
+    const int end = std::min(n, begin + 256);
+    Float4 a0 = {0, 0, 0, 0}, a1 = a0, a2 = a0, a3 = a0;
+    int i = begin;
+    for (; i + 16 <= end; i += 16) {
+      a0 += Load4(x + i) * Load4(y + i) * Load4(z + i);
+      a1 += Load4(x + i + 4) * Load4(y + i + 4) * Load4(z + i + 4);
+      a2 += Load4(x + i + 8) * Load4(y + i + 8) * Load4(z + i + 8);
+      a3 += Load4(x + i + 12) * Load4(y + i + 12) * Load4(z + i + 12);
+    }
+    const Float4 a = (a0 + a1) + (a2 + a3);
+    float block = (a[0] + a[1]) + (a[2] + a[3]);
+    for (; i < end; ++i) block += (x[i] * y[i]) * z[i];
+    sum += block;
+  }
+  return sum;
+}
+
+// The points are processed in passes over arrays, so that the arithmetic vectorises: warp (A),
+// bilinear samples (B, scalar gathers), residuals, weights and Jacobians (C), then the normal
+// equations as sums over the points (D). `lights`: non-null for ShadingModel::kPredictedShading.
+Evaluation Evaluate(const TrackingKeyframe::Level& level, const internal::TrackerPointArrays& pts, const cv::Mat& frame,
+                    const State& state, const TrackerOptions& options, const RigLights* lights,
+                    internal::TrackerScratch* scratch) {
+  internal::TrackerScratch& sc = *scratch;
+  const int n = static_cast<int>(pts.ray_x.size());
+  for (std::vector<float>* v : {&sc.ys_x, &sc.ys_y, &sc.ys_z, &sc.u, &sc.v, &sc.inside, &sc.intensity, &sc.grad_u,
+                                &sc.grad_v, &sc.predicted, &sc.weight, &sc.residual, &sc.point_energy, &sc.inlier_sq})
+    v->resize(n);
+  for (std::vector<float>& v : sc.jacobian) v.resize(n);
+
   Evaluation e;
   const Eigen::Matrix3f rotation = state.frame_from_keyframe.RotationMatrix().cast<float>();
   const Eigen::Vector3f translation = state.frame_from_keyframe.translation.cast<float>();
@@ -241,28 +289,51 @@ Evaluation Evaluate(const TrackingKeyframe::Level& level, const cv::Mat& frame, 
   const float noise_var = 2.0f * static_cast<float>(options.image_noise_sigma * options.image_noise_sigma);
   const float huber = options.huber_threshold, inlier = options.inlier_threshold;
   const double outside_cost = huber * (2 * inlier - huber);
-  // Accumulated in float blocks of points, flushed to double, to keep the inner loop cheap.
-  Eigen::Matrix<float, kNumParams, kNumParams> h_block = Eigen::Matrix<float, kNumParams, kNumParams>::Zero();
-  Eigen::Matrix<float, kNumParams, 1> g_block = Eigen::Matrix<float, kNumParams, 1>::Zero();
-  int in_block = 0;
-  for (const TrackingKeyframe::Point& p : level.points) {
-    // Y' = R ray + rho t is the point in the frame scaled by rho; it projects where Y does.
-    const Eigen::Vector3f ys = rotation * p.ray + p.inverse_depth * translation;
-    if (!(ys.z() > 1e-6f)) {
-      e.energy += outside_cost;
-      continue;
+
+  // A: Y' = R ray + rho t is the point in the frame scaled by rho; it projects where Y does.
+  {
+    const float r00 = rotation(0, 0), r01 = rotation(0, 1), r02 = rotation(0, 2);
+    const float r10 = rotation(1, 0), r11 = rotation(1, 1), r12 = rotation(1, 2);
+    const float r20 = rotation(2, 0), r21 = rotation(2, 1), r22 = rotation(2, 2);
+    const float tx = translation.x(), ty = translation.y(), tz = translation.z();
+    const float* rx = pts.ray_x.data();
+    const float* ry = pts.ray_y.data();
+    const float* rho = pts.inverse_depth.data();
+    float *ys_x = sc.ys_x.data(), *ys_y = sc.ys_y.data(), *ys_z = sc.ys_z.data();
+    float *u = sc.u.data(), *v = sc.v.data(), *inside = sc.inside.data();
+#pragma omp simd
+    for (int i = 0; i < n; ++i) {
+      const float x = r00 * rx[i] + r01 * ry[i] + r02 + rho[i] * tx;
+      const float y = r10 * rx[i] + r11 * ry[i] + r12 + rho[i] * ty;
+      const float z = r20 * rx[i] + r21 * ry[i] + r22 + rho[i] * tz;
+      const float inv_z = 1.0f / z;
+      const float pu = fx * x * inv_z + cx, pv = fy * y * inv_z + cy;
+      ys_x[i] = x;
+      ys_y[i] = y;
+      ys_z[i] = z;
+      u[i] = pu;
+      v[i] = pv;
+      inside[i] = (z > 1e-6f && pu >= 0 && pv >= 0 && pu < max_u && pv < max_v) ? 1.0f : 0.0f;
     }
-    const float inv_zs = 1.0f / ys.z();
-    const float u = fx * ys.x() * inv_zs + cx, v = fy * ys.y() * inv_zs + cy;
-    if (!(u >= 0 && v >= 0 && u < max_u && v < max_v)) {
-      e.energy += outside_cost;
+  }
+
+  // B: bilinear samples of the frame (and the predicted keyframe grey level) at the visible points.
+  for (int i = 0; i < n; ++i) {
+    float predicted = pts.intensity[i];
+    if (sc.inside[i] == 0.0f) {
+      sc.intensity[i] = sc.grad_u[i] = sc.grad_v[i] = 0;
+      sc.predicted[i] = predicted;
       continue;
     }
     ++e.visible;
-    const Bilinear s = Sample(frame, u, v);
-    float intensity = p.intensity;
+    const Bilinear s = Sample(frame, sc.u[i], sc.v[i]);
+    sc.intensity[i] = s.i;
+    sc.grad_u[i] = s.gu;
+    sc.grad_v[i] = s.gv;
+    const TrackingKeyframe::Point& p = level.points[i];
     if (lights != nullptr && p.has_shading) {
       // Predicted grey level at this pose: each light's share scaled by its shading ratio.
+      const Eigen::Vector3f ys(sc.ys_x[i], sc.ys_y[i], sc.ys_z[i]);
       const Eigen::Vector3f shading = lights->Shading(ys / p.inverse_depth, rotation * p.normal);
       float grey = 0, mean = lights->floor;
       for (int l = 0; l < 3; ++l) {
@@ -272,43 +343,86 @@ Evaluation Evaluate(const TrackingKeyframe::Level& level, const cv::Mat& frame, 
         mean += p.light_share_mean[l] * ratio;
       }
       // The frame's normalised grey level, with its local mean predicted from the same ratios.
-      intensity = 128.0f * grey / mean;
+      predicted = 128.0f * grey / mean;
     }
-    const float r = s.i - (scale * intensity + offset);
-    // d(u,v)/dY at the true point Y = Y' / rho (z = Y'z / rho).
-    const float inv_z = p.inverse_depth * inv_zs;
-    const float x_n = ys.x() * inv_zs, y_n = ys.y() * inv_zs;
-    const float gu = s.gu * fx, gv = s.gv * fy;
-    // g^T dpi/dY = inv_z * (gu, gv, -(gu x_n + gv y_n)).
-    const float jx = gu * inv_z, jy = gv * inv_z, jz = -(gu * x_n + gv * y_n) * inv_z;
-    // dr/drho = g^T dpi/dY' t, with dpi/dY' = dpi/dY / rho.
-    const float dr_drho = (jx * translation.x() + jy * translation.y() + jz * translation.z()) / p.inverse_depth;
-    const float var = noise_var + dr_drho * dr_drho * p.inverse_depth_var;
-    const float inv_sigma = 1.0f / std::sqrt(var);
-    const float rn = std::abs(r) * inv_sigma;
-    if (rn < inlier) {
-      ++e.inliers;
-      e.inlier_sq_sum += r * r;
-    }
-    const float huber_w = rn <= huber ? 1.0f : huber / rn;
-    e.energy += rn <= huber ? rn * rn : huber * (2 * rn - huber);
-    const float w = huber_w / var;
-    // Y = (Y' / rho); dY/d(v, w) = [I, -[Y]x].
-    const float yx = ys.x() / p.inverse_depth, yy = ys.y() / p.inverse_depth, yz = ys.z() / p.inverse_depth;
-    Eigen::Matrix<float, kNumParams, 1> j;
-    j << jx, jy, jz, jz * yy - jy * yz, jx * yz - jz * yx, jy * yx - jx * yy, -scale * intensity, -1.0f;
-    h_block.noalias() += (w * j) * j.transpose();
-    g_block.noalias() += (w * r) * j;
-    if (++in_block == 256) {
-      e.hessian += h_block.cast<double>();
-      e.gradient += g_block.cast<double>();
-      h_block.setZero();
-      g_block.setZero();
-      in_block = 0;
+    sc.predicted[i] = predicted;
+  }
+
+  // C: residuals, variance-normalised Huber weights and Jacobians (zero weight outside the image).
+  {
+    const float tx = translation.x(), ty = translation.y(), tz = translation.z();
+    const float* rho = pts.inverse_depth.data();
+    const float* rho_var = pts.inverse_depth_var.data();
+    const float *ys_x = sc.ys_x.data(), *ys_y = sc.ys_y.data(), *ys_z = sc.ys_z.data();
+    const float *inside = sc.inside.data(), *sample = sc.intensity.data(), *sample_gu = sc.grad_u.data(),
+                *sample_gv = sc.grad_v.data(), *predicted = sc.predicted.data();
+    float *weight = sc.weight.data(), *residual = sc.residual.data();
+    float *j0 = sc.jacobian[0].data(), *j1 = sc.jacobian[1].data(), *j2 = sc.jacobian[2].data(),
+          *j3 = sc.jacobian[3].data(), *j4 = sc.jacobian[4].data(), *j5 = sc.jacobian[5].data(),
+          *j6 = sc.jacobian[6].data();
+    float *point_energy = sc.point_energy.data(), *inlier_sq = sc.inlier_sq.data();
+#pragma omp simd
+    for (int i = 0; i < n; ++i) {
+      const bool in = inside[i] != 0.0f;
+      const float r = sample[i] - (scale * predicted[i] + offset);
+      const float inv_zs = 1.0f / ys_z[i];
+      // d(u,v)/dY at the true point Y = Y' / rho (z = Y'z / rho).
+      const float inv_z = rho[i] * inv_zs;
+      const float x_n = ys_x[i] * inv_zs, y_n = ys_y[i] * inv_zs;
+      const float gu = sample_gu[i] * fx, gv = sample_gv[i] * fy;
+      // g^T dpi/dY = inv_z * (gu, gv, -(gu x_n + gv y_n)).
+      const float jx = gu * inv_z, jy = gv * inv_z, jz = -(gu * x_n + gv * y_n) * inv_z;
+      // dr/drho = g^T dpi/dY' t, with dpi/dY' = dpi/dY / rho.
+      const float dr_drho = (jx * tx + jy * ty + jz * tz) / rho[i];
+      const float var = noise_var + dr_drho * dr_drho * rho_var[i];
+      const float inv_sigma = 1.0f / std::sqrt(var);
+      const float rn = std::abs(r) * inv_sigma;
+      const bool is_inlier = in & (rn < inlier);
+      inlier_sq[i] = is_inlier ? r * r : -1.0f;
+      const float huber_w = std::min(1.0f, huber / rn);  // 1 up to the threshold
+      point_energy[i] = rn <= huber ? rn * rn : huber * (2 * rn - huber);
+      // Y = (Y' / rho); dY/d(v, w) = [I, -[Y]x].
+      const float yx = ys_x[i] / rho[i], yy = ys_y[i] / rho[i], yz = ys_z[i] / rho[i];
+      const float w = huber_w / var;
+      weight[i] = in ? w : 0.0f;
+      residual[i] = in ? r : 0.0f;
+      j0[i] = in ? jx : 0.0f;
+      j1[i] = in ? jy : 0.0f;
+      j2[i] = in ? jz : 0.0f;
+      j3[i] = in ? jz * yy - jy * yz : 0.0f;
+      j4[i] = in ? jx * yz - jz * yx : 0.0f;
+      j5[i] = in ? jy * yx - jx * yy : 0.0f;
+      j6[i] = in ? -scale * predicted[i] : 0.0f;
     }
   }
-  e.hessian += h_block.cast<double>();
-  e.gradient += g_block.cast<double>();
+  // The sums in double, in a scalar pass (the visible points' energies, the inliers).
+  e.energy = (n - e.visible) * outside_cost;
+  for (int i = 0; i < n; ++i) {
+    if (sc.inside[i] == 0.0f) continue;
+    e.energy += sc.point_energy[i];
+    if (sc.inlier_sq[i] >= 0) {
+      ++e.inliers;
+      e.inlier_sq_sum += sc.inlier_sq[i];
+    }
+  }
+
+  // D: H = sum w j j^T (lower triangle, mirrored), g = sum w r j; j7 = -1.
+  const float* w = sc.weight.data();
+  const float* j[8];
+  for (int k = 0; k < 7; ++k) j[k] = sc.jacobian[k].data();
+  for (int a = 0; a < 7; ++a) {
+    for (int b = 0; b <= a; ++b) e.hessian(a, b) = TripleSum(w, j[a], j[b], n);
+    e.gradient(a) = TripleSum(w, sc.residual.data(), j[a], n);
+  }
+  std::vector<float>& ones = sc.ones;
+  ones.resize(n, 1.0f);  // all ones (never written)
+  for (int b = 0; b < 7; ++b) e.hessian(7, b) = -TripleSum(w, j[b], ones.data(), n);
+  const double sum_w = TripleSum(w, ones.data(), ones.data(), n);
+  const double sum_wr = TripleSum(w, sc.residual.data(), ones.data(), n);
+  e.hessian(7, 7) = sum_w;
+  e.gradient(7) = -sum_wr;
+  for (int a = 0; a < 8; ++a)
+    for (int b = a + 1; b < 8; ++b) e.hessian(a, b) = e.hessian(b, a);
   return e;
 }
 
@@ -527,6 +641,17 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
       return FailedPreconditionError(e.str());
     }
   }
+  point_arrays_.assign(kf.levels.size(), internal::TrackerPointArrays());
+  for (size_t l = 0; l < kf.levels.size(); ++l) {
+    internal::TrackerPointArrays& a = point_arrays_[l];
+    for (const TrackingKeyframe::Point& p : kf.levels[l].points) {
+      a.ray_x.push_back(p.ray.x());
+      a.ray_y.push_back(p.ray.y());
+      a.inverse_depth.push_back(p.inverse_depth);
+      a.inverse_depth_var.push_back(p.inverse_depth_var);
+      a.intensity.push_back(p.intensity);
+    }
+  }
   keyframe_ = std::move(kf);
   has_keyframe_ = true;
   return Status::Ok();
@@ -569,7 +694,7 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
   for (int l = levels - 1; l >= 0; --l) {
     const TrackingKeyframe::Level& level = keyframe_.levels[l];
     const cv::Mat& frame = frame_pyramid_[l];
-    current = Evaluate(level, frame, state, options_, lights.get());
+    current = Evaluate(level, point_arrays_[l], frame, state, options_, lights.get(), &scratch_);
     double lambda = 1e-3;
     for (int it = 0; it < options_.max_iterations; ++it) {
       ++result.iterations[l];
@@ -591,7 +716,7 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
       const Vector8d delta = h.ldlt().solve(-g);
       if (!delta.allFinite()) break;
       const State candidate = Apply(state, delta);
-      Evaluation next = Evaluate(level, frame, candidate, options_, lights.get());
+      Evaluation next = Evaluate(level, point_arrays_[l], frame, candidate, options_, lights.get(), &scratch_);
       const double prior_energy = [&](const State& s) {
         return options_.estimate_affine_brightness ? prior(6) * s.a * s.a + prior(7) * s.b * s.b : 0.0;
       }(candidate);

@@ -151,6 +151,27 @@ struct TrackingResult {
   std::string lost_reason;
 };
 
+namespace internal {
+
+// A level's keyframe points as arrays, which the tracker's vectorised evaluation passes read (filled
+// by Tracker::SetKeyframe; the ray's z is 1).
+struct TrackerPointArrays {
+  std::vector<float> ray_x, ray_y, inverse_depth, inverse_depth_var, intensity;
+};
+
+// Per point, what one evaluation computes in its passes (resized to the level's points).
+struct TrackerScratch {
+  std::vector<float> ys_x, ys_y, ys_z, u, v, inside;  // warped point (scaled by rho), pixel, 1 = in image
+  std::vector<float> intensity, grad_u, grad_v;       // frame sample (intensity, d/du, d/dv)
+  std::vector<float> predicted;                       // keyframe grey level, as predicted for this pose
+  std::vector<float> weight, residual;                // Huber weight / variance, residual (0 outside)
+  std::vector<float> point_energy, inlier_sq;         // robust cost; r^2 of an inlier, else -1
+  std::vector<float> ones;
+  std::vector<float> jacobian[7];  // d residual / d (v, w, a); d / d b is -1
+};
+
+}  // namespace internal
+
 class Tracker {
  public:
   // Fails on invalid options or a camera with distortion (undistort the images first), and for
@@ -185,7 +206,9 @@ class Tracker {
   // The current frame, per level: CV_32FC3 interleaved (intensity, d/du, d/dv). Reused between calls.
   std::vector<cv::Mat> frame_pyramid_;
   std::vector<cv::Mat> grey_pyramid_;
-  cv::Mat local_mean_;  // scratch for the shading normalisation
+  cv::Mat local_mean_;                                      // scratch for the shading normalisation
+  std::vector<internal::TrackerPointArrays> point_arrays_;  // per level
+  internal::TrackerScratch scratch_;
 };
 
 }  // namespace prism
