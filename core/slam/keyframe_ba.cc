@@ -170,6 +170,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // Per point: the Hessian of its inverse depth, its gradient, and its coupling with the poses.
   std::vector<double> hpp(static_cast<size_t>(num_points)), bp(static_cast<size_t>(num_points));
   std::vector<Eigen::VectorXd> hcp(static_cast<size_t>(num_points), Eigen::VectorXd::Zero(dim));
+  // touched[point * num_kf + k]: the point's coupling hcp has a (possibly) non-zero segment for pose k
+  // (a residual hosted or observed there); it is exactly zero elsewhere.
+  std::vector<uint8_t> touched(static_cast<size_t>(num_points) * num_kf, 0);
+  std::vector<int> segments;  // scratch: the offsets of a point's touched segments, ascending
   for (int level = levels - 1; level >= 0; --level) {
     const double f = std::ldexp(1.0, -level);
     lcam = cam;
@@ -204,6 +208,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           const double r = rho[static_cast<size_t>(i)];
           Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
           hc.setZero();
+          uint8_t* point_touched = &touched[static_cast<size_t>(i) * num_kf];
+          std::fill(point_touched, point_touched + num_kf, 0);
           if (r > 0 && !std::isnan(lint[static_cast<size_t>(i)])) {
             const Pose& h = poses[static_cast<size_t>(p.host)];
             const Eigen::Vector3d q = ray[static_cast<size_t>(i)] / r;  // host camera, host units
@@ -242,12 +248,14 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
                 hcc.block<6, 6>(o, o) += w * j_target.transpose() * j_target;
                 bc.segment<6>(o) += w * j_target.transpose() * res;
                 hc.segment<6>(o) += w * j_target.transpose() * j_rho;
+                point_touched[kt] = 1;
               }
               if (kh > 0) {
                 const int o = 6 * (kh - 1);
                 hcc.block<6, 6>(o, o) += w * j_host.transpose() * j_host;
                 bc.segment<6>(o) += w * j_host.transpose() * res;
                 hc.segment<6>(o) += w * j_host.transpose() * j_rho;
+                point_touched[kh] = 1;
               }
               if (kh > 0 && kt > 0) {
                 const int oh = 6 * (kh - 1), ot = 6 * (kt - 1);
@@ -270,7 +278,17 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             if (!(h > 1e-12)) continue;
             hinv[static_cast<size_t>(i)] = 1.0 / h;
             const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-            s.selfadjointView<Eigen::Lower>().rankUpdate(hc, -hinv[static_cast<size_t>(i)]);
+            // s -= hinv hc hc^T over the touched segments' blocks only (hc is zero elsewhere), lower block
+            // triangle: element (r, c) gets (alpha hc_c) hc_r, the product Eigen's rankUpdate adds.
+            const double alpha = -hinv[static_cast<size_t>(i)];
+            segments.clear();
+            for (int k = 1; k < num_kf; ++k)
+              if (touched[static_cast<size_t>(i) * num_kf + k]) segments.push_back(6 * (k - 1));
+            for (size_t cb = 0; cb < segments.size(); ++cb) {
+              const Eigen::Matrix<double, 6, 1> scaled = alpha * hc.segment<6>(segments[cb]);
+              for (size_t rb = cb; rb < segments.size(); ++rb)
+                s.block<6, 6>(segments[rb], segments[cb]).noalias() += hc.segment<6>(segments[rb]) * scaled.transpose();
+            }
             b.noalias() -= hc * (hinv[static_cast<size_t>(i)] * bp[static_cast<size_t>(i)]);
           }
           for (int d = 0; d < dim; ++d) s(d, d) += lambda * std::max(1e-6, hcc(d, d));
