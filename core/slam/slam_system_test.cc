@@ -61,12 +61,19 @@ void PrintTo(const SlamCase& c, std::ostream* os) { *os << c.preset << ", " << c
 
 class SlamSystemPresetTest : public ::testing::TestWithParam<SlamCase> {};
 
-// RefineKeyframeDepths may not make the median depth error worse by more than this. Measured on the
-// seed-1 presets: it lowers it on every one (see the README).
+// One round of RefineKeyframeDepths may not make the median depth error worse by more than this.
+// Measured on the seed-1 presets: it lowers it on every one (see the README).
 constexpr double kRefinementSlack = 0.002;
-// ... and its further rounds (which move the poses) not the trajectory error by more than this many
-// percentage points of the path.
-constexpr double kRoundsAteSlackPercent = 0.05;
+// prism-slam's default rounds (which move the poses) against one round. They help on average, not on
+// every run: over the 54 standard runs (9 presets x seeds 1-6, prism-slam --set
+// final_refinement_rounds=1 against the default) they lower the median depth error on 47 (by 0.6
+// points in the median), and raise it on 7. The largest rises on the presets below are 0.66 points
+// (multi-coloured sphere, seed 2) and 0.24 (the same, seed 1: 2.86% -> 3.10%); the uniform sphere,
+// whose poses are wrong, rises by up to 1.53. The trajectory error rises by up to 0.094 points of the
+// path (multi-coloured sphere, seed 3). So these bounds catch rounds that break a run, with room for
+// that spread.
+constexpr double kRoundsDepthSlack = 0.01;
+constexpr double kRoundsAteSlackPercent = 0.15;
 
 TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   const SlamCase& c = GetParam();
@@ -168,7 +175,7 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   const double rounds_median = median(rel_rounds);
   std::printf("%s: after %d rounds: ATE %.3f%% of path, depth median rel error %.4f on %zu pixels\n", c.preset.c_str(),
               defaults.final_refinement_rounds, ate_rounds_percent, rounds_median, rel_rounds.size());
-  EXPECT_LE(rounds_median, refined_median + kRefinementSlack);
+  EXPECT_LE(rounds_median, refined_median + kRoundsDepthSlack);
   EXPECT_LE(ate_rounds_percent, ate_percent + kRoundsAteSlackPercent);
   std::printf(
       "%s: %zu frames, %zu keyframes, %d loop closures, ATE %.4f m = %.3f%% of %.3f m, depth median rel "
