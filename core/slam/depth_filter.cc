@@ -23,7 +23,49 @@ inline bool Inside(const cv::Mat& img, float u, float v, float border) {
   return u >= border && v >= border && u < img.cols - 1 - border && v < img.rows - 1 - border;
 }
 
+// SampleBilinear and Inside (border 0) on one float image, with its pointer, row stride and bounds
+// held in locals: the same values, without reloading the cv::Mat header for every sample.
+struct ImageSampler {
+  explicit ImageSampler(const cv::Mat& img)
+      : data(img.ptr<float>(0)),
+        stride(img.step1()),
+        u_end(static_cast<float>(img.cols - 1)),
+        v_end(static_cast<float>(img.rows - 1)) {}
+  bool Inside(float u, float v) const { return u >= 0 && v >= 0 && u < u_end && v < v_end; }
+  float Sample(float u, float v) const {
+    const int x0 = static_cast<int>(u), y0 = static_cast<int>(v);
+    const float fx = u - x0, fy = v - y0;
+    const float* r0 = data + static_cast<size_t>(y0) * stride;
+    const float* r1 = r0 + stride;
+    return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) + fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
+  }
+  const float* data;
+  size_t stride;
+  float u_end, v_end;
+};
+
 constexpr int kPatchHalf = 2;  // 5 samples
+
+// The sum of squared differences between the patch `patch` (2 kPatchHalf + 1 values) and the
+// samples at each of `positions` positions s (samples s .. s + 2 kPatchHalf), the taps summed in
+// order; infinity where one of those samples is outside the frame (outside_before counts them).
+void ScorePositions(const float* samples, const int* outside_before, const float* patch, int positions, float* errors) {
+  constexpr int kTaps = 2 * kPatchHalf + 1;
+  const float p0 = patch[0], p1 = patch[1], p2 = patch[2], p3 = patch[3], p4 = patch[4];
+  static_assert(kTaps == 5, "the taps below");
+#pragma omp simd
+  for (int s = 0; s < positions; ++s) {
+    const float d0 = samples[s] - p0, d1 = samples[s + 1] - p1, d2 = samples[s + 2] - p2;
+    const float d3 = samples[s + 3] - p3, d4 = samples[s + 4] - p4;
+    float err = 0;
+    err += d0 * d0;
+    err += d1 * d1;
+    err += d2 * d2;
+    err += d3 * d3;
+    err += d4 * d4;
+    errors[s] = outside_before[s + kTaps] == outside_before[s] ? err : std::numeric_limits<float>::infinity();
+  }
+}
 
 }  // namespace
 
@@ -298,7 +340,9 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
     return true;
   };
 
+  const ImageSampler frame_sampler(frame);
   std::vector<float> errors, samples;
+  std::vector<int> outside_before;
   for (int y = y0; y < y1; ++y) {
     const uint8_t* cand = candidate_.ptr<uint8_t>(y);
     const float* gxr = grad_x_.ptr<float>(y);
@@ -367,39 +411,35 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       // uses samples s .. s + 2 kPatchHalf.
       const int n = static_cast<int>(std::floor(len / step)) + 1;
       const int num_samples = n + 2 + 2 * kPatchHalf;
-      constexpr float kOutside = -1e30f;
+      // Samples outside the frame are 0 and counted: outside_before[k] of the samples before k are
+      // outside, so a position is scored only where its window has none (no test per tap, so the
+      // scoring loop below vectorises; the same sums in the same order as one tap at a time).
       samples.resize(static_cast<size_t>(num_samples));
+      outside_before.resize(static_cast<size_t>(num_samples) + 1);
+      outside_before[0] = 0;
       for (int k = 0; k < num_samples; ++k) {
         const Eigen::Vector2f q = start + (static_cast<float>(k - 1 - kPatchHalf) * step) * e;
-        samples[static_cast<size_t>(k)] =
-            Inside(frame, q.x(), q.y(), 0) ? SampleBilinear(frame, q.x(), q.y()) : kOutside;
+        const bool inside = frame_sampler.Inside(q.x(), q.y());
+        samples[static_cast<size_t>(k)] = inside ? frame_sampler.Sample(q.x(), q.y()) : 0.0f;
+        outside_before[static_cast<size_t>(k) + 1] = outside_before[static_cast<size_t>(k)] + (inside ? 0 : 1);
       }
-      errors.assign(n + 2, std::numeric_limits<float>::infinity());
+      errors.resize(static_cast<size_t>(n) + 2);
+      ScorePositions(samples.data(), outside_before.data(), kq, n + 2, errors.data());
       int best = -1;
       float best_err = std::numeric_limits<float>::infinity();
-      for (int s = 0; s < n + 2; ++s) {
-        float err = 0;
-        bool inside = true;
-        for (int i = 0; i <= 2 * kPatchHalf; ++i) {
-          const float v = samples[static_cast<size_t>(s + i)];
-          if (v == kOutside) {
-            inside = false;
-            break;
-          }
-          const float d = v - kq[i];
-          err += d * d;
-        }
-        if (!inside) continue;
-        errors[s] = err;
-        if (s >= 1 && s <= n && err < best_err) best_err = err, best = s;
-      }
+      for (int s = 1; s <= n; ++s)
+        if (errors[static_cast<size_t>(s)] < best_err) best_err = errors[static_cast<size_t>(s)], best = s;
       if (best < 0 || best_err > max_err) {
         ++stats->no_match;
         continue;
       }
+      // The best score more than 2 px away from the best: |s - best| >= d_min, the first distance with
+      // d * step > 2 (the test is monotone in d).
+      int d_min = 1;
+      while (!(static_cast<float>(d_min) * step > 2.0f)) ++d_min;
       float second = std::numeric_limits<float>::infinity();
-      for (int s = 1; s <= n; ++s)
-        if (static_cast<float>(std::abs(s - best)) * step > 2.0f) second = std::min(second, errors[s]);
+      for (int s = 1; s <= best - d_min; ++s) second = std::min(second, errors[static_cast<size_t>(s)]);
+      for (int s = std::max(1, best + d_min); s <= n; ++s) second = std::min(second, errors[static_cast<size_t>(s)]);
       if (second < ratio * best_err) {
         ++stats->no_match;
         continue;
