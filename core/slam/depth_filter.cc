@@ -11,20 +11,8 @@
 namespace prism {
 namespace {
 
-inline float SampleBilinear(const cv::Mat& img, float u, float v) {
-  const int x0 = static_cast<int>(u), y0 = static_cast<int>(v);
-  const float fx = u - x0, fy = v - y0;
-  const float* r0 = img.ptr<float>(y0);
-  const float* r1 = img.ptr<float>(y0 + 1);
-  return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) + fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
-}
-
-inline bool Inside(const cv::Mat& img, float u, float v, float border) {
-  return u >= border && v >= border && u < img.cols - 1 - border && v < img.rows - 1 - border;
-}
-
-// SampleBilinear and Inside (border 0) on one float image, with its pointer, row stride and bounds
-// held in locals: the same values, without reloading the cv::Mat header for every sample.
+// Bilinear samples of one float image, and whether (u, v) lies where they are defined; the image's
+// pointer, row stride and bounds are held in locals, not read from the cv::Mat header per sample.
 struct ImageSampler {
   explicit ImageSampler(const cv::Mat& img)
       : data(img.ptr<float>(0)),
@@ -340,7 +328,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
     return true;
   };
 
-  const ImageSampler frame_sampler(frame);
+  const ImageSampler keyframe_sampler(grey_j_), frame_sampler(frame);
   std::vector<float> errors, samples;
   std::vector<int> outside_before;
   for (int y = y0; y < y1; ++y) {
@@ -363,11 +351,11 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       if (gcos < min_cos) continue;
       // Keyframe patch along the line.
       float kp[2 * kPatchHalf + 1];
-      if (!Inside(grey_j_, x - kPatchHalf * std::abs(dk.x()) - 1, y - kPatchHalf * std::abs(dk.y()) - 1, 0) ||
-          !Inside(grey_j_, x + kPatchHalf * std::abs(dk.x()) + 1, y + kPatchHalf * std::abs(dk.y()) + 1, 0))
+      if (!keyframe_sampler.Inside(x - kPatchHalf * std::abs(dk.x()) - 1, y - kPatchHalf * std::abs(dk.y()) - 1) ||
+          !keyframe_sampler.Inside(x + kPatchHalf * std::abs(dk.x()) + 1, y + kPatchHalf * std::abs(dk.y()) + 1))
         continue;
       for (int i = -kPatchHalf; i <= kPatchHalf; ++i)
-        kp[i + kPatchHalf] = SampleBilinear(grey_j_, x + i * dk.x(), y + i * dk.y());
+        kp[i + kPatchHalf] = keyframe_sampler.Sample(x + i * dk.x(), y + i * dk.y());
       const float grad_along = 0.5f * (kp[kPatchHalf + 1] - kp[kPatchHalf - 1]);
 
       const Eigen::Vector3f a = R * ray;
