@@ -316,6 +316,8 @@ int main(int argc, char** argv) {
   const PointCloud cloud = (*slam)->SemiDenseCloud();
   if (Status s = WritePointCloudPly(out_dir + "/semidense.ply", cloud); !s.ok()) return Fail(s.ToString());
 
+  const SlamTimings timings = (*slam)->timings();
+  const double nf = static_cast<double>(std::max<size_t>(1, n));
   std::ostringstream json;
   json << std::setprecision(6) << "{\n  \"frames\": " << results.size() << ",\n  \"keyframes\": " << keyframes.size()
        << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
@@ -324,7 +326,17 @@ int main(int argc, char** argv) {
        << ",\n  \"semidense_points\": " << cloud.size()
        << ",\n  \"undistorted\": " << (undistorter->identity() ? "false" : "true")
        << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n)
-       << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds
+       << ",\n  \"slam_ms_per_frame_parts\": {\"initialisation\": " << 1000.0 * timings.initialisation / nf
+       << ", \"tracking\": " << 1000.0 * timings.tracking / nf
+       << ", \"depth_update\": " << 1000.0 * timings.depth_update / nf
+       << ", \"keyframes\": " << 1000.0 * timings.keyframes / nf
+       << ", \"keyframe_adjustment\": " << 1000.0 * timings.keyframe_adjustment / nf
+       << ", \"loop_search\": " << 1000.0 * timings.loop_search / nf
+       << ", \"relocalisation\": " << 1000.0 * timings.relocalisation / nf << "}"
+       << ",\n  \"mapping_ms_per_tracked_frame\": "
+       << 1000.0 * (timings.depth_update + timings.keyframes) / std::max(1, timings.tracked_frames)
+       << ",\n  \"tracking_ms_per_tracked_frame\": " << 1000.0 * timings.tracking / std::max(1, timings.tracked_frames)
+       << ",\n  \"depth_updates\": " << timings.depth_updates << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds
        << ",\n  \"depth_refinement_ms\": " << 1000.0 * refine_seconds;
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())

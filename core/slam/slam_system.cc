@@ -1,6 +1,7 @@
 #include "core/slam/slam_system.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <deque>
 #include <sstream>
@@ -18,6 +19,23 @@ namespace prism {
 namespace {
 
 constexpr double kRadToDeg = 180.0 / M_PI;
+
+double SecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+// Adds the seconds from its construction to its destruction to *total.
+class ScopedSeconds {
+ public:
+  explicit ScopedSeconds(double* total) : total_(total), start_(std::chrono::steady_clock::now()) {}
+  ~ScopedSeconds() { *total_ += SecondsSince(start_); }
+  ScopedSeconds(const ScopedSeconds&) = delete;
+  ScopedSeconds& operator=(const ScopedSeconds&) = delete;
+
+ private:
+  double* total_;
+  std::chrono::steady_clock::time_point start_;
+};
 
 Sim3d ToSim3(const Rigid3d& r) { return Sim3d(1.0, r.rotation, r.translation); }
 
@@ -68,6 +86,7 @@ Status SlamOptions::Check() const {
   if (relocalise_max_keyframes < 1) return InvalidArgumentError("SlamOptions: relocalise_max_keyframes must be >= 1");
   if (!(new_pixel_relative_sigma > 0)) return InvalidArgumentError("SlamOptions: new_pixel_relative_sigma must be > 0");
   if (tracker_refresh_frames < 1) return InvalidArgumentError("SlamOptions: tracker_refresh_frames must be >= 1");
+  if (depth_update_interval < 1) return InvalidArgumentError("SlamOptions: depth_update_interval must be >= 1");
   if (loop_min_keyframe_gap < 2) return InvalidArgumentError("SlamOptions: loop_min_keyframe_gap must be >= 2");
   if (!(loop_max_distance_fraction > 0))
     return InvalidArgumentError("SlamOptions: loop_max_distance_fraction must be > 0");
@@ -122,6 +141,7 @@ struct SlamSystem::Impl {
   int loop_closures = 0;
   int keyframe_adjustments = 0;
   bool final_adjustment_done = false;  // SlamSystem::AdjustAllKeyframes ran
+  SlamTimings timings;
   // Tracks the initialisation frames on the first, rough depth: a looser residual limit.
   std::unique_ptr<Tracker> init_tracker;
 
@@ -247,7 +267,10 @@ StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::M
     return InvalidArgumentError(m.str());
   }
   const int64_t frame_id = static_cast<int64_t>(impl_->frames.size());
-  if (!impl_->initialized) return impl_->Initialise(frame_id, timestamp, rgb);
+  if (!impl_->initialized) {
+    const ScopedSeconds timer(&impl_->timings.initialisation);
+    return impl_->Initialise(frame_id, timestamp, rgb);
+  }
   return impl_->TrackFrame(frame_id, timestamp, rgb);
 }
 
@@ -547,6 +570,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
   rec.result.timestamp = timestamp;
   Rigid3d guess = has_last ? last_frame_from_kf : Rigid3d();
   if (has_last && has_prev) guess = (last_frame_from_kf * prev_frame_from_kf.Inverse()) * last_frame_from_kf;
+  ++timings.tracked_frames;
+  auto tracking_start = std::chrono::steady_clock::now();
   PRISM_ASSIGN_OR_RETURN(TrackingResult tr, tracker->Track(rgb, guess));
   const double mean_idepth_now = current_depth->MeanInverseDepth();
   const bool implausible = tr.ok && has_last && !PlausibleStep(tr.frame_from_keyframe, guess, mean_idepth_now);
@@ -563,8 +588,10 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
       tr.lost_reason = m.str();
     }
   }
+  timings.tracking += SecondsSince(tracking_start);
   int kf_index = static_cast<int>(keyframes.size()) - 1;
   if (!tr.ok) {
+    const ScopedSeconds timer(&timings.relocalisation);
     ++lost_count;
     Rigid3d reloc_pose;
     int reloc_kf = -1;
@@ -616,22 +643,33 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
   last_frame_from_kf = tr.frame_from_keyframe;
   has_last = true;
 
-  // Stereo update of the keyframe's depth.
-  cv::Mat j, mean;
-  KeyframeDepth::NormalisedGrey(rgb, options.depth, &j, &mean);
-  current_depth->Update(j, tr.frame_from_keyframe, pool);
+  // Stereo update of the keyframe's depth (every depth_update_interval frames, and on a frame that
+  // makes a keyframe).
   ++frames_since_keyframe;
+  const double rotation_deg = RotationAngle(tr.frame_from_keyframe.rotation) * kRadToDeg;
+  const auto needs_keyframe = [&](double mean_idepth) {
+    const double distance = tr.frame_from_keyframe.translation.norm() * mean_idepth;
+    return distance > options.keyframe_distance_fraction ||
+           tr.visible_fraction < options.keyframe_min_visible_fraction ||
+           rotation_deg > options.keyframe_max_rotation_deg;
+  };
+  if (frames_since_keyframe % options.depth_update_interval == 0 || needs_keyframe(current_depth->MeanInverseDepth())) {
+    const ScopedSeconds timer(&timings.depth_update);
+    ++timings.depth_updates;
+    frames.back().result.depth_updated = true;
+    cv::Mat j, mean;
+    KeyframeDepth::NormalisedGrey(rgb, options.depth, &j, &mean);
+    current_depth->Update(j, tr.frame_from_keyframe, pool);
+  }
 
   // New keyframe?
-  const double mean_idepth = current_depth->MeanInverseDepth();
-  const double distance = tr.frame_from_keyframe.translation.norm() * mean_idepth;
-  const double rotation_deg = RotationAngle(tr.frame_from_keyframe.rotation) * kRadToDeg;
-  if (distance > options.keyframe_distance_fraction || tr.visible_fraction < options.keyframe_min_visible_fraction ||
-      rotation_deg > options.keyframe_max_rotation_deg) {
+  const ScopedSeconds keyframe_timer(&timings.keyframes);
+  if (needs_keyframe(current_depth->MeanInverseDepth())) {
     current_depth->Regularise();
     const Status made = MakeKeyframe(frame_id, timestamp, rgb, kf_index, tr.frame_from_keyframe, *current_depth);
     if (made.ok()) {
       frames.back().result.new_keyframe = true;
+      const ScopedSeconds adjustment_timer(&timings.keyframe_adjustment);
       if (options.keyframe_adjustment)
         AdjustKeyframes(std::max(0, static_cast<int>(keyframes.size()) - options.keyframe_window),
                         options.keyframe_window_ba, /*at_finish=*/false);
@@ -677,7 +715,10 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   }
   current_depth = std::make_unique<KeyframeDepth>(std::move(kd));
   frames_since_keyframe = 0;
-  if (options.loop_closure && keyframes.size() >= 2) CloseLoops(static_cast<int>(keyframes.size()) - 2);
+  if (options.loop_closure && keyframes.size() >= 2) {
+    const ScopedSeconds loop_timer(&timings.loop_search);
+    CloseLoops(static_cast<int>(keyframes.size()) - 2);
+  }
   has_last = true;
   last_frame_from_kf = Rigid3d();
   has_prev = false;
@@ -1010,6 +1051,8 @@ int SlamSystem::num_keyframes() const { return static_cast<int>(impl_->keyframes
 int SlamSystem::num_loop_closures() const { return impl_->loop_closures; }
 
 int SlamSystem::num_keyframe_adjustments() const { return impl_->keyframe_adjustments; }
+
+SlamTimings SlamSystem::timings() const { return impl_->timings; }
 
 void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int rounds,
                                       std::vector<SlamKeyframe>* keyframes) {

@@ -130,6 +130,9 @@ struct SlamOptions {
   double new_pixel_relative_sigma = 0.5;
   // The tracker's copy of the current keyframe's depth is refreshed every this many frames, >= 1.
   int tracker_refresh_frames = 3;
+  // The depth filter's stereo update (mapping) runs on every this many tracked frames after a keyframe,
+  // and always on a frame that makes a new keyframe (the widest baseline), >= 1. 1 = every frame.
+  int depth_update_interval = 1;
   // The tracker uses the keyframe's estimates with at least this many observations and at most this
   // relative standard deviation, >= 1 and > 0. On the 27 standard runs (with the re-propagation
   // below), 0.1 -> 0.05: 20 -> 21 runs within 1% ATE, median depth error 4.3 -> 3.95%; 0.03 was worse
@@ -238,9 +241,10 @@ struct SlamFrameResult {
   SlamState state = SlamState::kInitializing;
   // world_from_camera in the SLAM's world frame (the first keyframe's camera) and scale.
   Rigid3d world_from_camera;
-  bool new_keyframe = false;  // this frame became a keyframe
-  int keyframe_id = -1;       // the keyframe this frame was tracked against
-  std::string message;        // why, when kLost
+  bool new_keyframe = false;   // this frame became a keyframe
+  bool depth_updated = false;  // the keyframe's depth was updated by stereo with this frame
+  int keyframe_id = -1;        // the keyframe this frame was tracked against
+  std::string message;         // why, when kLost
 };
 
 // A keyframe handed to the dense stage once its depth map is final.
@@ -252,6 +256,23 @@ struct SlamKeyframe {
   Sim3d world_from_keyframe;
   cv::Mat rgb;            // CV_8UC3, the keyframe image
   InverseDepthMap depth;  // semi-dense, in the keyframe's camera, 1/SLAM unit
+};
+
+// Wall time (steady clock) spent in each part of ProcessFrame so far, seconds, and counts. Tracking
+// and mapping are the two halves the speed bar puts on separate cores: `tracking` is the frame's
+// alignment (retries included); mapping is `depth_update` (the stereo updates) plus `keyframes` (new
+// keyframes: propagation, the window adjustment, loop search; regularisation and the tracker's
+// refreshed copy of the depth between keyframes).
+struct SlamTimings {
+  double initialisation = 0;  // frames before the first keyframe is tracked (KLT, the first depth)
+  double tracking = 0;
+  double depth_update = 0;
+  double keyframes = 0;
+  double keyframe_adjustment = 0;  // part of `keyframes`: the window adjustment and re-propagation
+  double loop_search = 0;          // part of `keyframes` (or `relocalisation`): loop-closure alignments
+  double relocalisation = 0;       // lost frames' searches among the keyframes
+  int tracked_frames = 0;          // frames that reached the tracker
+  int depth_updates = 0;           // stereo updates of the current keyframe's depth
 };
 
 class SlamSystem {
@@ -301,6 +322,8 @@ class SlamSystem {
   int num_loop_closures() const;
   // Keyframe-window adjustments applied so far (SlamOptions::keyframe_adjustment).
   int num_keyframe_adjustments() const;
+  // Where ProcessFrame's time went so far.
+  SlamTimings timings() const;
 
  private:
   struct Impl;

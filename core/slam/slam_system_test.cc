@@ -277,19 +277,78 @@ TEST(SlamSystem, ReportsLossAndRecovers) {
     GTEST_SKIP() << "preset unavailable: " << why;
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, SlamOptions());
   ASSERT_TRUE(slam.ok()) << slam.status();
-  int i = 0;
-  for (; i < 40; ++i) ASSERT_TRUE((*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb).ok());
+  int i = 0, after_init = 0;  // ProcessFrame calls after the one that finished initialising
+  bool initialised = false;
+  for (; i < 40; ++i) {
+    StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
+    ASSERT_TRUE(f.ok()) << f.status();
+    after_init += initialised;
+    initialised = f->state != SlamState::kInitializing;
+  }
   ASSERT_EQ((*slam)->Trajectory().back().state, SlamState::kTracking) << (*slam)->Trajectory().back().message;
   const cv::Mat blank(r.frames[0].rgb.size(), CV_8UC3, cv::Scalar(0, 0, 0));
   StatusOr<SlamFrameResult> lost = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s + 0.001, blank);
   ASSERT_TRUE(lost.ok());
+  ++after_init;
   EXPECT_EQ(lost->state, SlamState::kLost);
   EXPECT_NE(lost->message.find("lost"), std::string::npos) << lost->message;
   for (; i < 50; ++i) {
     StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
     ASSERT_TRUE(f.ok());
+    ++after_init;
     EXPECT_EQ(f->state, SlamState::kTracking) << "frame " << i << ": " << f->message;
   }
+  // Every frame after initialisation reached the tracker (the blank one too); each tracked one updated
+  // the depth (depth_update_interval 1), the lost one did not.
+  const SlamTimings t = (*slam)->timings();
+  EXPECT_EQ(t.tracked_frames, after_init);
+  EXPECT_EQ(t.depth_updates, after_init - 1);
+  EXPECT_GT(t.tracking, 0);
+  EXPECT_GT(t.depth_update, 0);
+  EXPECT_GT(t.keyframes, 0);
+  EXPECT_GT(t.initialisation, 0);
+  EXPECT_LE(t.keyframe_adjustment + t.loop_search, t.keyframes + t.relocalisation);
+}
+
+// SlamOptions::depth_update_interval: the stereo update runs on every third frame after a keyframe and
+// on each frame that makes a keyframe; tracking goes on with every frame.
+TEST(SlamSystem, UpdatesTheDepthOnEveryNthFrame) {
+  Rendered r;
+  std::string why;
+  if (!Render("bunny-multicolor-forward", 40, /*supersampling=*/1, &r, &why))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  SlamOptions options;
+  options.depth_update_interval = 3;
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
+  ASSERT_TRUE(slam.ok()) << slam.status();
+  int updates = 0, tracked = 0, since_update = 0;
+  bool initialised = false;
+  for (int i = 0; i < 40; ++i) {
+    StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
+    ASSERT_TRUE(f.ok()) << f.status();
+    if (initialised) {
+      ASSERT_EQ(f->state, SlamState::kTracking) << "frame " << i << ": " << f->message;
+      ++tracked;
+      // A relocalised frame becomes a keyframe without an update.
+      const bool relocalised = f->message.find("relocalised") != std::string::npos;
+      if (f->new_keyframe && !relocalised) {
+        EXPECT_TRUE(f->depth_updated) << "frame " << i;
+      }
+      since_update = f->depth_updated || f->new_keyframe ? 0 : since_update + 1;
+      EXPECT_LT(since_update, 3) << "frame " << i;
+    } else {
+      EXPECT_FALSE(f->depth_updated);
+    }
+    updates += f->depth_updated;
+    initialised = f->state != SlamState::kInitializing;
+  }
+  ASSERT_TRUE(initialised);
+  const SlamTimings t = (*slam)->timings();
+  EXPECT_EQ(t.tracked_frames, tracked);
+  EXPECT_EQ(t.depth_updates, updates);
+  EXPECT_LT(updates, tracked * 2 / 3);
+  options.depth_update_interval = 0;
+  EXPECT_FALSE(SlamSystem::Create(r.setup.rig, options).ok());
 }
 
 // The first keyframe's depth against the truth: the tilt c of log(estimated / true inverse depth) =
