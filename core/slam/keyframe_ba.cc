@@ -113,11 +113,12 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // active[point * num_kf + target]
   std::vector<uint8_t> active(static_cast<size_t>(num_points) * num_kf, 1);
 
-  // Point in target t's camera, and the pieces for the Jacobians.
-  auto project = [&](const std::vector<Pose>& ps, int i, double r, int t, Eigen::Vector3d* pt) {
-    const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-    const Pose& h = ps[static_cast<size_t>(p.host)];
-    const Eigen::Vector3d x = h.centre + h.scale * (h.rotation * (ray[static_cast<size_t>(i)] / r));
+  // Point i in the world (once per point), then in target t's camera.
+  auto world_point = [&](const std::vector<Pose>& ps, int i, double r) -> Eigen::Vector3d {
+    const Pose& h = ps[static_cast<size_t>(problem->points[static_cast<size_t>(i)].host)];
+    return h.centre + h.scale * (h.rotation * (ray[static_cast<size_t>(i)] / r));
+  };
+  auto project = [&](const std::vector<Pose>& ps, const Eigen::Vector3d& x, int t, Eigen::Vector3d* pt) {
     *pt = ps[static_cast<size_t>(t)].rotation.transpose() * (x - ps[static_cast<size_t>(t)].centre);
     return pt->z() > 1e-9;
   };
@@ -143,10 +144,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     for (int i = 0; i < num_points; ++i) {
       const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
       if (!(rs[static_cast<size_t>(i)] > 0) || std::isnan(lint[static_cast<size_t>(i)])) continue;
+      const Eigen::Vector3d x = world_point(ps, i, rs[static_cast<size_t>(i)]);
       for (int t = 0; t < num_kf; ++t) {
         if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
         Eigen::Vector3d pt;
-        if (!project(ps, i, rs[static_cast<size_t>(i)], t, &pt)) continue;
+        if (!project(ps, x, t, &pt)) continue;
         const Eigen::Vector2d px = lcam.Project(pt);
         if (!lcam.InImage(px, border)) continue;
         double value;
@@ -164,7 +166,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   DirectBaSummary summary;
   int count = 0;
   double sq = 0;
-  evaluate(poses, rho, &count, &sq);
+  const double initial_cost = evaluate(poses, rho, &count, &sq);
   summary.initial_rms = count > 0 ? std::sqrt(sq / count) : 0;
 
   // Per point: the Hessian of its inverse depth, its gradient, and its coupling with the poses.
@@ -196,7 +198,9 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     const int rounds = level == 0 ? 2 : 1;
     for (int round = 0; round < rounds; ++round) {
       double lambda = 1e-3;
-      double cost = evaluate(poses, rho, &count, &sq);
+      // The first solve at full resolution without coarser levels starts where initial_cost was taken
+      // (the same poses, depths, intensities and residuals).
+      double cost = levels == 1 && round == 0 ? initial_cost : evaluate(poses, rho, &count, &sq);
       for (int it = 0; it < options.max_iterations; ++it) {
         ++summary.iterations;
         Eigen::MatrixXd hcc = Eigen::MatrixXd::Zero(dim, dim);
@@ -213,11 +217,12 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           if (r > 0 && !std::isnan(lint[static_cast<size_t>(i)])) {
             const Pose& h = poses[static_cast<size_t>(p.host)];
             const Eigen::Vector3d q = ray[static_cast<size_t>(i)] / r;  // host camera, host units
+            const Eigen::Vector3d x = world_point(poses, i, r);
             for (int t = 0; t < num_kf; ++t) {
               if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
               const Pose& tp = poses[static_cast<size_t>(t)];
               Eigen::Vector3d pt;
-              if (!project(poses, i, r, t, &pt)) continue;
+              if (!project(poses, x, t, &pt)) continue;
               const Eigen::Vector2d px = lcam.Project(pt);
               if (!lcam.InImage(px, border)) continue;
               double value;
@@ -257,10 +262,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
                 hc.segment<6>(o) += w * j_host.transpose() * j_rho;
                 point_touched[kh] = 1;
               }
+              // Off the diagonal only the block below it: the solve reads the lower triangle alone.
               if (kh > 0 && kt > 0) {
                 const int oh = 6 * (kh - 1), ot = 6 * (kt - 1);
-                hcc.block<6, 6>(oh, ot) += w * j_host.transpose() * j_target;
-                hcc.block<6, 6>(ot, oh) += w * j_target.transpose() * j_host;
+                if (oh > ot) hcc.block<6, 6>(oh, ot) += w * j_host.transpose() * j_target;
+                else hcc.block<6, 6>(ot, oh) += w * j_target.transpose() * j_host;
               }
             }
           }
@@ -335,10 +341,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       // Drop residuals above the outlier threshold, then solve again.
       for (int i = 0; i < num_points; ++i) {
         const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+        const Eigen::Vector3d x = world_point(poses, i, rho[static_cast<size_t>(i)]);
         for (int t = 0; t < num_kf; ++t) {
           if (t == p.host) continue;
           Eigen::Vector3d pt;
-          if (!project(poses, i, rho[static_cast<size_t>(i)], t, &pt)) continue;
+          if (!project(poses, x, t, &pt)) continue;
           const Eigen::Vector2d px = lcam.Project(pt);
           double value;
           if (!lcam.InImage(px, border) || !SampleValue((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value))
