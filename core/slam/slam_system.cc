@@ -571,7 +571,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
   Rigid3d guess = has_last ? last_frame_from_kf : Rigid3d();
   if (has_last && has_prev) guess = (last_frame_from_kf * prev_frame_from_kf.Inverse()) * last_frame_from_kf;
   ++timings.tracked_frames;
-  auto tracking_start = std::chrono::steady_clock::now();
+  const auto tracking_start = std::chrono::steady_clock::now();
   PRISM_ASSIGN_OR_RETURN(TrackingResult tr, tracker->Track(rgb, guess));
   const double mean_idepth_now = current_depth->MeanInverseDepth();
   const bool implausible = tr.ok && has_last && !PlausibleStep(tr.frame_from_keyframe, guess, mean_idepth_now);
