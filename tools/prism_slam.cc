@@ -336,7 +336,9 @@ int main(int argc, char** argv) {
        << ",\n  \"mapping_ms_per_tracked_frame\": "
        << 1000.0 * (timings.depth_update + timings.keyframes) / std::max(1, timings.tracked_frames)
        << ",\n  \"tracking_ms_per_tracked_frame\": " << 1000.0 * timings.tracking / std::max(1, timings.tracked_frames)
-       << ",\n  \"depth_updates\": " << timings.depth_updates << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds
+       << ",\n  \"depth_updates\": " << timings.depth_updates
+       << ",\n  \"depth_pixels_searched\": " << timings.depth_pixels_searched
+       << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds
        << ",\n  \"depth_refinement_ms\": " << 1000.0 * refine_seconds;
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())

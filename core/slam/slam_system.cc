@@ -659,7 +659,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     frames.back().result.depth_updated = true;
     cv::Mat j, mean;
     KeyframeDepth::NormalisedGrey(rgb, options.depth, &j, &mean);
-    current_depth->Update(j, tr.frame_from_keyframe, pool);
+    const DepthUpdateStats stats = current_depth->Update(j, tr.frame_from_keyframe, pool);
+    timings.depth_pixels_searched += stats.searched;
   }
 
   // New keyframe?

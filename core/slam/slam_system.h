@@ -275,11 +275,12 @@ struct SlamTimings {
   double tracking = 0;
   double depth_update = 0;
   double keyframes = 0;
-  double keyframe_adjustment = 0;  // part of `keyframes`: the window adjustment and re-propagation
-  double loop_search = 0;          // part of `keyframes` (or `relocalisation`): loop-closure alignments
-  double relocalisation = 0;       // lost frames' searches among the keyframes
-  int tracked_frames = 0;          // frames that reached the tracker
-  int depth_updates = 0;           // stereo updates of the current keyframe's depth
+  double keyframe_adjustment = 0;     // part of `keyframes`: the window adjustment and re-propagation
+  double loop_search = 0;             // part of `keyframes` (or `relocalisation`): loop-closure alignments
+  double relocalisation = 0;          // lost frames' searches among the keyframes
+  int tracked_frames = 0;             // frames that reached the tracker
+  int depth_updates = 0;              // stereo updates of the current keyframe's depth
+  int64_t depth_pixels_searched = 0;  // over those updates: epipolar searches
 };
 
 class SlamSystem {
