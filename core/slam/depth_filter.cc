@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 
 #include <opencv2/imgproc.hpp>
@@ -187,6 +188,28 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
   }
   kd.pixels_.assign(static_cast<size_t>(w) * h, Pixel{});
   return kd;
+}
+
+KeyframeDepth KeyframeDepth::Blank() const {
+  KeyframeDepth kd;
+  kd.camera_ = camera_;
+  kd.options_ = options_;
+  kd.rgb_ = rgb_;
+  kd.grey_j_ = grey_j_;
+  kd.grad_x_ = grad_x_;
+  kd.grad_y_ = grad_y_;
+  kd.candidate_ = candidate_;
+  kd.num_candidates_ = num_candidates_;
+  kd.pixels_.assign(pixels_.size(), Pixel{});
+  return kd;
+}
+
+bool KeyframeDepth::HasImage(const cv::Mat& rgb) const {
+  if (rgb.size() != rgb_.size() || rgb.type() != rgb_.type()) return false;
+  const size_t row_bytes = static_cast<size_t>(rgb.cols) * rgb.elemSize();
+  for (int y = 0; y < rgb.rows; ++y)
+    if (std::memcmp(rgb.ptr(y), rgb_.ptr(y), row_bytes) != 0) return false;
+  return true;
 }
 
 void KeyframeDepth::Seed(const cv::Mat& dense_inverse_depth, double relative_sigma, int observations) {
@@ -489,27 +512,43 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
 
 void KeyframeDepth::Regularise() {
   const int w = camera_.width, h = camera_.height;
-  std::vector<Pixel> out = pixels_;
+  // Scratch kept per thread (the copy and two weights per pixel, 20 bytes a pixel): no fresh pages
+  // per call.
+  thread_local std::vector<Pixel> out;
+  thread_local std::vector<float> inverse_var, weighted_idepth;
+  out.assign(pixels_.begin(), pixels_.end());
+  // Each estimate's weight 1 / var and weighted inverse depth idepth / var, once per pixel instead of
+  // once per neighbour (the same quotients).
+  inverse_var.resize(pixels_.size());
+  weighted_idepth.resize(pixels_.size());
+  for (size_t i = 0; i < pixels_.size(); ++i) {
+    const Pixel& q = pixels_[i];
+    if (!(q.var > 0) || q.observations == 0) continue;
+    inverse_var[i] = 1.0f / q.var;
+    weighted_idepth[i] = q.idepth / q.var;
+  }
   const float k2 = static_cast<float>(options_.regularise_sigmas * options_.regularise_sigmas);
   for (int y = 1; y < h - 1; ++y) {
     for (int x = 1; x < w - 1; ++x) {
-      const Pixel& p = pixels_[static_cast<size_t>(y) * w + x];
+      const size_t i = static_cast<size_t>(y) * w + x;
+      const Pixel& p = pixels_[i];
       if (!(p.var > 0) || p.observations == 0) continue;
-      float sw = 1.0f / p.var, swd = p.idepth / p.var;
+      float sw = inverse_var[i], swd = weighted_idepth[i];
       int agree = 0;
       for (int dy = -1; dy <= 1; ++dy) {
         for (int dx = -1; dx <= 1; ++dx) {
           if (!dx && !dy) continue;
-          const Pixel& q = pixels_[static_cast<size_t>(y + dy) * w + x + dx];
+          const size_t j = static_cast<size_t>(y + dy) * w + x + dx;
+          const Pixel& q = pixels_[j];
           if (!(q.var > 0) || q.observations == 0) continue;
           const float d = q.idepth - p.idepth;
           if (d * d > k2 * (p.var + q.var)) continue;
           ++agree;
-          sw += 1.0f / q.var;
-          swd += q.idepth / q.var;
+          sw += inverse_var[j];
+          swd += weighted_idepth[j];
         }
       }
-      Pixel& o = out[static_cast<size_t>(y) * w + x];
+      Pixel& o = out[i];
       if (agree < options_.min_neighbours) {
         o = Pixel{};
         continue;

@@ -108,6 +108,11 @@ class KeyframeDepth {
                                         const DepthFilterOptions& options,
                                         const Eigen::Matrix3d& crosstalk = Eigen::Matrix3d::Identity());
 
+  // A copy without estimates, as Create gives for the same image (the image-derived parts shared).
+  KeyframeDepth Blank() const;
+  // Whether rgb holds the same bytes as the image this was created from.
+  bool HasImage(const cv::Mat& rgb) const;
+
   // Seeds every candidate pixel (gradient, bright enough) where `dense_inverse_depth` (CV_32F, 0 = none)
   // is set, with the given relative standard deviation; counts as `observations` fused observations.
   void Seed(const cv::Mat& dense_inverse_depth, double relative_sigma, int observations);

@@ -197,8 +197,9 @@ struct SlamSystem::Impl {
   Status SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDepth& depth);
   // A new keyframe depth for `rgb`, propagated from `source` along this_from_source, once the frame
   // tracker has accepted it (FailedPrecondition otherwise; the tracker's keyframe is then unusable).
+  // `blank`: when given, a KeyframeDepth of the same image rgb (its Blank() replaces Create).
   StatusOr<KeyframeDepth> PropagateForTracking(const cv::Mat& rgb, const KeyframeDepth& source,
-                                               const Rigid3d& this_from_source);
+                                               const Rigid3d& this_from_source, const KeyframeDepth* blank = nullptr);
   bool Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index);
   void FinishCurrent();
   // Loop closure for finished keyframe `index` (see SlamOptions::loop_closure); re-optimises the pose
@@ -545,8 +546,11 @@ Status SlamSystem::Impl::SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDe
 }
 
 StatusOr<KeyframeDepth> SlamSystem::Impl::PropagateForTracking(const cv::Mat& rgb, const KeyframeDepth& source,
-                                                               const Rigid3d& this_from_source) {
-  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, KeyframeDepth::Create(rgb, rig.camera, options.depth, rig.crosstalk));
+                                                               const Rigid3d& this_from_source,
+                                                               const KeyframeDepth* blank) {
+  StatusOr<KeyframeDepth> created = blank ? StatusOr<KeyframeDepth>(blank->Blank())
+                                          : KeyframeDepth::Create(rgb, rig.camera, options.depth, rig.crosstalk);
+  PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, std::move(created));
   kd.PropagateFrom(source, this_from_source, options.new_pixel_relative_sigma);
   if (!SetTrackerKeyframe(rgb, kd).ok())
     return FailedPreconditionError("too few points with depth in the new keyframe");
@@ -934,7 +938,10 @@ void SlamSystem::Impl::RepropagateNewestKeyframe() {
   const Sim3d& b = newest.world_from_keyframe;
   const Eigen::Quaterniond a_inv = a.rotation.conjugate();
   const Rigid3d reference_from_newest(a_inv * b.rotation, a_inv * (b.translation - a.translation) / a.scale);
-  StatusOr<KeyframeDepth> kd = PropagateForTracking(newest.rgb, *source, reference_from_newest.Inverse());
+  // current_depth is the newest keyframe's (propagated into it along the tracked pose): its image parts
+  // are reused.
+  const KeyframeDepth* blank = current_depth && current_depth->HasImage(newest.rgb) ? current_depth.get() : nullptr;
+  StatusOr<KeyframeDepth> kd = PropagateForTracking(newest.rgb, *source, reference_from_newest.Inverse(), blank);
   if (!kd.ok()) {
     // Keep the depth propagated along the tracked pose; restore the tracker's copy of it.
     if (!RefreshTracker().ok()) {

@@ -21,6 +21,14 @@ using Matrix8d = Eigen::Matrix<double, kNumParams, kNumParams>;
 using Vector8d = Eigen::Matrix<double, kNumParams, 1>;
 
 // Grey = mean of the three channels, as float.
+// Whether two images of the same size and type hold the same bytes.
+bool SameBytes(const cv::Mat& a, const cv::Mat& b) {
+  const size_t row_bytes = a.cols * a.elemSize();
+  for (int y = 0; y < a.rows; ++y)
+    if (std::memcmp(a.ptr(y), b.ptr(y), row_bytes) != 0) return false;
+  return true;
+}
+
 void ToGrey(const cv::Mat& rgb, cv::Mat* grey) {
   grey->create(rgb.rows, rgb.cols, CV_32F);
   for (int y = 0; y < rgb.rows; ++y) {
@@ -527,57 +535,70 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
 
   TrackingKeyframe kf;
   kf.levels.resize(options_.pyramid_levels);
-  cv::Mat raw, raw_next;
-  ToGrey(rgb, &raw);
   const bool predict = options_.shading_model == ShadingModel::kPredictedShading;
-  cv::Mat colour, colour_next;
   // Grey share per light of a colour: (1/3) 1^T X diag(X^-1 c).
   Eigen::Matrix3f demix = Eigen::Matrix3f::Identity();
   Eigen::RowVector3f grey_of_light = Eigen::RowVector3f::Constant(1.0f / 3);
   std::unique_ptr<RigLights> lights;
   if (predict) {
-    rgb.convertTo(colour, CV_32FC3);
     demix = rig_.crosstalk.inverse().cast<float>();
     grey_of_light = rig_.crosstalk.colwise().sum().cast<float>() / 3.0f;
     lights = std::make_unique<RigLights>(rig_, static_cast<float>(options_.max_shading_ratio));
     lights->floor = static_cast<float>(options_.local_mean_floor);
   }
+  // The image's own pyramid (it depends on nothing else: the options and the rig are fixed): kept
+  // from the previous call when the image is the same, byte for byte (a refresh with new depth).
+  const bool same_image =
+      keyframe_image_.size() == rgb.size() && keyframe_image_.type() == rgb.type() && SameBytes(keyframe_image_, rgb);
+  if (!same_image) {
+    keyframe_image_ = rgb.clone();
+    keyframe_image_levels_.assign(static_cast<size_t>(options_.pyramid_levels), KeyframeImageLevel());
+    const int k = 2 * options_.local_mean_radius_px + 1;
+    for (int l = 0; l < options_.pyramid_levels; ++l) {
+      KeyframeImageLevel& im = keyframe_image_levels_[static_cast<size_t>(l)];
+      if (l == 0) {
+        ToGrey(rgb, &im.raw);
+        if (predict) rgb.convertTo(im.colour, CV_32FC3);
+      } else {
+        const KeyframeImageLevel& finer = keyframe_image_levels_[static_cast<size_t>(l - 1)];
+        Downsample(finer.raw, &im.raw);
+        if (predict) DownsampleRgb(finer.colour, &im.colour);
+      }
+      im.grey = im.raw.clone();
+      NormalizeShading(options_, &im.grey, &local_mean_);
+      // kPredictedShading: per pixel, each light's share of the raw grey level, box-averaged as the
+      // local mean (the frame's local mean is predicted from these).
+      if (predict) {
+        cv::Mat share[3];
+        for (int c = 0; c < 3; ++c) share[c].create(im.raw.size(), CV_32F);
+        for (int y = 0; y < im.raw.rows; ++y) {
+          const cv::Vec3f* c = im.colour.ptr<cv::Vec3f>(y);
+          for (int x = 0; x < im.raw.cols; ++x) {
+            const Eigen::Vector3f band = demix * Eigen::Vector3f(c[x][0], c[x][1], c[x][2]);
+            for (int j = 0; j < 3; ++j) share[j].at<float>(y, x) = grey_of_light[j] * band[j];
+          }
+        }
+        for (int c = 0; c < 3; ++c)
+          cv::blur(share[c], im.share_mean[c], cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+      }
+      cv::blur(im.raw, im.bright, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+    }
+  }
   for (int l = 0; l < options_.pyramid_levels; ++l) {
     TrackingKeyframe::Level& level = kf.levels[l];
     level.camera = LevelCamera(camera_, l);
     if (l > 0) {
-      Downsample(raw, &raw_next);
-      std::swap(raw, raw_next);
       cv::Mat idepth_next, var_next;
       DownsampleInverseDepth(idepth, var, &idepth_next, &var_next);
       idepth = idepth_next;
       var = var_next;
-      if (predict) {
-        DownsampleRgb(colour, &colour_next);
-        std::swap(colour, colour_next);
-      }
     }
-    const int k = 2 * options_.local_mean_radius_px + 1;
-    level.grey = raw.clone();
-    NormalizeShading(options_, &level.grey, &local_mean_);
-    // kPredictedShading: per pixel, each light's share of the raw grey level, box-averaged as the
-    // local mean (the frame's local mean is predicted from these).
-    cv::Mat share_mean[3];
-    if (predict) {
-      cv::Mat share[3];
-      for (int l = 0; l < 3; ++l) share[l].create(raw.size(), CV_32F);
-      for (int y = 0; y < raw.rows; ++y) {
-        const cv::Vec3f* c = colour.ptr<cv::Vec3f>(y);
-        for (int x = 0; x < raw.cols; ++x) {
-          const Eigen::Vector3f band = demix * Eigen::Vector3f(c[x][0], c[x][1], c[x][2]);
-          for (int l = 0; l < 3; ++l) share[l].at<float>(y, x) = grey_of_light[l] * band[l];
-        }
-      }
-      for (int l = 0; l < 3; ++l)
-        cv::blur(share[l], share_mean[l], cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
-    }
-    cv::Mat bright;
-    cv::blur(raw, bright, cv::Size(k, k), cv::Point(-1, -1), cv::BORDER_REFLECT);
+    const KeyframeImageLevel& im = keyframe_image_levels_[static_cast<size_t>(l)];
+    const cv::Mat& raw = im.raw;
+    const cv::Mat& colour = im.colour;
+    const cv::Mat& bright = im.bright;
+    const cv::Mat* share_mean = im.share_mean;
+    level.grey = im.grey;  // shared, read only
     // Grid selection: the strongest gradient per cell, above the threshold, with valid depth.
     const int w = level.grey.cols, h = level.grey.rows;
     const int cell = std::max(1, static_cast<int>(std::ceil(std::sqrt(double(w) * h / options_.max_points_per_level))));

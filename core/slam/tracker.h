@@ -206,6 +206,15 @@ class Tracker {
   // The current frame, per level: CV_32FC3 interleaved (intensity, d/du, d/dv). Reused between calls.
   std::vector<cv::Mat> frame_pyramid_;
   std::vector<cv::Mat> grey_pyramid_;
+  // The last keyframe image given to SetKeyframe and its pyramid (per level: grey level, the shading-
+  // normalised grey level, its box mean, and with kPredictedShading the colour and each light's share
+  // box-averaged), which depend on the image alone.
+  struct KeyframeImageLevel {
+    cv::Mat raw, grey, bright, colour;
+    cv::Mat share_mean[3];
+  };
+  cv::Mat keyframe_image_;
+  std::vector<KeyframeImageLevel> keyframe_image_levels_;
   cv::Mat local_mean_;                                      // scratch for the shading normalisation
   std::vector<internal::TrackerPointArrays> point_arrays_;  // per level
   internal::TrackerScratch scratch_;
