@@ -344,7 +344,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const float seed_max_rel_var =
       static_cast<float>(options_.seed_max_relative_sigma * options_.seed_max_relative_sigma);
 
-  auto project = [&](const Eigen::Vector3f& a, float rho, Eigen::Vector2f* out) {
+  auto project = [&](const Eigen::Vector3f& a, float rho, Eigen::Vector2f* out) __attribute__((always_inline)) {
     const Eigen::Vector3f q = a + rho * t;
     if (!(q.z() > 1e-6f)) return false;
     *out = Eigen::Vector2f(fx * q.x() / q.z() + cx, fy * q.y() / q.z() + cy);
@@ -425,8 +425,10 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       // Samples outside the frame are 0 and counted: outside_before[k] of the samples before k are
       // outside, so a position is scored only where its window has none (no test per tap, so the
       // scoring loop below vectorises; the same sums in the same order as one tap at a time).
-      samples.resize(static_cast<size_t>(num_samples));
-      outside_before.resize(static_cast<size_t>(num_samples) + 1);
+      // Grown only (every entry used below is written first): no refill per pixel.
+      if (samples.size() < static_cast<size_t>(num_samples)) samples.resize(static_cast<size_t>(num_samples));
+      if (outside_before.size() < static_cast<size_t>(num_samples) + 1)
+        outside_before.resize(static_cast<size_t>(num_samples) + 1);
       outside_before[0] = 0;
       for (int k = 0; k < num_samples; ++k) {
         const Eigen::Vector2f q = start + (static_cast<float>(k - 1 - kPatchHalf) * step) * e;
@@ -434,7 +436,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
         samples[static_cast<size_t>(k)] = inside ? frame_sampler.Sample(q.x(), q.y()) : 0.0f;
         outside_before[static_cast<size_t>(k) + 1] = outside_before[static_cast<size_t>(k)] + (inside ? 0 : 1);
       }
-      errors.resize(static_cast<size_t>(n) + 2);
+      if (errors.size() < static_cast<size_t>(n) + 2) errors.resize(static_cast<size_t>(n) + 2);
       ScorePositions(samples.data(), outside_before.data(), kq, n + 2, errors.data());
       int best = -1;
       float best_err = std::numeric_limits<float>::infinity();
@@ -461,7 +463,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
         const float denom = em - 2 * best_err + ep;
         if (denom > 1e-9f) offset = std::clamp(0.5f * (em - ep) / denom, -0.5f, 0.5f);
       }
-      auto rho_at = [&](const Eigen::Vector2f& q) {
+      auto rho_at = [&](const Eigen::Vector2f& q) __attribute__((always_inline)) {
         const float qx = (q.x() - cx) / fx, qy = (q.y() - cy) / fy;
         const float den_x = qx * t.z() - t.x(), den_y = qy * t.z() - t.y();
         if (std::abs(den_x) * fx > std::abs(den_y) * fy) return (a.x() - qx * a.z()) / den_x;
