@@ -175,6 +175,42 @@ INSTANTIATE_TEST_SUITE_P(
       return name;
     });
 
+// A keyframe's depth is refreshed every few frames while its image stays: the tracker keeps the image's
+// pyramid then, recognising the image by its bytes. A tracker given another image and depth first, then
+// this image (also rewritten in place in the same buffer, which must not reuse the stale pyramid), must
+// track exactly as a fresh tracker given only the last image and depth.
+TEST(TrackerTest, ANewDepthForTheSameImageTracksAsAFreshTracker) {
+  SynthSequence seq;
+  std::string why;
+  if (!MakeSequence("bunny-multicolor-forward", 320, 240, &seq, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  const synth::RenderedFrame key = seq.Render(0), other = seq.Render(12), frame = seq.Render(3);
+  const InverseDepthMap depth = GroundTruthInverseDepth(key.depth);
+  InverseDepthMap scaled;  // another depth for the same image
+  scaled.inverse_depth = depth.inverse_depth * 1.05;
+  scaled.variance = depth.variance * (1.05 * 1.05);
+  for (ShadingModel model : {ShadingModel::kLocalMeanNormalisation, ShadingModel::kPredictedShading}) {
+    TrackerOptions options;
+    options.shading_model = model;
+    StatusOr<Tracker> fresh = Tracker::Create(seq.setup.rig, options);
+    StatusOr<Tracker> reused = Tracker::Create(seq.setup.rig, options);
+    ASSERT_TRUE(fresh.ok() && reused.ok());
+    ASSERT_TRUE(fresh->SetKeyframe(key.rgb, scaled).ok());
+    cv::Mat buffer = other.rgb.clone();
+    ASSERT_TRUE(reused->SetKeyframe(buffer, GroundTruthInverseDepth(other.depth)).ok());
+    key.rgb.copyTo(buffer);  // the same buffer, now holding the keyframe's image
+    ASSERT_TRUE(reused->SetKeyframe(buffer, depth).ok());
+    ASSERT_TRUE(reused->SetKeyframe(buffer, scaled).ok());  // the refresh: same image, new depth
+    StatusOr<TrackingResult> a = fresh->Track(frame.rgb, Rigid3d());
+    StatusOr<TrackingResult> b = reused->Track(frame.rgb, Rigid3d());
+    ASSERT_TRUE(a.ok() && b.ok());
+    EXPECT_TRUE(a->ok);
+    EXPECT_EQ(a->frame_from_keyframe.translation, b->frame_from_keyframe.translation);
+    EXPECT_EQ(a->frame_from_keyframe.rotation.coeffs(), b->frame_from_keyframe.rotation.coeffs());
+    EXPECT_EQ(a->residual_rms, b->residual_rms);
+    EXPECT_EQ(a->iterations, b->iterations);
+  }
+}
+
 TEST(TrackerTest, RejectsInvalidInput) {
   SynthSequence seq;
   std::string why;
