@@ -231,6 +231,41 @@ TEST(KeyframeDepth, LightEdgesAreNotCandidates) {
   EXPECT_FALSE(KeyframeDepth::Create(f.rgb, seq.setup.rig.camera, with, Eigen::Matrix3d::Zero()).ok());
 }
 
+// Blank() is what Create gives for the same image: propagating into either gives the same estimates, to
+// the last bit, however much the depth Blank() was taken from had been estimated already.
+TEST(KeyframeDepth, BlankIsCreateOfTheSameImage) {
+  SynthSequence seq;
+  std::string why;
+  if (!MakeSequence("bunny-multicolor-forward", 40, &seq, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  const synth::RenderedFrame key = seq.Render(0), next = seq.Render(8);
+  const PinholeCamera& cam = seq.setup.rig.camera;
+  StatusOr<KeyframeDepth> source = KeyframeDepth::Create(key.rgb, cam, DepthFilterOptions());
+  StatusOr<KeyframeDepth> created = KeyframeDepth::Create(next.rgb, cam, DepthFilterOptions());
+  StatusOr<KeyframeDepth> used = KeyframeDepth::Create(next.rgb, cam, DepthFilterOptions());
+  ASSERT_TRUE(source.ok() && created.ok() && used.ok());
+  cv::Mat inverse_depth(key.depth.size(), CV_32F, cv::Scalar(0.0f));
+  for (int y = 0; y < key.depth.rows; ++y)
+    for (int x = 0; x < key.depth.cols; ++x)
+      if (key.depth.at<float>(y, x) > 0) inverse_depth.at<float>(y, x) = 1.0f / key.depth.at<float>(y, x);
+  source->Seed(inverse_depth, 0.05, 3);
+  used->Seed(inverse_depth, 0.05, 3);  // estimates that Blank() must drop
+  ASSERT_GT(used->NumValid(), 0);
+  EXPECT_TRUE(used->HasImage(next.rgb));
+  EXPECT_FALSE(used->HasImage(key.rgb));
+  KeyframeDepth blank = used->Blank();
+  EXPECT_EQ(blank.NumValid(), 0);
+  EXPECT_EQ(blank.MeanInverseDepth(), 0.0);
+  EXPECT_EQ(blank.NumCandidates(), created->NumCandidates());
+  const Rigid3d next_from_key = seq.FrameFromKeyframe(8, 0);
+  created->PropagateFrom(*source, next_from_key, 0.5);
+  blank.PropagateFrom(*source, next_from_key, 0.5);
+  const InverseDepthMap a = created->ToInverseDepthMap(0, 10.0), b = blank.ToInverseDepthMap(0, 10.0);
+  EXPECT_GT(created->NumValid(), 100);
+  EXPECT_EQ(cv::norm(a.inverse_depth, b.inverse_depth, cv::NORM_INF), 0.0);
+  EXPECT_EQ(cv::norm(a.variance, b.variance, cv::NORM_INF), 0.0);
+  EXPECT_EQ(created->MeanInverseDepth(), blank.MeanInverseDepth());
+}
+
 // The search covers the estimate +- search_sigmas standard deviations and the outlier gate is
 // outlier_sigmas of the combined deviation, so a match can only be an outlier when the search reaches past
 // the gate. Every pixel is seeded 40% too near (inverse depth x 1.4, 10% relative sigma, 3 observations):
