@@ -20,7 +20,6 @@ constexpr int kNumParams = 8;  // translation (3), rotation (3), affine a, affin
 using Matrix8d = Eigen::Matrix<double, kNumParams, kNumParams>;
 using Vector8d = Eigen::Matrix<double, kNumParams, 1>;
 
-// Grey = mean of the three channels, as float.
 // Whether two images of the same size and type hold the same bytes.
 bool SameBytes(const cv::Mat& a, const cv::Mat& b) {
   const size_t row_bytes = a.cols * a.elemSize();
@@ -29,6 +28,7 @@ bool SameBytes(const cv::Mat& a, const cv::Mat& b) {
   return true;
 }
 
+// Grey = mean of the three channels, as float.
 void ToGrey(const cv::Mat& rgb, cv::Mat* grey) {
   grey->create(rgb.rows, rgb.cols, CV_32F);
   for (int y = 0; y < rgb.rows; ++y) {
