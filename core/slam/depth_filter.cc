@@ -2,11 +2,11 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstring>
 #include <limits>
 
 #include <opencv2/imgproc.hpp>
 
+#include "core/slam/image_bytes.h"
 #include "core/util/thread_pool.h"
 
 namespace prism {
@@ -204,13 +204,7 @@ KeyframeDepth KeyframeDepth::Blank() const {
   return kd;
 }
 
-bool KeyframeDepth::HasImage(const cv::Mat& rgb) const {
-  if (rgb.size() != rgb_.size() || rgb.type() != rgb_.type()) return false;
-  const size_t row_bytes = static_cast<size_t>(rgb.cols) * rgb.elemSize();
-  for (int y = 0; y < rgb.rows; ++y)
-    if (std::memcmp(rgb.ptr(y), rgb_.ptr(y), row_bytes) != 0) return false;
-  return true;
-}
+bool KeyframeDepth::HasImage(const cv::Mat& rgb) const { return SameImageBytes(rgb, rgb_); }
 
 void KeyframeDepth::Seed(const cv::Mat& dense_inverse_depth, double relative_sigma, int observations) {
   for (int y = 0; y < candidate_.rows; ++y) {

@@ -11,6 +11,7 @@
 #include <Eigen/LU>
 #include <opencv2/imgproc.hpp>
 
+#include "core/slam/image_bytes.h"
 #include "core/util/check.h"
 
 namespace prism {
@@ -19,14 +20,6 @@ namespace {
 constexpr int kNumParams = 8;  // translation (3), rotation (3), affine a, affine b
 using Matrix8d = Eigen::Matrix<double, kNumParams, kNumParams>;
 using Vector8d = Eigen::Matrix<double, kNumParams, 1>;
-
-// Whether two images of the same size and type hold the same bytes.
-bool SameBytes(const cv::Mat& a, const cv::Mat& b) {
-  const size_t row_bytes = a.cols * a.elemSize();
-  for (int y = 0; y < a.rows; ++y)
-    if (std::memcmp(a.ptr(y), b.ptr(y), row_bytes) != 0) return false;
-  return true;
-}
 
 // Grey = mean of the three channels, as float.
 void ToGrey(const cv::Mat& rgb, cv::Mat* grey) {
@@ -548,9 +541,7 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
   }
   // The image's own pyramid (it depends on nothing else: the options and the rig are fixed): kept
   // from the previous call when the image is the same, byte for byte (a refresh with new depth).
-  const bool same_image =
-      keyframe_image_.size() == rgb.size() && keyframe_image_.type() == rgb.type() && SameBytes(keyframe_image_, rgb);
-  if (!same_image) {
+  if (!SameImageBytes(keyframe_image_, rgb)) {
     keyframe_image_ = rgb.clone();
     keyframe_image_levels_.assign(static_cast<size_t>(options_.pyramid_levels), KeyframeImageLevel());
     const int k = 2 * options_.local_mean_radius_px + 1;
