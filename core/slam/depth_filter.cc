@@ -166,7 +166,10 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
     return InvalidArgumentError("KeyframeDepth: the crosstalk matrix must be invertible for the light edges");
   // Empty when the light edges are off (no mask to allocate and read per keyframe).
   const cv::Mat light_edge = options.light_edge_radius_px > 0 ? LightEdgeMask(rgb, crosstalk, options) : cv::Mat();
+  auto candidates = std::make_shared<Candidates>();
+  candidates->row_begin.assign(static_cast<size_t>(h) + 1, 0);
   for (int y = 1; y < h - 1; ++y) {
+    candidates->row_begin[static_cast<size_t>(y)] = static_cast<uint32_t>(candidates->index.size());
     const float* up = kd.grey_j_.ptr<float>(y - 1);
     const float* row = kd.grey_j_.ptr<float>(y);
     const float* down = kd.grey_j_.ptr<float>(y + 1);
@@ -184,8 +187,13 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
       if (le && le[x]) continue;
       c[x] = 1;
       ++kd.num_candidates_;
+      candidates->index.push_back(static_cast<uint32_t>(y * w + x));
     }
   }
+  // Rows 0 and h - 1 hold none.
+  candidates->row_begin[static_cast<size_t>(h) - 1] = static_cast<uint32_t>(candidates->index.size());
+  candidates->row_begin[static_cast<size_t>(h)] = static_cast<uint32_t>(candidates->index.size());
+  kd.candidates_ = std::move(candidates);
   kd.pixels_.assign(static_cast<size_t>(w) * h, Pixel{});
   return kd;
 }
@@ -200,6 +208,7 @@ KeyframeDepth KeyframeDepth::Blank() const {
   kd.grad_y_ = grad_y_;
   kd.candidate_ = candidate_;
   kd.num_candidates_ = num_candidates_;
+  kd.candidates_ = candidates_;
   kd.pixels_.assign(pixels_.size(), Pixel{});
   return kd;
 }
@@ -207,14 +216,16 @@ KeyframeDepth KeyframeDepth::Blank() const {
 bool KeyframeDepth::HasImage(const cv::Mat& rgb) const { return SameImageBytes(rgb, rgb_); }
 
 void KeyframeDepth::Seed(const cv::Mat& dense_inverse_depth, double relative_sigma, int observations) {
+  const int w = candidate_.cols;
   for (int y = 0; y < candidate_.rows; ++y) {
-    const uint8_t* c = candidate_.ptr<uint8_t>(y);
     const float* d = dense_inverse_depth.ptr<float>(y);
-    for (int x = 0; x < candidate_.cols; ++x) {
-      if (!c[x] || !(d[x] > 0)) continue;
-      Pixel& p = pixels_[static_cast<size_t>(y) * candidate_.cols + x];
-      p.idepth = d[x];
-      const float s = static_cast<float>(relative_sigma) * d[x];
+    for (uint32_t k = candidates_->row_begin[y]; k < candidates_->row_begin[y + 1]; ++k) {
+      const uint32_t i = candidates_->index[k];
+      const float di = d[i - static_cast<uint32_t>(y * w)];
+      if (!(di > 0)) continue;
+      Pixel& p = pixels_[i];
+      p.idepth = di;
+      const float s = static_cast<float>(relative_sigma) * di;
       p.var = s * s;
       p.observations = static_cast<uint16_t>(observations);
       p.outliers = 0;
@@ -233,9 +244,12 @@ void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& 
   const float pfx = static_cast<float>(previous.camera_.fx), pfy = static_cast<float>(previous.camera_.fy);
   const float pcx = static_cast<float>(previous.camera_.cx), pcy = static_cast<float>(previous.camera_.cy);
   const float noise = static_cast<float>(options_.propagation_relative_sigma);
+  const int pw = previous.camera_.width;
   for (int y = 0; y < previous.camera_.height; ++y) {
-    for (int x = 0; x < previous.camera_.width; ++x) {
-      const Pixel& src = previous.pixels_[static_cast<size_t>(y) * previous.camera_.width + x];
+    for (uint32_t k = previous.candidates_->row_begin[y]; k < previous.candidates_->row_begin[y + 1]; ++k) {
+      const uint32_t i = previous.candidates_->index[k];
+      const int x = static_cast<int>(i) - y * pw;
+      const Pixel& src = previous.pixels_[i];
       if (!(src.var > 0) || src.observations == 0) continue;
       const Eigen::Vector3f ray((x - pcx) / pfx, (y - pcy) / pfy, 1.0f);
       const Eigen::Vector3f p = R * (ray / src.idepth) + t;
@@ -268,12 +282,9 @@ void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& 
   const double mean = mean_idepth_;
   if (mean > 0 && fill_relative_sigma > 0) {
     const float s = static_cast<float>(fill_relative_sigma * mean);
-    for (int y = 0; y < h; ++y) {
-      const uint8_t* c = candidate_.ptr<uint8_t>(y);
-      for (int x = 0; x < w; ++x) {
-        Pixel& p = pixels_[static_cast<size_t>(y) * w + x];
-        if (c[x] && !(p.var > 0)) p = Pixel{static_cast<float>(mean), s * s, 0, 0};
-      }
+    for (const uint32_t i : candidates_->index) {
+      Pixel& p = pixels_[i];
+      if (!(p.var > 0)) p = Pixel{static_cast<float>(mean), s * s, 0, 0};
     }
   }
 }
@@ -288,8 +299,8 @@ DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3
     // Only seeds: their mean.
     double s = 0;
     int n = 0;
-    for (const Pixel& p : pixels_)
-      if (p.var > 0) s += p.idepth, ++n;
+    for (const uint32_t i : candidates_->index)
+      if (pixels_[i].var > 0) s += pixels_[i].idepth, ++n;
     mean = n ? s / n : 0;
   }
   if (!(mean > 0)) return total;
@@ -348,13 +359,13 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const ImageSampler keyframe_sampler(grey_j_), frame_sampler(frame);
   std::vector<float> errors, samples;
   std::vector<int> outside_before;
+  const std::vector<uint32_t>& candidates = candidates_->index;
   for (int y = y0; y < y1; ++y) {
-    const uint8_t* cand = candidate_.ptr<uint8_t>(y);
     const float* gxr = grad_x_.ptr<float>(y);
     const float* gyr = grad_y_.ptr<float>(y);
-    for (int x = 0; x < w; ++x) {
-      if (!cand[x]) continue;
-      Pixel& px = pixels_[static_cast<size_t>(y) * w + x];
+    for (uint32_t k = candidates_->row_begin[y]; k < candidates_->row_begin[y + 1]; ++k) {
+      const int x = static_cast<int>(candidates[k]) - y * w;
+      Pixel& px = pixels_[candidates[k]];
       if (!(px.var > 0)) continue;
       const Eigen::Vector3f ray((x - cx) / fx, (y - cy) / fy, 1.0f);
       // Epipolar direction in the keyframe (towards the projection of the frame's centre).
@@ -508,26 +519,31 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
 
 void KeyframeDepth::Regularise() {
   const int w = camera_.width, h = camera_.height;
-  // Scratch kept per thread (the copy and two weights per pixel, 20 bytes a pixel): no fresh pages
-  // per call.
+  const std::vector<uint32_t>& candidates = candidates_->index;
+  // Scratch kept per thread (two weights per pixel and the new estimate per candidate): no fresh pages
+  // per call. Only candidates hold estimates, so only they are read and written.
   thread_local std::vector<Pixel> out;
   thread_local std::vector<float> inverse_var, weighted_idepth;
-  out.assign(pixels_.begin(), pixels_.end());
+  out.resize(candidates.size());
   // Each estimate's weight 1 / var and weighted inverse depth idepth / var, once per pixel instead of
-  // once per neighbour (the same quotients).
+  // once per neighbour (the same quotients). Entries of pixels without an estimate are never read.
   inverse_var.resize(pixels_.size());
   weighted_idepth.resize(pixels_.size());
-  for (size_t i = 0; i < pixels_.size(); ++i) {
+  for (const uint32_t i : candidates) {
     const Pixel& q = pixels_[i];
     if (!(q.var > 0) || q.observations == 0) continue;
     inverse_var[i] = 1.0f / q.var;
     weighted_idepth[i] = q.idepth / q.var;
   }
   const float k2 = static_cast<float>(options_.regularise_sigmas * options_.regularise_sigmas);
-  for (int y = 1; y < h - 1; ++y) {
-    for (int x = 1; x < w - 1; ++x) {
-      const size_t i = static_cast<size_t>(y) * w + x;
+  for (int y = 0; y < h; ++y) {
+    for (uint32_t k = candidates_->row_begin[y]; k < candidates_->row_begin[y + 1]; ++k) {
+      const size_t i = candidates[k];
+      const int x = static_cast<int>(i) - y * w;
       const Pixel& p = pixels_[i];
+      Pixel& o = out[k];
+      o = p;
+      if (y < 1 || y >= h - 1 || x < 1 || x >= w - 1) continue;  // the image's border is kept as it is
       if (!(p.var > 0) || p.observations == 0) continue;
       float sw = inverse_var[i], swd = weighted_idepth[i];
       int agree = 0;
@@ -544,7 +560,6 @@ void KeyframeDepth::Regularise() {
           swd += weighted_idepth[j];
         }
       }
-      Pixel& o = out[i];
       if (agree < options_.min_neighbours) {
         o = Pixel{};
         continue;
@@ -552,7 +567,7 @@ void KeyframeDepth::Regularise() {
       o.idepth = swd / sw;  // the variance is kept (the neighbours are not independent observations)
     }
   }
-  pixels_.swap(out);
+  for (size_t k = 0; k < candidates.size(); ++k) pixels_[candidates[k]] = out[k];
   mean_idepth_ = ComputeMeanInverseDepth();
 }
 
@@ -565,16 +580,14 @@ InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double ma
   m.inverse_depth = cv::Mat::zeros(camera_.height, camera_.width, CV_32F);
   m.variance = cv::Mat::zeros(camera_.height, camera_.width, CV_32F);
   const float r2 = static_cast<float>(max_relative_sigma * max_relative_sigma);
-  for (int y = 0; y < camera_.height; ++y) {
-    float* d = m.inverse_depth.ptr<float>(y);
-    float* v = m.variance.ptr<float>(y);
-    for (int x = 0; x < camera_.width; ++x) {
-      const Pixel& p = pixels_[static_cast<size_t>(y) * camera_.width + x];
-      if (!(p.var > 0) || p.observations < std::max(min_observations, 1)) continue;
-      if (p.var > r2 * p.idepth * p.idepth) continue;
-      d[x] = p.idepth;
-      v[x] = p.var;
-    }
+  float* d = m.inverse_depth.ptr<float>(0);  // both continuous (just created)
+  float* v = m.variance.ptr<float>(0);
+  for (const uint32_t i : candidates_->index) {
+    const Pixel& p = pixels_[i];
+    if (!(p.var > 0) || p.observations < std::max(min_observations, 1)) continue;
+    if (p.var > r2 * p.idepth * p.idepth) continue;
+    d[i] = p.idepth;
+    v[i] = p.var;
   }
   return m;
 }
@@ -582,7 +595,8 @@ InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double ma
 double KeyframeDepth::ComputeMeanInverseDepth() const {
   double s = 0;
   int n = 0;
-  for (const Pixel& p : pixels_) {
+  for (const uint32_t i : candidates_->index) {  // in image order, as a pass over every pixel
+    const Pixel& p = pixels_[i];
     if (p.var > 0 && p.observations > 0) s += p.idepth, ++n;
   }
   return n ? s / n : 0.0;
@@ -591,8 +605,10 @@ double KeyframeDepth::ComputeMeanInverseDepth() const {
 int KeyframeDepth::NumValid() const {
   const float r2 = static_cast<float>(options_.max_relative_sigma * options_.max_relative_sigma);
   int n = 0;
-  for (const Pixel& p : pixels_)
+  for (const uint32_t i : candidates_->index) {
+    const Pixel& p = pixels_[i];
     if (p.var > 0 && p.observations >= std::max(options_.min_observations, 1) && p.var <= r2 * p.idepth * p.idepth) ++n;
+  }
   return n;
 }
 

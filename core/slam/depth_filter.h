@@ -10,6 +10,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include <Eigen/Core>
@@ -171,6 +172,14 @@ class KeyframeDepth {
   cv::Mat grad_x_, grad_y_;
   cv::Mat candidate_;  // CV_8U, 1 = high-gradient bright pixel
   int num_candidates_ = 0;
+  // The candidate pixels' indices (y * width + x), ascending, and where each row's begin (height + 1
+  // entries); shared by Blank() copies. Only candidates ever hold an estimate, so the passes over the
+  // estimates visit these alone, in image order.
+  struct Candidates {
+    std::vector<uint32_t> index;
+    std::vector<uint32_t> row_begin;
+  };
+  std::shared_ptr<const Candidates> candidates_;
   std::vector<Pixel> pixels_;
   double mean_idepth_ = 0;  // MeanInverseDepth()
 };
