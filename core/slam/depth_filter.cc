@@ -7,6 +7,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "core/slam/image_bytes.h"
+#include "core/slam/line_sampler.h"
 #include "core/util/thread_pool.h"
 
 namespace prism {
@@ -356,7 +357,12 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
     return true;
   };
 
-  const ImageSampler keyframe_sampler(grey_j_), frame_sampler(frame);
+  const ImageSampler keyframe_sampler(grey_j_);
+  LineSamplerImage frame_image;
+  frame_image.data = frame.ptr<float>(0);
+  frame_image.stride = frame.step1();
+  frame_image.u_end = static_cast<float>(frame.cols - 1);
+  frame_image.v_end = static_cast<float>(frame.rows - 1);
   std::vector<float> errors, samples;
   std::vector<int> outside_before;
   const std::vector<uint32_t>& candidates = candidates_->index;
@@ -434,13 +440,15 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       if (samples.size() < static_cast<size_t>(num_samples)) samples.resize(static_cast<size_t>(num_samples));
       if (outside_before.size() < static_cast<size_t>(num_samples) + 1)
         outside_before.resize(static_cast<size_t>(num_samples) + 1);
-      outside_before[0] = 0;
-      for (int k = 0; k < num_samples; ++k) {
-        const Eigen::Vector2f q = start + (static_cast<float>(k - 1 - kPatchHalf) * step) * e;
-        const bool inside = frame_sampler.Inside(q.x(), q.y());
-        samples[static_cast<size_t>(k)] = inside ? frame_sampler.Sample(q.x(), q.y()) : 0.0f;
-        outside_before[static_cast<size_t>(k) + 1] = outside_before[static_cast<size_t>(k)] + (inside ? 0 : 1);
-      }
+      LineSamples line;
+      line.start_x = start.x();
+      line.start_y = start.y();
+      line.e_x = e.x();
+      line.e_y = e.y();
+      line.step = step;
+      line.k_offset = -1 - kPatchHalf;
+      line.num = num_samples;
+      SampleAlongLine(frame_image, line, samples.data(), outside_before.data());
       if (errors.size() < static_cast<size_t>(n) + 2) errors.resize(static_cast<size_t>(n) + 2);
       ScorePositions(samples.data(), outside_before.data(), kq, n + 2, errors.data());
       int best = -1;
