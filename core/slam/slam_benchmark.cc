@@ -1,19 +1,26 @@
 // The SLAM at 512x512 on this machine: build/bin/slam_benchmark
 //   BM_DepthUpdate: one stereo update of a keyframe's depth filter from a tracked frame (the mapping
 //                   work per frame), on 1 thread.
+//   BM_SampleAlongLine: the epipolar search's bilinear samples along a line (line_sampler.h), 70 per
+//                       line, random lines over a 512x512 image: the version this CPU runs (AVX2 when
+//                       present) against the portable one; the time per sample is the "ns_per_sample"
+//                       counter.
 //   BM_SlamSequence: the whole SlamSystem (initialisation, tracking, depth filter, keyframes, keyframe
 //                    adjustment) over 150 frames of a preset; the per-frame time is the "ms_per_frame"
 //                    counter (with and without the keyframe adjustment on the bunny).
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <map>
 #include <memory>
+#include <random>
 #include <string>
 #include <vector>
 
 #include <benchmark/benchmark.h>
 
 #include "core/slam/depth_filter.h"
+#include "core/slam/line_sampler.h"
 #include "core/slam/slam_system.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
@@ -80,6 +87,44 @@ BENCHMARK_CAPTURE(BM_DepthUpdate, bunny, std::string("bunny-multicolor-forward")
     ->Unit(benchmark::kMillisecond)
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
+
+void BM_SampleAlongLine(benchmark::State& state, bool portable) {
+  constexpr int kSize = 512, kLines = 1024, kSamples = 70;
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> value(0.0f, 255.0f), pos(40.0f, 470.0f), angle(0.0f, 6.2831853f);
+  std::vector<float> pixels(static_cast<size_t>(kSize) * kSize);
+  for (float& v : pixels) v = value(rng);
+  LineSamplerImage image;
+  image.data = pixels.data();
+  image.stride = kSize;
+  image.u_end = kSize - 1;
+  image.v_end = kSize - 1;
+  std::vector<LineSamples> lines(kLines);
+  for (LineSamples& l : lines) {
+    const float a = angle(rng);
+    l.start_x = pos(rng);
+    l.start_y = pos(rng);
+    l.e_x = std::cos(a);
+    l.e_y = std::sin(a);
+    l.step = 0.9f;
+    l.k_offset = -3;
+    l.num = kSamples;
+  }
+  std::vector<float> samples(kSamples);
+  std::vector<int> outside(kSamples + 1);
+  for (auto _ : state) {
+    for (const LineSamples& l : lines) {
+      if (portable) SampleAlongLinePortable(image, l, samples.data(), outside.data());
+      else SampleAlongLine(image, l, samples.data(), outside.data());
+      benchmark::DoNotOptimize(samples.data());
+    }
+  }
+  state.counters["ns_per_sample"] = benchmark::Counter(static_cast<double>(state.iterations()) * kLines * kSamples,
+                                                       benchmark::Counter::kIsRate | benchmark::Counter::kInvert);
+  state.SetLabel(portable ? "portable" : (LineSamplerUsesAvx2() ? "AVX2" : "portable (no AVX2 here)"));
+}
+BENCHMARK_CAPTURE(BM_SampleAlongLine, dispatched, false)->Repetitions(5)->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_SampleAlongLine, portable, true)->Repetitions(5)->ReportAggregatesOnly(true);
 
 void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment) {
   const Frames* f = GetFrames(preset);
