@@ -366,23 +366,51 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   std::vector<float> errors, samples;
   std::vector<int> outside_before;
   const std::vector<uint32_t>& candidates = candidates_->index;
+  // Per row, first for all its candidates at once (a loop that vectorises): the epipolar direction in
+  // the keyframe (unit, towards the projection of the frame's centre) and the cosine between it and
+  // the image gradient; then the search, one pixel at a time, where both pass.
+  std::vector<float> row_dk_x, row_dk_y, row_gcos;
+  std::vector<uint8_t> row_pass;
+  const float min_dk_norm = 1e-9f;
   for (int y = y0; y < y1; ++y) {
     const float* gxr = grad_x_.ptr<float>(y);
     const float* gyr = grad_y_.ptr<float>(y);
-    for (uint32_t k = candidates_->row_begin[y]; k < candidates_->row_begin[y + 1]; ++k) {
-      const int x = static_cast<int>(candidates[k]) - y * w;
-      Pixel& px = pixels_[candidates[k]];
-      if (!(px.var > 0)) continue;
-      const Eigen::Vector3f ray((x - cx) / fx, (y - cy) / fy, 1.0f);
-      // Epipolar direction in the keyframe (towards the projection of the frame's centre).
-      Eigen::Vector2f dk(fx * (c.x() - ray.x() * c.z()), fy * (c.y() - ray.y() * c.z()));
-      const float dk_norm = dk.norm();
-      if (!(dk_norm > 1e-9f)) continue;
-      dk /= dk_norm;
-      const Eigen::Vector2f g(gxr[x], gyr[x]);
-      const float g_norm = g.norm();
-      const float gcos = std::abs(g.dot(dk)) / std::max(g_norm, 1e-6f);
-      if (gcos < min_cos) continue;
+    const uint32_t k0 = candidates_->row_begin[y], k1 = candidates_->row_begin[y + 1];
+    const int n_row = static_cast<int>(k1 - k0);
+    if (row_dk_x.size() < static_cast<size_t>(n_row)) {
+      row_dk_x.resize(static_cast<size_t>(n_row));
+      row_dk_y.resize(static_cast<size_t>(n_row));
+      row_gcos.resize(static_cast<size_t>(n_row));
+      row_pass.resize(static_cast<size_t>(n_row));
+    }
+    const uint32_t* row_index = candidates.data() + k0;
+    const Pixel* pix = pixels_.data();
+    const float ray_y = (y - cy) / fy;
+    const float dk_y_unscaled = fy * (c.y() - ray_y * c.z());
+    const int row_offset = y * w;
+    // The operations of the one-pixel form (Eigen's norm and dot of 2-vectors in the same order).
+#pragma omp simd
+    for (int j = 0; j < n_row; ++j) {
+      const int x = static_cast<int>(row_index[j]) - row_offset;
+      const float ray_x = (static_cast<float>(x) - cx) / fx;
+      const float dkx = fx * (c.x() - ray_x * c.z()), dky = dk_y_unscaled;
+      const float dk_norm = std::sqrt(dkx * dkx + dky * dky);
+      const float ux = dkx / dk_norm, uy = dky / dk_norm;
+      const float gx = gxr[x], gy = gyr[x];
+      const float g_norm = std::sqrt(gx * gx + gy * gy);
+      const float gcos = std::abs(gx * ux + gy * uy) / std::max(g_norm, 1e-6f);
+      row_dk_x[j] = ux;
+      row_dk_y[j] = uy;
+      row_gcos[j] = gcos;
+      row_pass[j] = (pix[row_index[j]].var > 0) & (dk_norm > min_dk_norm) & !(gcos < min_cos);
+    }
+    for (int j = 0; j < n_row; ++j) {
+      if (!row_pass[j]) continue;
+      const int x = static_cast<int>(row_index[j]) - row_offset;
+      Pixel& px = pixels_[row_index[j]];
+      const Eigen::Vector3f ray((x - cx) / fx, ray_y, 1.0f);
+      const Eigen::Vector2f dk(row_dk_x[j], row_dk_y[j]);
+      const float gcos = row_gcos[j];
       // Keyframe patch along the line.
       float kp[2 * kPatchHalf + 1];
       if (!keyframe_sampler.Inside(x - kPatchHalf * std::abs(dk.x()) - 1, y - kPatchHalf * std::abs(dk.y()) - 1) ||
