@@ -1,6 +1,7 @@
 #include "core/slam/depth_filter.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 
@@ -350,13 +351,6 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const float seed_max_rel_var =
       static_cast<float>(options_.seed_max_relative_sigma * options_.seed_max_relative_sigma);
 
-  auto project = [&](const Eigen::Vector3f& a, float rho, Eigen::Vector2f* out) __attribute__((always_inline)) {
-    const Eigen::Vector3f q = a + rho * t;
-    if (!(q.z() > 1e-6f)) return false;
-    *out = Eigen::Vector2f(fx * q.x() / q.z() + cx, fy * q.y() / q.z() + cy);
-    return true;
-  };
-
   const ImageSampler keyframe_sampler(grey_j_);
   LineSamplerImage frame_image;
   frame_image.data = frame.ptr<float>(0);
@@ -370,7 +364,12 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   // the keyframe (unit, towards the projection of the frame's centre) and the cosine between it and
   // the image gradient; then the search, one pixel at a time, where both pass.
   std::vector<float> row_dk_x, row_dk_y, row_gcos;
-  std::vector<uint8_t> row_pass;
+  std::vector<uint8_t> row_pass, geo_ok;
+  std::vector<int> row_list;
+  std::vector<std::array<float, 12>> geo_values;
+  const float r00 = R(0, 0), r01 = R(0, 1), r02 = R(0, 2), r10 = R(1, 0), r11 = R(1, 1), r12 = R(1, 2);
+  const float r20 = R(2, 0), r21 = R(2, 1), r22 = R(2, 2);
+  const float tx = t.x(), ty = t.y(), tz = t.z();
   const float min_dk_norm = 1e-9f;
   for (int y = y0; y < y1; ++y) {
     const float* gxr = grad_x_.ptr<float>(y);
@@ -382,7 +381,11 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       row_dk_y.resize(static_cast<size_t>(n_row));
       row_gcos.resize(static_cast<size_t>(n_row));
       row_pass.resize(static_cast<size_t>(n_row));
+      row_list.resize(static_cast<size_t>(n_row));
+      geo_ok.resize(static_cast<size_t>(n_row));
+      geo_values.resize(static_cast<size_t>(n_row));
     }
+    std::array<float, 12>* geo = geo_values.data();
     const uint32_t* row_index = candidates.data() + k0;
     const Pixel* pix = pixels_.data();
     const float ray_y = (y - cy) / fy;
@@ -404,11 +407,63 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       row_gcos[j] = gcos;
       row_pass[j] = (pix[row_index[j]].var > 0) & (dk_norm > min_dk_norm) & !(gcos < min_cos);
     }
-    for (int j = 0; j < n_row; ++j) {
-      if (!row_pass[j]) continue;
+    // Those that pass, then for all of them at once (vectorised as above) the search interval's ends and
+    // centre projected into the frame (pa, pb, pm) and the keyframe step dk mapped into the frame (m),
+    // the operations of the one-pixel form (a = R ray summed as Eigen's product of fixed size does,
+    // R(i,0) x + (R(i,1) y + R(i,2) z) with z = 1; the projections as the `project` lambda was).
+    int n_pass = 0;
+    for (int j = 0; j < n_row; ++j)
+      if (row_pass[j]) row_list[static_cast<size_t>(n_pass++)] = j;
+    const int* list = row_list.data();
+#pragma omp simd
+    for (int l = 0; l < n_pass; ++l) {
+      const int j = list[l];
+      const int x = static_cast<int>(row_index[j]) - row_offset;
+      const float ray_x = (static_cast<float>(x) - cx) / fx;
+      const float ax = r00 * ray_x + (r01 * ray_y + r02 * 1.0f);
+      const float ay = r10 * ray_x + (r11 * ray_y + r12 * 1.0f);
+      const float az = r20 * ray_x + (r21 * ray_y + r22 * 1.0f);
+      const Pixel& pxl = pix[row_index[j]];
+      const float rho = pxl.idepth;
+      const float sigma = std::sqrt(pxl.var);
+      const float lo = std::max(rho - search_sigmas * sigma, 0.05f * rho);
+      float hi = rho + search_sigmas * sigma;
+      if (tz < 0) hi = std::min(hi, 0.99f * (-az / tz));
+      bool ok = hi > lo;
+      const float qax = ax + lo * tx, qay = ay + lo * ty, qaz = az + lo * tz;
+      const float qbx = ax + hi * tx, qby = ay + hi * ty, qbz = az + hi * tz;
+      const float qmx = ax + rho * tx, qmy = ay + rho * ty, qmz = az + rho * tz;
+      ok = ok & (qaz > 1e-6f) & (qbz > 1e-6f) & (qmz > 1e-6f);
+      const float pmx = fx * qmx / qmz + cx, pmy = fy * qmy / qmz + cy;
+      const float r2x = (static_cast<float>(x) + row_dk_x[j] - cx) / fx;
+      const float r2y = (static_cast<float>(y) + row_dk_y[j] - cy) / fy;
+      const float a2x = r00 * r2x + (r01 * r2y + r02 * 1.0f);
+      const float a2y = r10 * r2x + (r11 * r2y + r12 * 1.0f);
+      const float a2z = r20 * r2x + (r21 * r2y + r22 * 1.0f);
+      const float q2x = a2x + rho * tx, q2y = a2y + rho * ty, q2z = a2z + rho * tz;
+      ok = ok & (q2z > 1e-6f);
+      const float mx = (fx * q2x / q2z + cx) - pmx, my = (fy * q2y / q2z + cy) - pmy;
+      const float m_norm = std::sqrt(mx * mx + my * my);
+      ok = ok & !(m_norm < 0.4f || m_norm > 2.5f);
+      geo_ok[l] = ok;
+      geo[l][0] = fx * qax / qaz + cx;
+      geo[l][1] = fy * qay / qaz + cy;
+      geo[l][2] = fx * qbx / qbz + cx;
+      geo[l][3] = fy * qby / qbz + cy;
+      geo[l][4] = pmx;
+      geo[l][5] = pmy;
+      geo[l][6] = mx;
+      geo[l][7] = my;
+      geo[l][8] = m_norm;
+      geo[l][9] = ax;
+      geo[l][10] = ay;
+      geo[l][11] = az;
+    }
+    for (int l = 0; l < n_pass; ++l) {
+      if (!geo_ok[l]) continue;
+      const int j = list[l];
       const int x = static_cast<int>(row_index[j]) - row_offset;
       Pixel& px = pixels_[row_index[j]];
-      const Eigen::Vector3f ray((x - cx) / fx, ray_y, 1.0f);
       const Eigen::Vector2f dk(row_dk_x[j], row_dk_y[j]);
       const float gcos = row_gcos[j];
       // Keyframe patch along the line.
@@ -420,22 +475,11 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
         kp[i + kPatchHalf] = keyframe_sampler.Sample(x + i * dk.x(), y + i * dk.y());
       const float grad_along = 0.5f * (kp[kPatchHalf + 1] - kp[kPatchHalf - 1]);
 
-      const Eigen::Vector3f a = R * ray;
-      const float rho = px.idepth;
-      const float sigma = std::sqrt(px.var);
-      float lo = std::max(rho - search_sigmas * sigma, 0.05f * rho);
-      float hi = rho + search_sigmas * sigma;
-      if (t.z() < 0) hi = std::min(hi, 0.99f * (-a.z() / t.z()));
-      if (!(hi > lo)) continue;
-      Eigen::Vector2f pa, pb, pm;
-      if (!project(a, lo, &pa) || !project(a, hi, &pb) || !project(a, rho, &pm)) continue;
+      const Eigen::Vector3f a(geo[l][9], geo[l][10], geo[l][11]);
+      const Eigen::Vector2f pa(geo[l][0], geo[l][1]), pb(geo[l][2], geo[l][3]), pm(geo[l][4], geo[l][5]);
       // The keyframe step dk mapped into the frame (at the current estimate): the patch direction there.
-      const Eigen::Vector3f ray2((x + dk.x() - cx) / fx, (y + dk.y() - cy) / fy, 1.0f);
-      Eigen::Vector2f pm2;
-      if (!project(R * ray2, rho, &pm2)) continue;
-      const Eigen::Vector2f m = pm2 - pm;
-      const float m_norm = m.norm();
-      if (m_norm < 0.4f || m_norm > 2.5f) continue;
+      const Eigen::Vector2f m(geo[l][6], geo[l][7]);
+      const float m_norm = geo[l][8];
       Eigen::Vector2f seg = pb - pa;
       float len = seg.norm();
       Eigen::Vector2f e = len > 1e-6f ? Eigen::Vector2f(seg / len) : Eigen::Vector2f(m / m_norm);
