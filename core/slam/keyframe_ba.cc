@@ -34,15 +34,19 @@ double HuberCost(double e, double delta) { return e <= delta ? 0.5 * e * e : del
   if (!(x >= 1 && y >= 1 && x < img.cols - 2 && y < img.rows - 2)) return false;
   const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
   const double fx = x - x0, fy = y - y0;
-  auto at = [&](int yy, int xx) { return static_cast<double>(img.at<float>(yy, xx)); };
-  auto bil = [&](int yy, int xx) {
-    return (1 - fx) * (1 - fy) * at(yy, xx) + fx * (1 - fy) * at(yy, xx + 1) + (1 - fx) * fy * at(yy + 1, xx) +
-           fx * fy * at(yy + 1, xx + 1);
+  // Rows y0 - 1 .. y0 + 2 (the bounds test above keeps them and columns x0 - 1 .. x0 + 2 inside).
+  const float* rows[4] = {img.ptr<float>(y0 - 1), img.ptr<float>(y0), img.ptr<float>(y0 + 1), img.ptr<float>(y0 + 2)};
+  // The bilinear sample with top-left tap (row r of `rows`, column xx).
+  auto bil = [&](int r, int xx) __attribute__((always_inline)) {
+    const float* a = rows[r];
+    const float* b = rows[r + 1];
+    return (1 - fx) * (1 - fy) * static_cast<double>(a[xx]) + fx * (1 - fy) * static_cast<double>(a[xx + 1]) +
+           (1 - fx) * fy * static_cast<double>(b[xx]) + fx * fy * static_cast<double>(b[xx + 1]);
   };
-  *value = bil(y0, x0);
+  *value = bil(1, x0);
   // Central differences of the bilinear surface, sampled at the neighbours.
-  const double gx = 0.5 * (bil(y0, x0 + 1) - bil(y0, x0 - 1));
-  const double gy = 0.5 * (bil(y0 + 1, x0) - bil(y0 - 1, x0));
+  const double gx = 0.5 * (bil(1, x0 + 1) - bil(1, x0 - 1));
+  const double gy = 0.5 * (bil(2, x0) - bil(0, x0));
   *grad = Eigen::Vector2d(gx, gy);
   return true;
 }
