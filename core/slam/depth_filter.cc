@@ -362,7 +362,8 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const std::vector<uint32_t>& candidates = candidates_->index;
   // Per row, first for all its candidates at once (a loop that vectorises): the epipolar direction in
   // the keyframe (unit, towards the projection of the frame's centre) and the cosine between it and
-  // the image gradient; then the search, one pixel at a time, where both pass.
+  // the image gradient; then for those that pass, again at once, the search interval in the frame;
+  // then the searches, one pixel at a time.
   std::vector<float> row_dk_x, row_dk_y, row_gcos;
   std::vector<uint8_t> row_pass, geo_ok;
   std::vector<int> row_list;
