@@ -1,7 +1,6 @@
 #include "core/slam/depth_filter.h"
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <limits>
 
@@ -14,26 +13,15 @@
 namespace prism {
 namespace {
 
-// Bilinear samples of one float image, and whether (u, v) lies where they are defined; the image's
-// pointer, row stride and bounds are held in locals, not read from the cv::Mat header per sample.
-struct ImageSampler {
-  explicit ImageSampler(const cv::Mat& img)
-      : data(img.ptr<float>(0)),
-        stride(img.step1()),
-        u_end(static_cast<float>(img.cols - 1)),
-        v_end(static_cast<float>(img.rows - 1)) {}
-  bool Inside(float u, float v) const { return u >= 0 && v >= 0 && u < u_end && v < v_end; }
-  float Sample(float u, float v) const {
-    const int x0 = static_cast<int>(u), y0 = static_cast<int>(v);
-    const float fx = u - x0, fy = v - y0;
-    const float* r0 = data + static_cast<size_t>(y0) * stride;
-    const float* r1 = r0 + stride;
-    return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) + fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
-  }
-  const float* data;
-  size_t stride;
-  float u_end, v_end;
-};
+// A CV_32F image as the line sampler reads it.
+LineSamplerImage ViewOf(const cv::Mat& image) {
+  LineSamplerImage v;
+  v.data = image.ptr<float>(0);
+  v.stride = image.step1();
+  v.u_end = static_cast<float>(image.cols - 1);
+  v.v_end = static_cast<float>(image.rows - 1);
+  return v;
+}
 
 constexpr int kPatchHalf = 2;  // 5 samples
 
@@ -351,12 +339,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const float seed_max_rel_var =
       static_cast<float>(options_.seed_max_relative_sigma * options_.seed_max_relative_sigma);
 
-  const ImageSampler keyframe_sampler(grey_j_);
-  LineSamplerImage frame_image;
-  frame_image.data = frame.ptr<float>(0);
-  frame_image.stride = frame.step1();
-  frame_image.u_end = static_cast<float>(frame.cols - 1);
-  frame_image.v_end = static_cast<float>(frame.rows - 1);
+  const LineSamplerImage keyframe_image = ViewOf(grey_j_), frame_image = ViewOf(frame);
   std::vector<float> errors, samples;
   std::vector<int> outside_before;
   const std::vector<uint32_t>& candidates = candidates_->index;
@@ -367,7 +350,12 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   std::vector<float> row_dk_x, row_dk_y, row_gcos;
   std::vector<uint8_t> row_pass, geo_ok;
   std::vector<int> row_list;
-  std::vector<std::array<float, 12>> geo_values;
+  // Per passing candidate: the search interval's ends and centre in the frame, the keyframe step's
+  // image there and its length, and R ray.
+  struct SearchGeometry {
+    float pa_x, pa_y, pb_x, pb_y, pm_x, pm_y, m_x, m_y, m_norm, a_x, a_y, a_z;
+  };
+  std::vector<SearchGeometry> geo_values;
   const float r00 = R(0, 0), r01 = R(0, 1), r02 = R(0, 2), r10 = R(1, 0), r11 = R(1, 1), r12 = R(1, 2);
   const float r20 = R(2, 0), r21 = R(2, 1), r22 = R(2, 2);
   const float tx = t.x(), ty = t.y(), tz = t.z();
@@ -386,7 +374,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       geo_ok.resize(static_cast<size_t>(n_row));
       geo_values.resize(static_cast<size_t>(n_row));
     }
-    std::array<float, 12>* geo = geo_values.data();
+    SearchGeometry* geo = geo_values.data();
     const uint32_t* row_index = candidates.data() + k0;
     const Pixel* pix = pixels_.data();
     const float ray_y = (y - cy) / fy;
@@ -447,18 +435,18 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       const float m_norm = std::sqrt(mx * mx + my * my);
       ok = ok & !(m_norm < 0.4f || m_norm > 2.5f);
       geo_ok[l] = ok;
-      geo[l][0] = fx * qax / qaz + cx;
-      geo[l][1] = fy * qay / qaz + cy;
-      geo[l][2] = fx * qbx / qbz + cx;
-      geo[l][3] = fy * qby / qbz + cy;
-      geo[l][4] = pmx;
-      geo[l][5] = pmy;
-      geo[l][6] = mx;
-      geo[l][7] = my;
-      geo[l][8] = m_norm;
-      geo[l][9] = ax;
-      geo[l][10] = ay;
-      geo[l][11] = az;
+      geo[l].pa_x = fx * qax / qaz + cx;
+      geo[l].pa_y = fy * qay / qaz + cy;
+      geo[l].pb_x = fx * qbx / qbz + cx;
+      geo[l].pb_y = fy * qby / qbz + cy;
+      geo[l].pm_x = pmx;
+      geo[l].pm_y = pmy;
+      geo[l].m_x = mx;
+      geo[l].m_y = my;
+      geo[l].m_norm = m_norm;
+      geo[l].a_x = ax;
+      geo[l].a_y = ay;
+      geo[l].a_z = az;
     }
     for (int l = 0; l < n_pass; ++l) {
       if (!geo_ok[l]) continue;
@@ -469,18 +457,20 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       const float gcos = row_gcos[j];
       // Keyframe patch along the line.
       float kp[2 * kPatchHalf + 1];
-      if (!keyframe_sampler.Inside(x - kPatchHalf * std::abs(dk.x()) - 1, y - kPatchHalf * std::abs(dk.y()) - 1) ||
-          !keyframe_sampler.Inside(x + kPatchHalf * std::abs(dk.x()) + 1, y + kPatchHalf * std::abs(dk.y()) + 1))
+      if (!InsideForBilinear(keyframe_image, x - kPatchHalf * std::abs(dk.x()) - 1,
+                             y - kPatchHalf * std::abs(dk.y()) - 1) ||
+          !InsideForBilinear(keyframe_image, x + kPatchHalf * std::abs(dk.x()) + 1,
+                             y + kPatchHalf * std::abs(dk.y()) + 1))
         continue;
       for (int i = -kPatchHalf; i <= kPatchHalf; ++i)
-        kp[i + kPatchHalf] = keyframe_sampler.Sample(x + i * dk.x(), y + i * dk.y());
+        kp[i + kPatchHalf] = SampleBilinear(keyframe_image, x + i * dk.x(), y + i * dk.y());
       const float grad_along = 0.5f * (kp[kPatchHalf + 1] - kp[kPatchHalf - 1]);
 
-      const Eigen::Vector3f a(geo[l][9], geo[l][10], geo[l][11]);
-      const Eigen::Vector2f pa(geo[l][0], geo[l][1]), pb(geo[l][2], geo[l][3]), pm(geo[l][4], geo[l][5]);
+      const Eigen::Vector3f a(geo[l].a_x, geo[l].a_y, geo[l].a_z);
+      const Eigen::Vector2f pa(geo[l].pa_x, geo[l].pa_y), pb(geo[l].pb_x, geo[l].pb_y), pm(geo[l].pm_x, geo[l].pm_y);
       // The keyframe step dk mapped into the frame (at the current estimate): the patch direction there.
-      const Eigen::Vector2f m(geo[l][6], geo[l][7]);
-      const float m_norm = geo[l][8];
+      const Eigen::Vector2f m(geo[l].m_x, geo[l].m_y);
+      const float m_norm = geo[l].m_norm;
       Eigen::Vector2f seg = pb - pa;
       float len = seg.norm();
       Eigen::Vector2f e = len > 1e-6f ? Eigen::Vector2f(seg / len) : Eigen::Vector2f(m / m_norm);

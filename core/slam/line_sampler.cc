@@ -8,23 +8,14 @@
 namespace prism {
 namespace {
 
-// One point: the expression order of SampleAlongLinePortable and of the vector lanes below.
-inline float SampleOne(const LineSamplerImage& image, float u, float v) {
-  const int x0 = static_cast<int>(u), y0 = static_cast<int>(v);
-  const float fx = u - static_cast<float>(x0), fy = v - static_cast<float>(y0);
-  const float* r0 = image.data + static_cast<size_t>(y0) * image.stride;
-  const float* r1 = r0 + image.stride;
-  return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) + fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
-}
-
 // Points from k_begin on, one at a time; `outside` is the count before k_begin.
 inline void SampleRange(const LineSamplerImage& image, const LineSamples& line, int k_begin, int outside,
                         float* samples, int* outside_before) {
   for (int k = k_begin; k < line.num; ++k) {
     const float s = static_cast<float>(k + line.k_offset) * line.step;
     const float u = line.start_x + s * line.e_x, v = line.start_y + s * line.e_y;
-    const bool inside = u >= 0 && v >= 0 && u < image.u_end && v < image.v_end;
-    samples[k] = inside ? SampleOne(image, u, v) : 0.0f;
+    const bool inside = InsideForBilinear(image, u, v);
+    samples[k] = inside ? SampleBilinear(image, u, v) : 0.0f;
     outside += inside ? 0 : 1;
     outside_before[k + 1] = outside;
   }

@@ -15,6 +15,21 @@ struct LineSamplerImage {
   float u_end = 0, v_end = 0;
 };
 
+// Whether all four taps of a bilinear sample at (u, v) exist.
+inline bool InsideForBilinear(const LineSamplerImage& image, float u, float v) {
+  return u >= 0 && v >= 0 && u < image.u_end && v < image.v_end;
+}
+
+// The bilinear sample at (u, v) (InsideForBilinear must hold): the expression, in its order, that
+// every sample of this file evaluates.
+inline float SampleBilinear(const LineSamplerImage& image, float u, float v) {
+  const int x0 = static_cast<int>(u), y0 = static_cast<int>(v);
+  const float fx = u - static_cast<float>(x0), fy = v - static_cast<float>(y0);
+  const float* r0 = image.data + static_cast<size_t>(y0) * image.stride;
+  const float* r1 = r0 + image.stride;
+  return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) + fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
+}
+
 // For k = 0 .. num - 1 the point q_k = start + (float(k + k_offset) * step) * e, computed as
 // (start_x + s e_x, start_y + s e_y) with s = float(k + k_offset) * step. samples[k] is the bilinear
 // sample at q_k, 0 outside; outside_before[k] counts the points before k that are outside
