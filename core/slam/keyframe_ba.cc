@@ -63,7 +63,30 @@ double HuberCost(double e, double delta) { return e <= delta ? 0.5 * e * e : del
   return true;
 }
 
+// Sums of one (host, target) pair's residuals in the target pose's parameters: h (lower triangle) of
+// w j^T j and b of w j^T r.
+struct PairSums {
+  Eigen::Matrix<double, 6, 6> h = Eigen::Matrix<double, 6, 6>::Zero();
+  Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
+  bool used = false;
+};
+
 }  // namespace
+
+Eigen::Matrix<double, 6, 6> DirectBaHostFromTarget(const Eigen::Matrix3d& host_rotation,
+                                                   const Eigen::Vector3d& host_centre,
+                                                   const Eigen::Matrix3d& target_rotation,
+                                                   const Eigen::Vector3d& target_centre) {
+  // With x = c_h + s_h R_h q and p = R_t^T (x - c_t): d p / d w_h = -R_t^T Skew(x - c_h) R_h, and
+  // x - c_h = R_t p + c_t - c_h, so d p / d w_h = -Skew(p) R_t^T R_h + R_t^T Skew(c_h - c_t) R_h; with
+  // d p / d w_t = Skew(p) and d p / d c_t = -R_t^T that is (d p / d w_t) (-R_t^T R_h) +
+  // (d p / d c_t) (-Skew(c_h - c_t) R_h); and d p / d c_h = R_t^T = -(d p / d c_t).
+  Eigen::Matrix<double, 6, 6> a = Eigen::Matrix<double, 6, 6>::Zero();
+  a.block<3, 3>(0, 0) = -target_rotation.transpose() * host_rotation;
+  a.block<3, 3>(3, 0) = -Skew(host_centre - target_centre) * host_rotation;
+  a.block<3, 3>(3, 3) = -Eigen::Matrix3d::Identity();
+  return a;
+}
 
 Status DirectBaOptions::Check() const {
   std::ostringstream e;
@@ -149,22 +172,29 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   std::vector<float> lint(static_cast<size_t>(num_points));
   for (int i = 0; i < num_points; ++i) lint[static_cast<size_t>(i)] = problem->points[static_cast<size_t>(i)].intensity;
 
+  // The cost, target by target (each target's image read in about raster order).
+  std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
   auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq) {
     double cost = 0;
     *count = 0;
     *sq = 0;
-    for (int i = 0; i < num_points; ++i) {
-      const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-      if (!(rs[static_cast<size_t>(i)] > 0) || std::isnan(lint[static_cast<size_t>(i)])) continue;
-      const Eigen::Vector3d x = world_point(ps, i, rs[static_cast<size_t>(i)]);
-      for (int t = 0; t < num_kf; ++t) {
+    for (int i = 0; i < num_points; ++i)
+      if (rs[static_cast<size_t>(i)] > 0)
+        eval_world[static_cast<size_t>(i)] = world_point(ps, i, rs[static_cast<size_t>(i)]);
+    for (int t = 0; t < num_kf; ++t) {
+      const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
+      const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
+      const cv::Mat& image = (*limg)[static_cast<size_t>(t)];
+      for (int i = 0; i < num_points; ++i) {
+        const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+        if (!(rs[static_cast<size_t>(i)] > 0) || std::isnan(lint[static_cast<size_t>(i)])) continue;
         if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
-        Eigen::Vector3d pt;
-        if (!project(ps, x, t, &pt)) continue;
+        const Eigen::Vector3d pt = rt_t * (eval_world[static_cast<size_t>(i)] - c_t);
+        if (!(pt.z() > 1e-9)) continue;
         const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
         if (!lcam.InImage(px, border)) continue;
         double value;
-        if (!SampleValue((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value)) continue;
+        if (!SampleValue(image, px.x(), px.y(), &value)) continue;
         const double e = std::abs(value - lint[static_cast<size_t>(i)]);
         cost += HuberCost(e, options.huber);
         *sq += e * e;
@@ -188,6 +218,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // (a residual hosted or observed there); it is exactly zero elsewhere.
   std::vector<uint8_t> touched(static_cast<size_t>(num_points) * num_kf, 0);
   std::vector<int> segments;  // scratch: the offsets of a point's touched segments, ascending
+  std::vector<PairSums> pairs(static_cast<size_t>(num_kf * num_kf));    // [host * num_kf + target]
+  std::vector<Eigen::Vector3d> world(static_cast<size_t>(num_points));  // scratch: the points in the world
+  std::vector<uint8_t> point_ok(static_cast<size_t>(num_points));
+  std::vector<Eigen::Matrix3d> target_from_host(static_cast<size_t>(num_kf));
+  std::vector<double> hinv0(static_cast<size_t>(num_points)), hinv(static_cast<size_t>(num_points));
   for (int level = levels - 1; level >= 0; --level) {
     const double f = std::ldexp(1.0, -level);
     lcam = cam;
@@ -219,96 +254,133 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         Eigen::VectorXd bc = Eigen::VectorXd::Zero(dim);
         std::fill(hpp.begin(), hpp.end(), 0.0);
         std::fill(bp.begin(), bp.end(), 0.0);
+        // The points' world positions; then the residuals target by target (each target's image is read
+        // in about raster order: the points are in their hosts' raster order).
         for (int i = 0; i < num_points; ++i) {
-          const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+          hcp[static_cast<size_t>(i)].setZero();
+          std::fill(&touched[static_cast<size_t>(i) * num_kf], &touched[static_cast<size_t>(i) * num_kf] + num_kf, 0);
           const double r = rho[static_cast<size_t>(i)];
-          Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-          hc.setZero();
-          uint8_t* point_touched = &touched[static_cast<size_t>(i) * num_kf];
-          std::fill(point_touched, point_touched + num_kf, 0);
-          if (r > 0 && !std::isnan(lint[static_cast<size_t>(i)])) {
-            const Pose& h = poses[static_cast<size_t>(p.host)];
-            const Eigen::Vector3d q = ray[static_cast<size_t>(i)] / r;  // host camera, host units
-            const Eigen::Vector3d x = world_point(poses, i, r);
-            for (int t = 0; t < num_kf; ++t) {
-              if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
-              const Pose& tp = poses[static_cast<size_t>(t)];
-              Eigen::Vector3d pt;
-              if (!project(poses, x, t, &pt)) continue;
-              const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
-              if (!lcam.InImage(px, border)) continue;
-              double value;
-              Eigen::Vector2d g;
-              if (!SampleWithGradient((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value, &g)) continue;
-              const double res = value - lint[static_cast<size_t>(i)];
-              const double e = std::abs(res);
-              const double w = e <= options.huber ? 1.0 : options.huber / e;
-              const double iz = 1.0 / pt.z();
-              Eigen::Matrix<double, 2, 3> du_dp;
-              du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
-              const Eigen::RowVector3d j_pt = g.transpose() * du_dp;  // d residual / d point in target
-              const Eigen::Matrix3d rt_t = tp.rotation.transpose();
-              // Target pose: right rotation perturbation and centre.
-              Eigen::Matrix<double, 1, 6> j_target;
-              j_target.head<3>() = j_pt * Skew(pt);
-              j_target.tail<3>() = -j_pt * rt_t;
-              // Host pose: x = c_h + s_h R_h exp(w) q.
-              Eigen::Matrix<double, 1, 6> j_host;
-              j_host.head<3>() = -j_pt * rt_t * h.scale * h.rotation * Skew(q);
-              j_host.tail<3>() = j_pt * rt_t;
-              const double j_rho = j_pt * (rt_t * (h.scale * (h.rotation * (-ray[static_cast<size_t>(i)] / (r * r)))));
-              hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
-              bp[static_cast<size_t>(i)] += w * j_rho * res;
-              const int kh = p.host, kt = t;
-              if (kt > 0) {
-                const int o = 6 * (kt - 1);
-                hcc.block<6, 6>(o, o) += w * j_target.transpose() * j_target;
-                bc.segment<6>(o) += w * j_target.transpose() * res;
-                hc.segment<6>(o) += w * j_target.transpose() * j_rho;
-                point_touched[kt] = 1;
-              }
-              if (kh > 0) {
-                const int o = 6 * (kh - 1);
-                hcc.block<6, 6>(o, o) += w * j_host.transpose() * j_host;
-                bc.segment<6>(o) += w * j_host.transpose() * res;
-                hc.segment<6>(o) += w * j_host.transpose() * j_rho;
-                point_touched[kh] = 1;
-              }
-              // Off the diagonal only the block below it: the solve reads the lower triangle alone.
-              if (kh > 0 && kt > 0) {
-                const int oh = 6 * (kh - 1), ot = 6 * (kt - 1);
-                if (oh > ot) hcc.block<6, 6>(oh, ot) += w * j_host.transpose() * j_target;
-                else hcc.block<6, 6>(ot, oh) += w * j_target.transpose() * j_host;
-              }
+          point_ok[static_cast<size_t>(i)] = r > 0 && !std::isnan(lint[static_cast<size_t>(i)]);
+          if (point_ok[static_cast<size_t>(i)]) world[static_cast<size_t>(i)] = world_point(poses, i, r);
+        }
+        for (int t = 0; t < num_kf; ++t) {
+          const Pose& tp = poses[static_cast<size_t>(t)];
+          const Eigen::Matrix3d rt_t = tp.rotation.transpose();
+          // d (point in target) / d (point in host camera, host units), per host: R_t^T s_h R_h.
+          for (int k = 0; k < num_kf; ++k)
+            target_from_host[static_cast<size_t>(k)] =
+                rt_t * (poses[static_cast<size_t>(k)].scale * poses[static_cast<size_t>(k)].rotation);
+          const cv::Mat& image = (*limg)[static_cast<size_t>(t)];
+          for (int i = 0; i < num_points; ++i) {
+            const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+            if (!point_ok[static_cast<size_t>(i)] || t == p.host || !active[static_cast<size_t>(i) * num_kf + t])
+              continue;
+            const Eigen::Vector3d pt = rt_t * (world[static_cast<size_t>(i)] - tp.centre);
+            if (!(pt.z() > 1e-9)) continue;
+            const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
+            if (!lcam.InImage(px, border)) continue;
+            double value;
+            Eigen::Vector2d g;
+            if (!SampleWithGradient(image, px.x(), px.y(), &value, &g)) continue;
+            const double r = rho[static_cast<size_t>(i)];
+            const double res = value - lint[static_cast<size_t>(i)];
+            const double e = std::abs(res);
+            const double w = e <= options.huber ? 1.0 : options.huber / e;
+            const double iz = 1.0 / pt.z();
+            Eigen::Matrix<double, 2, 3> du_dp;
+            du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
+            const Eigen::RowVector3d j_pt = g.transpose() * du_dp;  // d residual / d point in target
+            // Target pose: right rotation perturbation and centre.
+            Eigen::Matrix<double, 1, 6> j_target;
+            j_target.head<3>() = j_pt * Skew(pt);
+            j_target.tail<3>() = -j_pt * rt_t;
+            // Host pose: x = c_h + s_h R_h exp(w) q with q = ray / rho; and rho.
+            const Eigen::RowVector3d j_q = j_pt * target_from_host[static_cast<size_t>(p.host)];
+            const Eigen::Vector3d& ray_i = ray[static_cast<size_t>(i)];
+            Eigen::Matrix<double, 1, 6> j_host;
+            j_host.head<3>() = -j_q * Skew(ray_i / r);
+            j_host.tail<3>() = -j_target.tail<3>();
+            const double j_rho = -j_q.dot(ray_i) / (r * r);
+            hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
+            bp[static_cast<size_t>(i)] += w * j_rho * res;
+            const int kh = p.host, kt = t;
+            // The pose blocks are accumulated per (host, target) pair in the target's parameters alone
+            // (lower triangle), and mapped to the host's after the loop (DirectBaHostFromTarget).
+            PairSums& pair = pairs[static_cast<size_t>(kh * num_kf + kt)];
+            const Eigen::Matrix<double, 1, 6> wj = w * j_target;
+            for (int c = 0; c < 6; ++c)
+              for (int rr = c; rr < 6; ++rr) pair.h(rr, c) += wj(rr) * j_target(c);
+            pair.b += wj.transpose() * res;
+            pair.used = true;
+            Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+            uint8_t* point_touched = &touched[static_cast<size_t>(i) * num_kf];
+            if (kt > 0) {
+              hc.segment<6>(6 * (kt - 1)) += wj.transpose() * j_rho;
+              point_touched[kt] = 1;
+            }
+            if (kh > 0) {
+              hc.segment<6>(6 * (kh - 1)) += w * j_host.transpose() * j_rho;
+              point_touched[kh] = 1;
             }
           }
         }
+        // Each pair's sums, in the target's parameters, and mapped to the host's: j_host = j_target A.
+        for (int kh = 0; kh < num_kf; ++kh)
+          for (int kt = 0; kt < num_kf; ++kt) {
+            PairSums& pair = pairs[static_cast<size_t>(kh * num_kf + kt)];
+            if (!pair.used) continue;
+            const Eigen::Matrix<double, 6, 6> h_tt = pair.h.selfadjointView<Eigen::Lower>();
+            const Eigen::Matrix<double, 6, 6> a =
+                DirectBaHostFromTarget(poses[static_cast<size_t>(kh)].rotation, poses[static_cast<size_t>(kh)].centre,
+                                       poses[static_cast<size_t>(kt)].rotation, poses[static_cast<size_t>(kt)].centre);
+            const int oh = 6 * (kh - 1), ot = 6 * (kt - 1);
+            if (kt > 0) {
+              hcc.block<6, 6>(ot, ot) += h_tt;
+              bc.segment<6>(ot) += pair.b;
+            }
+            if (kh > 0) {
+              const Eigen::Matrix<double, 6, 6> at_h = a.transpose() * h_tt;
+              hcc.block<6, 6>(oh, oh) += at_h * a;
+              bc.segment<6>(oh) += a.transpose() * pair.b;
+              // Off the diagonal only the block below it: the solve reads the lower triangle alone.
+              if (kt > 0) {
+                if (oh > ot) hcc.block<6, 6>(oh, ot) += at_h;
+                else hcc.block<6, 6>(ot, oh) += at_h.transpose();
+              }
+            }
+            pair = PairSums();
+          }
         hcc.block<3, 3>(3, 3) += gauge_weight * baseline * baseline.transpose();
         bc.segment<3>(3) += gauge_weight * baseline * baseline.dot(poses[1].centre - centre1_initial);
 
+        // The points' Schur complement at lambda = 0; damping scales every point's 1 / hpp by 1 / (1 + lambda),
+        // so each attempt below only rescales it.
+        Eigen::MatrixXd schur = Eigen::MatrixXd::Zero(dim, dim);  // lower block triangle
+        Eigen::VectorXd schur_b = Eigen::VectorXd::Zero(dim);
+        for (int i = 0; i < num_points; ++i) {
+          const double h = hpp[static_cast<size_t>(i)];
+          hinv0[static_cast<size_t>(i)] = h > 1e-12 ? 1.0 / h : 0.0;
+          if (hinv0[static_cast<size_t>(i)] == 0) continue;
+          const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+          // schur -= hc hc^T / h over the touched segments' blocks only (hc is zero elsewhere).
+          const double alpha = -hinv0[static_cast<size_t>(i)];
+          segments.clear();
+          for (int k = 1; k < num_kf; ++k)
+            if (touched[static_cast<size_t>(i) * num_kf + k]) segments.push_back(6 * (k - 1));
+          for (size_t cb = 0; cb < segments.size(); ++cb) {
+            const Eigen::Matrix<double, 6, 1> scaled = alpha * hc.segment<6>(segments[cb]);
+            for (size_t rb = cb; rb < segments.size(); ++rb)
+              schur.block<6, 6>(segments[rb], segments[cb]).noalias() +=
+                  hc.segment<6>(segments[rb]) * scaled.transpose();
+            schur_b.segment<6>(segments[cb]) += scaled * bp[static_cast<size_t>(i)];
+          }
+        }
         bool accepted = false;
         for (int attempt = 0; attempt < 8 && !accepted; ++attempt) {
-          Eigen::MatrixXd s = hcc;
-          Eigen::VectorXd b = bc;
-          std::vector<double> hinv(static_cast<size_t>(num_points), 0.0);
-          for (int i = 0; i < num_points; ++i) {
-            const double h = hpp[static_cast<size_t>(i)] * (1 + lambda);
-            if (!(h > 1e-12)) continue;
-            hinv[static_cast<size_t>(i)] = 1.0 / h;
-            const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-            // s -= hinv hc hc^T over the touched segments' blocks only (hc is zero elsewhere), lower block
-            // triangle: element (r, c) gets (alpha hc_c) hc_r, the product Eigen's rankUpdate adds.
-            const double alpha = -hinv[static_cast<size_t>(i)];
-            segments.clear();
-            for (int k = 1; k < num_kf; ++k)
-              if (touched[static_cast<size_t>(i) * num_kf + k]) segments.push_back(6 * (k - 1));
-            for (size_t cb = 0; cb < segments.size(); ++cb) {
-              const Eigen::Matrix<double, 6, 1> scaled = alpha * hc.segment<6>(segments[cb]);
-              for (size_t rb = cb; rb < segments.size(); ++rb)
-                s.block<6, 6>(segments[rb], segments[cb]).noalias() += hc.segment<6>(segments[rb]) * scaled.transpose();
-            }
-            b.noalias() -= hc * (hinv[static_cast<size_t>(i)] * bp[static_cast<size_t>(i)]);
-          }
+          const double damp = 1.0 / (1 + lambda);
+          Eigen::MatrixXd s = hcc + damp * schur;
+          const Eigen::VectorXd b = bc + damp * schur_b;
+          for (int i = 0; i < num_points; ++i) hinv[static_cast<size_t>(i)] = damp * hinv0[static_cast<size_t>(i)];
           for (int d = 0; d < dim; ++d) s(d, d) += lambda * std::max(1e-6, hcc(d, d));
           const Eigen::VectorXd dc = s.selfadjointView<Eigen::Lower>().ldlt().solve(-b);
           if (!dc.allFinite()) {

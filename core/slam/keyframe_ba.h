@@ -105,6 +105,17 @@ void SelectCellPoints(const cv::Mat& grey_j, const cv::Mat& inverse_depth, int h
   }
 }
 
+// The adjustment's parameters of a keyframe pose (world_from_keyframe with rotation R, centre c): a right
+// rotation perturbation R exp(w) and the centre, (w, c). For a point x of a host keyframe (x = c_h +
+// s_h R_h q, q fixed in the host's camera) seen in a target keyframe at p = R_t^T (x - c_t), the derivative
+// of p with respect to the host's parameters is the one with respect to the target's times this matrix:
+// d p / d host = (d p / d target) A. So every residual of a (host, target) pair is accumulated in the
+// target's parameters alone, and A maps the pair's sums to the host's.
+Eigen::Matrix<double, 6, 6> DirectBaHostFromTarget(const Eigen::Matrix3d& host_rotation,
+                                                   const Eigen::Vector3d& host_centre,
+                                                   const Eigen::Matrix3d& target_rotation,
+                                                   const Eigen::Vector3d& target_centre);
+
 // Fails on invalid options, fewer than 2 keyframes, a grey image of the wrong size or type, a point with
 // an out-of-range host or a non-positive inverse depth, or a camera with distortion.
 StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem);

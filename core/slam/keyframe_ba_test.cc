@@ -148,6 +148,46 @@ INSTANTIATE_TEST_SUITE_P(Presets, KeyframeBaPresetTest,
                            return n;
                          });
 
+// A point of a host keyframe in a target keyframe's camera, with both poses perturbed as the adjustment
+// perturbs them: R exp(w) and c + dc; d = (w_h, dc_h, w_t, dc_t).
+Eigen::Vector3d PointInTarget(const Sim3d& host, const Sim3d& target, const Eigen::Vector3d& q,
+                              const Eigen::Matrix<double, 12, 1>& d) {
+  auto exp = [](const Eigen::Vector3d& w) {
+    const double angle = w.norm();
+    return angle > 0 ? Eigen::Matrix3d(Eigen::AngleAxisd(angle, w / angle)) : Eigen::Matrix3d::Identity();
+  };
+  const Eigen::Matrix3d r_h = host.rotation.toRotationMatrix() * exp(d.segment<3>(0));
+  const Eigen::Matrix3d r_t = target.rotation.toRotationMatrix() * exp(d.segment<3>(6));
+  const Eigen::Vector3d x = host.translation + d.segment<3>(3) + host.scale * (r_h * q);
+  return r_t.transpose() * (x - (target.translation + d.segment<3>(9)));
+}
+
+// Tolerance of the central differences below (step 1e-6 on values of order 1).
+constexpr double kMaxJacobianError = 1e-7;
+
+TEST(KeyframeBa, HostJacobianIsTheTargetJacobianTimesTheMap) {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  auto random_pose = [&](double scale) {
+    const Eigen::Vector3d axis = Eigen::Vector3d(u(rng), u(rng), u(rng)).normalized();
+    return Sim3d(scale, Eigen::Quaterniond(Eigen::AngleAxisd(u(rng), axis)), Eigen::Vector3d(u(rng), u(rng), u(rng)));
+  };
+  for (int trial = 0; trial < 20; ++trial) {
+    const Sim3d host = random_pose(0.5 + 0.5 * (u(rng) + 1)), target = random_pose(1.0);
+    const Eigen::Vector3d q(u(rng), u(rng), 2 + u(rng));
+    Eigen::Matrix<double, 3, 12> j;
+    for (int c = 0; c < 12; ++c) {
+      Eigen::Matrix<double, 12, 1> d = Eigen::Matrix<double, 12, 1>::Zero();
+      d(c) = 1e-6;
+      j.col(c) = (PointInTarget(host, target, q, d) - PointInTarget(host, target, q, -d)) / 2e-6;
+    }
+    const Eigen::Matrix<double, 6, 6> a = DirectBaHostFromTarget(
+        host.rotation.toRotationMatrix(), host.translation, target.rotation.toRotationMatrix(), target.translation);
+    const Eigen::Matrix<double, 3, 6> j_host = j.leftCols<6>(), j_target = j.rightCols<6>();
+    EXPECT_LT((j_host - j_target * a).norm(), kMaxJacobianError * std::max(1.0, j_host.norm())) << "trial " << trial;
+  }
+}
+
 TEST(KeyframeBa, RejectsBadInput) {
   DirectBaProblem p;
   p.camera = PinholeCamera::FromFov(64, 48, 60.0);

@@ -153,6 +153,10 @@ struct SlamSystem::Impl {
     cv::Mat rgb;
     InverseDepthMap final_depth;  // set when finished
     cv::Mat grey_j;               // shading-normalised grey, for the keyframe adjustment (on demand)
+    // The keyframe adjustment's points of a finished keyframe (host 0): they depend only on grey_j and
+    // final_depth, so they are selected once; cleared when final_depth is replaced.
+    std::vector<DirectBaPoint> window_points;
+    bool has_window_points = false;
     bool finished = false;
     bool handed_out = false;
   };
@@ -857,7 +861,12 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   // Keyframes that left the window are not adjusted again until the final adjustment (which recomputes
   // them): drop their normalised images (1 MB each at 512x512, which would otherwise grow with the
   // session).
-  for (int k = 0; k < first; ++k) keyframes[static_cast<size_t>(k)].grey_j.release();
+  for (int k = 0; k < first; ++k) {
+    Keyframe& kf = keyframes[static_cast<size_t>(k)];
+    kf.grey_j.release();
+    std::vector<DirectBaPoint>().swap(kf.window_points);
+    kf.has_window_points = false;
+  }
   const PinholeCamera& cam = rig.camera;
   DirectBaProblem problem;
   problem.camera = cam;
@@ -878,11 +887,25 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     const cv::Mat& d = maps[static_cast<size_t>(k)].inverse_depth;
     const cv::Mat& var = maps[static_cast<size_t>(k)].variance;
     if (d.empty()) continue;
+    Keyframe& kf = keyframes[static_cast<size_t>(first + k)];
+    if (kf.finished && kf.has_window_points) {
+      for (DirectBaPoint p : kf.window_points) {
+        p.host = k;
+        problem.points.push_back(p);
+      }
+      continue;
+    }
+    const size_t begin = problem.points.size();
     const double max_sigma = options.tracking_max_relative_sigma;
     SelectCellPoints(
         problem.grey_j[static_cast<size_t>(k)], d, k, options.keyframe_window_cell_px, 0.0f,
         [&](int x, int y) { return var.empty() || std::sqrt(var.at<float>(y, x)) <= max_sigma * d.at<float>(y, x); },
         &problem.points);
+    if (kf.finished) {
+      kf.window_points.assign(problem.points.begin() + static_cast<std::ptrdiff_t>(begin), problem.points.end());
+      for (DirectBaPoint& p : kf.window_points) p.host = 0;
+      kf.has_window_points = true;
+    }
   }
   if (static_cast<int>(problem.points.size()) < options.keyframe_window_min_points) return;
   std::vector<float> initial_inverse_depth;
@@ -1114,7 +1137,12 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
       kd->Regularise();
       out.depth = kd->ToInverseDepthMap();
       // Only a neighbour's image is used above, not its depth: the order does not matter.
-      if (m.keyframes[static_cast<size_t>(id)].finished) m.keyframes[static_cast<size_t>(id)].final_depth = out.depth;
+      Impl::Keyframe& refined = m.keyframes[static_cast<size_t>(id)];
+      if (refined.finished) {
+        refined.final_depth = out.depth;
+        refined.window_points.clear();
+        refined.has_window_points = false;
+      }
     }
   }
 }
