@@ -88,6 +88,27 @@ Eigen::Matrix<double, 6, 6> DirectBaHostFromTarget(const Eigen::Matrix3d& host_r
   return a;
 }
 
+double DepthOverlapFraction(const PinholeCamera& camera, const cv::Mat& inverse_depth, const Sim3d& world_from_a,
+                            const Sim3d& world_from_b, int step) {
+  if (inverse_depth.empty() || step < 1) return 1.0;
+  // b_from_a in a's depth units: R_b^T R_a X + R_b^T (c_a - c_b) / s_a (the projection does not depend on
+  // the unit).
+  const Eigen::Matrix3d rb_t = world_from_b.rotation.toRotationMatrix().transpose();
+  const Eigen::Matrix3d r = rb_t * world_from_a.rotation.toRotationMatrix();
+  const Eigen::Vector3d t = rb_t * (world_from_a.translation - world_from_b.translation) / world_from_a.scale;
+  int total = 0, inside = 0;
+  for (int y = 0; y < inverse_depth.rows; y += step) {
+    const float* row = inverse_depth.ptr<float>(y);
+    for (int x = 0; x < inverse_depth.cols; x += step) {
+      if (!(row[x] > 0)) continue;
+      ++total;
+      const Eigen::Vector3d p = r * (camera.Unproject(Eigen::Vector2d(x, y)) / row[x]) + t;
+      if (p.z() > 0 && camera.InImage(camera.Project(p))) ++inside;
+    }
+  }
+  return total > 0 ? static_cast<double>(inside) / total : 1.0;
+}
+
 Status DirectBaOptions::Check() const {
   std::ostringstream e;
   if (max_iterations < 1 || max_iterations > 100)

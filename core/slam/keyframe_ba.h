@@ -116,6 +116,12 @@ Eigen::Matrix<double, 6, 6> DirectBaHostFromTarget(const Eigen::Matrix3d& host_r
                                                    const Eigen::Matrix3d& target_rotation,
                                                    const Eigen::Vector3d& target_centre);
 
+// The fraction of a keyframe's depth that keyframe b sees: of the pixels of inverse_depth (CV_32F, the
+// camera's size; every step-th pixel in each direction) with an inverse depth > 0, in keyframe a's depth
+// units, those that project in front of camera b and inside its image. 1 when no pixel has a depth.
+double DepthOverlapFraction(const PinholeCamera& camera, const cv::Mat& inverse_depth, const Sim3d& world_from_a,
+                            const Sim3d& world_from_b, int step);
+
 // Fails on invalid options, fewer than 2 keyframes, a grey image of the wrong size or type, a point with
 // an out-of-range host or a non-positive inverse depth, or a camera with distortion.
 StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem);

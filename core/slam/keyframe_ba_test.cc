@@ -188,6 +188,30 @@ TEST(KeyframeBa, HostJacobianIsTheTargetJacobianTimesTheMap) {
   }
 }
 
+TEST(KeyframeBa, DepthOverlapFractionOfAPlaneSeenFromAShiftedCamera) {
+  // A fronto-parallel plane 2 units in front of keyframe a; its image spans x in [-2, 2] on the plane
+  // (fx = width / 2). Keyframe b moved sideways by 1 sees 3/4 of it.
+  PinholeCamera cam;
+  cam.width = 64;
+  cam.height = 48;
+  cam.fx = cam.fy = 32;
+  cam.cx = 31.5;
+  cam.cy = 23.5;
+  const cv::Mat plane(cam.height, cam.width, CV_32F, cv::Scalar(0.5f));
+  const Sim3d a(1.0, Eigen::Quaterniond::Identity(), Eigen::Vector3d(1, 2, 3));
+  EXPECT_EQ(DepthOverlapFraction(cam, plane, a, a, 1), 1.0);
+  const Sim3d b(1.0, Eigen::Quaterniond::Identity(), Eigen::Vector3d(2, 2, 3));
+  EXPECT_NEAR(DepthOverlapFraction(cam, plane, a, b, 1), 0.75, 0.02);
+  // In a's units: with a's unit twice the world's, b's shift is 0.5 of a's units.
+  const Sim3d a2(2.0, a.rotation, a.translation);
+  EXPECT_NEAR(DepthOverlapFraction(cam, plane, a2, b, 1), 0.875, 0.02);
+  // Turned away by 180 degrees: nothing is in front of b.
+  const Sim3d behind(1.0, Eigen::Quaterniond(Eigen::AngleAxisd(M_PI, Eigen::Vector3d::UnitY())), a.translation);
+  EXPECT_EQ(DepthOverlapFraction(cam, plane, a, behind, 4), 0.0);
+  // No depth at all: nothing to lose.
+  EXPECT_EQ(DepthOverlapFraction(cam, cv::Mat::zeros(cam.height, cam.width, CV_32F), a, behind, 4), 1.0);
+}
+
 TEST(KeyframeBa, RejectsBadInput) {
   DirectBaProblem p;
   p.camera = PinholeCamera::FromFov(64, 48, 60.0);

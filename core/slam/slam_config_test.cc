@@ -74,13 +74,13 @@ TEST(SlamConfigTest, CommentsBlankLinesDashesAndBooleanSpellings) {
       "  loop-closure = off   # trailing comment\n"
       "tracker.estimate-affine-brightness=yes\n"
       "final_adjustment = 0\n"
-      "keyframe_window = 8\n"
+      "keyframe_window = 9\n"
       "depth.max_search_px = 48\r\n";
   ASSERT_TRUE(ApplySlamConfig(text, "t", &o).ok()) << ApplySlamConfig(text, "t", &o);
   EXPECT_FALSE(o.loop_closure);
   EXPECT_TRUE(o.tracker.estimate_affine_brightness);
   EXPECT_FALSE(o.final_adjustment);
-  EXPECT_EQ(o.keyframe_window, 8);
+  EXPECT_EQ(o.keyframe_window, 9);
   EXPECT_EQ(o.depth.max_search_px, 48);
 }
 
@@ -103,6 +103,7 @@ TEST(SlamConfigTest, BadInputIsRefusedWithItsLineAndLeavesTheOptionsUnchanged) {
       {"loop_closure = false\nloop-closure = true\n", "cfg:2: SLAM option 'loop_closure' given twice"},
       // Every value parses, but the options fail their own check.
       {"keyframe_window = 2\n", "cfg: SlamOptions: keyframe_window must be >= 3"},
+      {"keyframe_window_min_overlap = 1.5\n", "keyframe_window_min_overlap must be in [0, 1]"},
       {"init_min_frames = 20\ninit_max_frames = 10\n", "init_max_frames must be >= init_min_frames"},
       {"init_rounds = 0\n", "init_rounds must be in [1, 10]"},
       {"final_refinement_neighbours = 6\n", "final_refinement_neighbours must be in [0, 5]"},

@@ -103,6 +103,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: max_step_rotation_deg and max_step_translation_fraction must be > 0");
   if (keyframe_window < 3) return InvalidArgumentError("SlamOptions: keyframe_window must be >= 3");
   if (keyframe_window_cell_px < 4) return InvalidArgumentError("SlamOptions: keyframe_window_cell_px must be >= 4");
+  if (!(keyframe_window_min_overlap >= 0 && keyframe_window_min_overlap <= 1))
+    return InvalidArgumentError("SlamOptions: keyframe_window_min_overlap must be in [0, 1]");
   if (keyframe_window_min_points < 10)
     return InvalidArgumentError("SlamOptions: keyframe_window_min_points must be >= 10");
   PRISM_RETURN_IF_ERROR(keyframe_window_ba.Check());
@@ -220,6 +222,12 @@ struct SlamSystem::Impl {
   // The direct adjustment of keyframes first..newest (keyframe_ba.h): after a new keyframe over the
   // window (SlamOptions::keyframe_adjustment), after Finish over all keyframes (final_adjustment).
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
+  // The first keyframe of the adjustment window: from `first`, older keyframes that share less than
+  // keyframe_window_min_overlap of the newest keyframe's view are left out (at least 3 stay).
+  int WindowStart(int first) const;
+  // The fraction of keyframe k's final depth (every 8th pixel in each direction) that projects into
+  // keyframe j (DepthOverlapFraction); 1 while k is not finished.
+  double DepthOverlap(int k, int j) const;
   // The adjustment of all keyframes at once is possible: adjustment on, every keyframe finished, at most
   // final_adjustment_max_keyframes of them.
   bool CanAdjustAllKeyframes() const {
@@ -680,7 +688,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
       frames.back().result.new_keyframe = true;
       const ScopedSeconds adjustment_timer(&timings.keyframe_adjustment);
       if (options.keyframe_adjustment)
-        AdjustKeyframes(std::max(0, static_cast<int>(keyframes.size()) - options.keyframe_window),
+        AdjustKeyframes(WindowStart(std::max(0, static_cast<int>(keyframes.size()) - options.keyframe_window)),
                         options.keyframe_window_ba, /*at_finish=*/false);
     } else {
       // Keep tracking against the current keyframe; restore the tracker's copy.
@@ -853,6 +861,20 @@ void SlamSystem::Impl::CloseLoops(int index) {
   PRISM_LOG(INFO) << "slam: pose graph " << keyframes.size() << " keyframes, " << graph_edges.size() << " edges, cost "
                   << summary->initial_cost << " -> " << summary->final_cost << " in " << summary->iterations
                   << " iterations";
+}
+
+double SlamSystem::Impl::DepthOverlap(int k, int j) const {
+  const Keyframe& a = keyframes[static_cast<size_t>(k)];
+  if (!a.finished) return 1.0;
+  return DepthOverlapFraction(rig.camera, a.final_depth.inverse_depth, a.world_from_keyframe,
+                              keyframes[static_cast<size_t>(j)].world_from_keyframe, 8);
+}
+
+int SlamSystem::Impl::WindowStart(int first) const {
+  const int n = static_cast<int>(keyframes.size());
+  if (options.keyframe_window_min_overlap <= 0) return first;
+  while (n - first > 3 && DepthOverlap(first, n - 1) < options.keyframe_window_min_overlap) ++first;
+  return first;
 }
 
 void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish) {
