@@ -43,6 +43,12 @@ Eigen::Quaterniond ExpSo3(const Eigen::Vector3d& w) {
   return Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle));
 }
 
+Rigid3d BFromAInUnitsOfA(const Sim3d& world_from_a, const Sim3d& world_from_b) {
+  const Eigen::Matrix3d rb_t = world_from_b.rotation.toRotationMatrix().transpose();
+  return Rigid3d(Eigen::Quaterniond(rb_t * world_from_a.rotation.toRotationMatrix()),
+                 rb_t * (world_from_a.translation - world_from_b.translation) / world_from_a.scale);
+}
+
 double RotationAngle(const Eigen::Quaterniond& q) {
   const Eigen::Quaterniond n = q.normalized();
   const double v = n.vec().norm();

@@ -45,6 +45,11 @@ struct Sim3d {
   }
 };
 
+// The motion from keyframe a's camera to keyframe b's, given their Sim(3) poses world_from_a and
+// world_from_b, in a's unit: a point X of a (in a's depth unit) is at R_b^T R_a X + R_b^T (c_a - c_b) / s_a
+// in b's camera, still in a's unit.
+Rigid3d BFromAInUnitsOfA(const Sim3d& world_from_a, const Sim3d& world_from_b);
+
 // Angle of a rotation in radians, in [0, pi].
 double RotationAngle(const Eigen::Quaterniond& q);
 

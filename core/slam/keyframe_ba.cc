@@ -91,11 +91,10 @@ Eigen::Matrix<double, 6, 6> DirectBaHostFromTarget(const Eigen::Matrix3d& host_r
 double DepthOverlapFraction(const PinholeCamera& camera, const cv::Mat& inverse_depth, const Sim3d& world_from_a,
                             const Sim3d& world_from_b, int step) {
   if (inverse_depth.empty() || step < 1) return 1.0;
-  // b_from_a in a's depth units: R_b^T R_a X + R_b^T (c_a - c_b) / s_a (the projection does not depend on
-  // the unit).
-  const Eigen::Matrix3d rb_t = world_from_b.rotation.toRotationMatrix().transpose();
-  const Eigen::Matrix3d r = rb_t * world_from_a.rotation.toRotationMatrix();
-  const Eigen::Vector3d t = rb_t * (world_from_a.translation - world_from_b.translation) / world_from_a.scale;
+  // In a's depth unit (the projection does not depend on the unit).
+  const Rigid3d b_from_a = BFromAInUnitsOfA(world_from_a, world_from_b);
+  const Eigen::Matrix3d r = b_from_a.RotationMatrix();
+  const Eigen::Vector3d& t = b_from_a.translation;
   int total = 0, inside = 0;
   for (int y = 0; y < inverse_depth.rows; y += step) {
     const float* row = inverse_depth.ptr<float>(y);

@@ -1135,15 +1135,11 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
       if (!kd.ok()) continue;
       kd->Seed(out.depth.inverse_depth, relative_sigma, 2);
       const double mean_idepth = kd->MeanInverseDepth();
-      const Sim3d& a = k.world_from_keyframe;
-      const Eigen::Matrix3d ra = a.rotation.toRotationMatrix();
       for (int j = std::max(0, id - span); j <= std::min(n - 1, id + span); ++j) {
         if (j == id) continue;
-        const Sim3d& b = m.keyframes[static_cast<size_t>(j)].world_from_keyframe;
-        // A point X of keyframe id (its units) is c_a + s_a R_a X in the world; in j's camera, in id's
-        // units: R_b^T R_a X + R_b^T (c_a - c_b) / s_a.
-        const Eigen::Matrix3d rb_t = b.rotation.toRotationMatrix().transpose();
-        const Rigid3d j_from_id(Eigen::Quaterniond(rb_t * ra), rb_t * (a.translation - b.translation) / a.scale);
+        // A point X of keyframe id (its units) in j's camera, in id's units.
+        const Rigid3d j_from_id =
+            BFromAInUnitsOfA(k.world_from_keyframe, m.keyframes[static_cast<size_t>(j)].world_from_keyframe);
         // Only neighbours that see about the same scene (not across a relocalisation): within twice the
         // keyframe distance and rotation limits.
         if (j_from_id.translation.norm() * mean_idepth > 2 * m.options.keyframe_distance_fraction + 0.2 ||
