@@ -159,6 +159,10 @@ struct SlamSystem::Impl {
     // final_depth, so they are selected once; cleared when final_depth is replaced.
     std::vector<DirectBaPoint> window_points;
     bool has_window_points = false;
+    void DropWindowPoints() {
+      std::vector<DirectBaPoint>().swap(window_points);
+      has_window_points = false;
+    }
     bool finished = false;
     bool handed_out = false;
   };
@@ -886,8 +890,7 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   for (int k = 0; k < first; ++k) {
     Keyframe& kf = keyframes[static_cast<size_t>(k)];
     kf.grey_j.release();
-    std::vector<DirectBaPoint>().swap(kf.window_points);
-    kf.has_window_points = false;
+    kf.DropWindowPoints();
   }
   const PinholeCamera& cam = rig.camera;
   DirectBaProblem problem;
@@ -1158,8 +1161,7 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
       Impl::Keyframe& refined = m.keyframes[static_cast<size_t>(id)];
       if (refined.finished) {
         refined.final_depth = out.depth;
-        refined.window_points.clear();
-        refined.has_window_points = false;
+        refined.DropWindowPoints();
       }
     }
   }
