@@ -128,6 +128,8 @@ std::string RandomHex(int bytes) {
 
 // Approximate bytes per voxel of a session's map (position, normal, colour, confidence, hash entry).
 constexpr double kMapBytesPerPoint = 96;
+// A point of a keyframe cloud kept for the map's rebuild (DenseStage::Remap): 31 bytes of attributes.
+constexpr double kKeptBytesPerPoint = 32;
 
 struct Server::Impl {
   // Per session, transport thread only (except pipeline, which is thread-safe).
@@ -581,6 +583,12 @@ struct Server::Impl {
     SessionPipelineOptions po = options.pipeline;
     if (open.input_policy() == v1::INPUT_POLICY_LIVE) po.input_policy = OverflowPolicy::kDropOldest;
     if (open.input_policy() == v1::INPUT_POLICY_UPLOAD) po.input_policy = OverflowPolicy::kReject;
+    // The keyframe clouds kept for the map's rebuild at the end take at most a quarter of the session's
+    // memory limit (kKeptBytesPerPoint each); none without remap-at-end.
+    po.dense.remap_max_points = po.remap_at_end
+                                    ? static_cast<int64_t>(static_cast<double>(options.max_session_memory_mb) *
+                                                           (1 << 20) / 4 / kKeptBytesPerPoint)
+                                    : 0;
     auto session = std::make_unique<Session>();
     session->id = "s" + std::to_string(++session_counter) + "-" + RandomHex(6);
     session->peer = peer;
@@ -762,6 +770,7 @@ struct Server::Impl {
         ToWire(e.world_from_keyframe, c->mutable_world_from_keyframe());
         c->set_payload_bytes(e.draco.size());
         c->set_map_points(e.map_points);
+        c->set_replaces_map(e.replaces_map);
         metrics.Add("prism_keyframes_merged_total");
         // Persisted before it is queued: a chunk the client may have seen is always on disk.
         if (Status w = store.WriteChunk(s->id, *c, e.draco); !w.ok()) {
@@ -777,9 +786,10 @@ struct Server::Impl {
         QueueChunk(s, std::move(pc));
         FlushChunks(s);
         // Memory per session: the map (voxels) and the chunks held for the client.
-        const double session_mb =
-            (static_cast<double>(e.map_points) * kMapBytesPerPoint + static_cast<double>(s->pending_bytes_in_memory)) /
-            (1 << 20);
+        const double session_mb = (static_cast<double>(e.map_points) * kMapBytesPerPoint +
+                                   static_cast<double>(e.kept_points) * kKeptBytesPerPoint +
+                                   static_cast<double>(s->pending_bytes_in_memory)) /
+                                  (1 << 20);
         if (!s->memory_limit_hit && !s->closing && session_mb > options.max_session_memory_mb) {
           s->memory_limit_hit = true;
           s->closing = true;

@@ -45,6 +45,9 @@ const char* ServerOptionsHelp() {
   input-policy live|upload  full frame queue: drop the oldest (live) or reject (upload) (default live)
   keyframe-queue N        finished keyframes queued per session for the dense stage (default 4)
   voxel-m M               map voxel edge, metres (default 0.002)
+  remap-at-end true|false at a session's end, rebuild the map at the final keyframe poses and send it as
+                          one chunk that replaces the map (default true; the keyframe clouds it needs
+                          are kept within a quarter of max-session-memory-mb)
   shutdown-deadline-ms MS on SIGTERM, time to finish queued work before stopping (default 10000)
   curve-keys FILE         CURVE: this server's key pair (from `prism-server keygen`); default off = plain TCP
   allowed-clients FILE    CURVE: client public keys admitted, one per line (required with curve-keys)
@@ -151,6 +154,10 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   } else if (key == "voxel-m") {
     if (!is_double) return bad();
     o->pipeline.dense.map.voxel_m = d;
+  } else if (key == "remap-at-end") {
+    if (value == "true" || value == "1") o->pipeline.remap_at_end = true;
+    else if (value == "false" || value == "0") o->pipeline.remap_at_end = false;
+    else return bad();
   } else if (key == "curve-keys") o->curve_keys = value;
   else if (key == "allowed-clients") o->allowed_clients = value;
   else if (key == "slam-config") return ApplySlamConfigFile(value, &o->pipeline.slam);

@@ -156,6 +156,7 @@ StatusOr<size_t> SessionStore::RebuildMap(const std::string& id, double voxel_m)
     v1::MapChunk header;
     std::vector<uint8_t> draco;
     if (!ReadChunk(id, seq, &header, &draco).ok()) continue;
+    if (header.replaces_map()) voxels.clear();  // the map rebuilt at the final poses
     StatusOr<PointCloud> cloud = DecodeMapChunk(draco.data(), draco.size());
     if (!cloud.ok()) continue;
     for (size_t i = 0; i < cloud->size(); ++i)

@@ -10,6 +10,9 @@
 
 #include <gtest/gtest.h>
 
+#include "core/codec/map_chunk_codec.h"
+#include "core/io/ply_io.h"
+
 namespace prism::server {
 namespace {
 namespace fs = std::filesystem;
@@ -64,6 +67,44 @@ TEST(PoseLogTest, FinalTrajectoryHasTheLatestPoseOfEveryFrame) {
   EXPECT_FALSE(replay[0].refined());
   EXPECT_EQ(replay[0].frame_sequence_number(), 3u);
   for (size_t i = 1; i < replay.size(); ++i) EXPECT_TRUE(replay[i].refined());
+  fs::remove_all(root);
+}
+
+// A session recovered from disk (the server stopped before its end) rebuilds map.ply from its chunks:
+// a chunk with replaces_map (the map rebuilt at the final keyframe poses) voids the voxels before it.
+TEST(SessionStoreTest, RebuiltMapStartsAgainAtAChunkThatReplacesTheMap) {
+  const fs::path root = fs::temp_directory_path() / ("prism_store_replace_test_" + std::to_string(::getpid()));
+  fs::remove_all(root);
+  SessionStore store(root.string());
+  StoredSession session;
+  session.id = "s1-abcdef";
+  session.resume_token = "token";
+  session.voxel_m = 0.002;
+  ASSERT_TRUE(store.Create(session).ok());
+  // Three chunks: two voxels, one more voxel, then a rebuilt map of two other voxels.
+  const std::vector<std::vector<Eigen::Vector3f>> points = {{{0.0011f, 0.0011f, 0.0011f}, {0.0051f, 0.0011f, 0.0011f}},
+                                                            {{0.0091f, 0.0011f, 0.0011f}},
+                                                            {{0.0011f, 0.0051f, 0.0011f}, {0.0011f, 0.0091f, 0.0011f}}};
+  for (size_t i = 0; i < points.size(); ++i) {
+    PointCloud cloud;
+    cloud.positions = points[i];
+    StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(cloud, MapChunkCodecOptions());
+    ASSERT_TRUE(encoded.ok()) << encoded.status();
+    v1::MapChunk header;
+    header.set_session_id(session.id);
+    header.set_chunk_sequence_number(i + 1);
+    header.set_num_points(static_cast<uint32_t>(encoded->num_points));
+    header.set_payload_bytes(encoded->bytes.size());
+    header.set_replaces_map(i == 2);
+    ASSERT_TRUE(store.WriteChunk(session.id, header, encoded->bytes).ok());
+  }
+  StatusOr<size_t> n = store.RebuildMap(session.id, session.voxel_m);
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(*n, 2u);
+  StatusOr<PointCloud> map = ReadPointCloudPly(store.Dir(session.id) + "/map.ply");
+  ASSERT_TRUE(map.ok()) << map.status();
+  ASSERT_EQ(map->size(), 2u);
+  for (const Eigen::Vector3f& p : map->positions) EXPECT_GT(p.y(), 0.004f) << "a voxel from before the rebuild";
   fs::remove_all(root);
 }
 

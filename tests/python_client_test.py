@@ -191,6 +191,8 @@ class PythonClientTest(unittest.TestCase):
                 kinds[event[0]] = kinds.get(event[0], 0) + 1
                 if event[0] == "chunk" and chunk is None:
                     chunk = event[1]
+                if event[0] == "chunk":
+                    self.assertIsInstance(event[1]["replaces_map"], bool)
             self.assertEqual(len(session.poses(tracked_only=False)), 20)
             self.assertGreater(session.bytes_sent, 0)
         self.assertEqual(server.stop(), 0)

@@ -94,6 +94,20 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
     EXPECT_EQ(d.exit_code, 0) << d.out;
   }
   EXPECT_EQ(server.Stop(kServerStopTimeoutMs), 0);
+  // The final adjustment moved the keyframes, so the server rebuilt its map at the final poses and sent
+  // it as one chunk that replaces the map: the client's map is the server's, voxel for voxel in number
+  // (the server's map.ply, written at the session's end, and the summary's map_points).
+  EXPECT_NE(r.out.find("\"map_replaced\": true"), std::string::npos) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "map_points"), JsonNumber(r.out, "server_map_points")) << r.out;
+  size_t server_maps = 0;
+  for (const auto& e : fs::recursive_directory_iterator(P("data")))
+    if (e.path().filename() == "map.ply") {
+      ++server_maps;
+      StatusOr<PointCloud> server_map = ReadPointCloudPly(e.path().string());
+      ASSERT_TRUE(server_map.ok()) << server_map.status();
+      EXPECT_EQ(static_cast<double>(server_map->size()), JsonNumber(r.out, "map_points"));
+    }
+  EXPECT_EQ(server_maps, 1u);
 
   // Align the streamed trajectory (metres per the session scale) to the ground truth.
   StatusOr<Sequence> seq = LoadSequence(P("seq"));

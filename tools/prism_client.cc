@@ -24,7 +24,8 @@ constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT
 Streams the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth output) to
 prism-server and writes to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera,
 metres once the server has estimated the scale; tracked frames only, as prism-slam), map.ply (the running map: positions, normals,
-colours), chunks/<sequence>.drc (the Draco map chunks as received; Debian's draco_decoder reads
+colours; at the end the server rebuilds it at the final keyframe poses and sends it as one chunk that
+replaces the map, "map_replaced" in the summary), chunks/<sequence>.drc (the Draco map chunks as received; Debian's draco_decoder reads
 them) and summary.json (also printed). Progress goes to stderr. DIR/session.json (written as soon as
 the session is open) holds the session id and resume token: if the connection drops the client resumes
 by itself (every missed chunk is resent); `fetch` gets the persisted results of an ended or interrupted
@@ -177,6 +178,7 @@ int main(int argc, char** argv) {
   std::map<uint64_t, pc::Pose> poses;  // by frame sequence number: the latest (refined) pose wins
   size_t refined_poses = 0;
   size_t chunks = 0, chunk_bytes = 0, frame_errors = 0, skipped = 0;
+  bool remapped = false;  // a chunk replaced the map (rebuilt at the final keyframe poses)
   std::string fatal;
   auto drain = [&](int timeout_ms) {
     pc::Event e;
@@ -194,8 +196,11 @@ int main(int argc, char** argv) {
                    static_cast<std::streamsize>(e.chunk.draco.size()));
         ++chunks;
         chunk_bytes += e.chunk.draco.size();
-        std::cerr << "prism-client: chunk " << e.chunk.sequence_number << " (keyframe " << e.chunk.keyframe_id
-                  << "): " << e.chunk.points.size() << " points, " << e.chunk.draco.size() << " bytes\n";
+        remapped = remapped || e.chunk.replaces_map;
+        std::cerr << "prism-client: chunk " << e.chunk.sequence_number;
+        if (e.chunk.replaces_map) std::cerr << " (the map rebuilt at the final keyframe poses)";
+        else std::cerr << " (keyframe " << e.chunk.keyframe_id << ")";
+        std::cerr << ": " << e.chunk.points.size() << " points, " << e.chunk.draco.size() << " bytes\n";
       } else if (e.kind == pc::Event::Kind::kError) {
         ++frame_errors;
         std::cerr << "prism-client: server error: " << e.error.ToString() << "\n";
@@ -272,16 +277,18 @@ int main(int argc, char** argv) {
   std::snprintf(
       json, sizeof(json),
       "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"poses\": %zu, \"refined_poses\": %zu, "
-      "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"errors\": %zu, "
+      "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"map_replaced\": %s, \"errors\": %zu, "
       "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
-      "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"metres_per_unit\": %.6g, "
+      "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
+      "\"metres_per_unit\": %.6g, "
       "\"reconnects\": %d, \"reason\": \"%s\"}\n",
       session->session_id().c_str(), n - skipped, skipped, poses.size(), refined_poses, chunks, chunk_bytes, map.size(),
-      frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
+      remapped ? "true" : "false", frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
       n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0, seconds,
       seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,
       static_cast<unsigned long long>(summary.keyframes), static_cast<unsigned long long>(summary.keyframes_failed),
-      summary.metres_per_unit, session->reconnects(), summary.reason.c_str());
+      static_cast<unsigned long long>(summary.map_points), summary.metres_per_unit, session->reconnects(),
+      summary.reason.c_str());
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
   if (session->reconnects() > 0)

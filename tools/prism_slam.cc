@@ -66,6 +66,9 @@ options:
   --no-repropagation  a new keyframe keeps the depth propagated along the tracked pose
                    (= --set repropagate_after_adjustment=false)
   --no-final-adjustment  no adjustment of all keyframes at the end (= --set final_adjustment=false)
+  --no-remap       write map.ply as the keyframe clouds were merged (at their poses when handed over)
+                   instead of rebuilt at the final keyframe poses (DenseStage::Remap)
+  --remap-icp      register each keyframe cloud again with ICP as map.ply is rebuilt at the final poses
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
@@ -129,6 +132,7 @@ int main(int argc, char** argv) {
   int threads = 0;
   bool eval = true;
   bool dense = false;
+  bool remap = true;
   SlamOptions options;
   DenseStageOptions dense_options;
   // Switches without a value: the flag sets its bool to the given value.
@@ -139,6 +143,8 @@ int main(int argc, char** argv) {
   } kSwitches[] = {
       {"--no-eval", &eval, false},
       {"--dense", &dense, true},
+      {"--no-remap", &remap, false},
+      {"--remap-icp", &dense_options.remap_icp, true},
       {"--no-keyframe-adjustment", &options.keyframe_adjustment, false},
       {"--no-repropagation", &options.repropagate_after_adjustment, false},
       {"--no-final-adjustment", &options.final_adjustment, false},
@@ -268,8 +274,6 @@ int main(int argc, char** argv) {
   if (dense_stage) {
     StatusOr<MapChunk> rest = dense_stage->Flush();
     if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
-    const PointCloud map = dense_stage->map().ToPointCloud();
-    if (Status s = WritePointCloudPly(out_dir + "/map.ply", map); !s.ok()) return Fail(s.ToString());
   }
   const double metres_per_unit =
       dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
@@ -279,6 +283,20 @@ int main(int argc, char** argv) {
   (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
                                 options.final_refinement_rounds, &keyframes);
   const double refine_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
+  // The map at the final keyframe poses (the keyframe clouds as merged, each placed again).
+  double remap_seconds = 0;
+  bool remapped = false;
+  if (dense_stage) {
+    if (remap) {
+      const auto remap_start = std::chrono::steady_clock::now();
+      StatusOr<MapChunk> changed = dense_stage->Remap((*slam)->KeyframePoses());
+      remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
+      if (!changed.ok()) std::cerr << "prism-slam: map not rebuilt at the final poses: " << changed.status() << "\n";
+      else remapped = changed->replaces_map;
+    }
+    if (Status s = WritePointCloudPly(out_dir + "/map.ply", dense_stage->map().ToPointCloud()); !s.ok())
+      return Fail(s.ToString());
+  }
 
   // Outputs.
   const std::vector<SlamFrameResult> results = (*slam)->Trajectory();
@@ -343,7 +361,9 @@ int main(int argc, char** argv) {
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
          << ",\n  \"dense_failed_keyframes\": " << dense_failed << ",\n  \"metres_per_unit\": " << metres_per_unit
-         << ",\n  \"map_points\": " << dense_stage->map().ToPointCloud().size();
+         << ",\n  \"map_points\": " << dense_stage->map().size()
+         << ",\n  \"map_remapped\": " << (remapped ? "true" : "false")
+         << ",\n  \"remap_ms\": " << 1000.0 * remap_seconds;
     if (dense_failed) json << ",\n  \"dense_first_error\": \"" << dense_first_error << "\"";
   }
 

@@ -106,8 +106,8 @@ py::dict SummaryToDict(const pc::Summary& s) {
   return d;
 }
 
-// Event -> (kind, payload): ("pose", dict), ("chunk", dict with keyframe_id, sequence_number, draco bytes
-// and the points as arrays), ("error", (code, message, retryable)), ("summary", dict).
+// Event -> (kind, payload): ("pose", dict), ("chunk", dict with keyframe_id, sequence_number,
+// replaces_map, draco bytes and the points as arrays), ("error", (code, message, retryable)), ("summary", dict).
 py::tuple EventToPython(const pc::Event& e) {
   switch (e.kind) {
     case pc::Event::Kind::kPose:
@@ -116,6 +116,7 @@ py::tuple EventToPython(const pc::Event& e) {
       py::dict d = PointsToNumpy(e.chunk.points);
       d["keyframe_id"] = e.chunk.keyframe_id;
       d["sequence_number"] = e.chunk.sequence_number;
+      d["replaces_map"] = e.chunk.replaces_map;
       d["draco"] = py::bytes(reinterpret_cast<const char*>(e.chunk.draco.data()), e.chunk.draco.size());
       return py::make_tuple("chunk", d);
     }

@@ -159,6 +159,7 @@ struct Session::Impl {
   std::deque<Event> events;
   std::function<void(const Event&)> callback;
   std::unordered_map<uint64_t, Point> map;  // by voxel
+  int64_t map_replaced_at = -1;             // sequence of the latest chunk with replaces_map
   std::vector<uint8_t> encode_buffer;
 
   static uint64_t VoxelKey(const Point& p, double voxel_m) {
@@ -445,7 +446,14 @@ struct Session::Impl {
           Emit(std::move(err));
           return;
         }
-        for (const Point& p : e.chunk.points) map[VoxelKey(p, voxel_m)] = p;
+        e.chunk.replaces_map = env.map_chunk().replaces_map();
+        if (e.chunk.replaces_map && static_cast<int64_t>(seq) > map_replaced_at) {
+          map.clear();
+          map_replaced_at = static_cast<int64_t>(seq);
+        }
+        // A chunk older than the latest rebuilt map is void (its voxels are in the rebuilt map).
+        if (static_cast<int64_t>(seq) >= map_replaced_at)
+          for (const Point& p : e.chunk.points) map[VoxelKey(p, voxel_m)] = p;
         Emit(std::move(e));
         return;
       }

@@ -6,6 +6,8 @@
 
 #include <Eigen/Core>
 
+#include "core/geometry/rigid3.h"
+
 namespace prism {
 
 struct PointCloud {
@@ -22,5 +24,10 @@ struct PointCloud {
   // True when every present attribute array matches positions in length.
   bool IsConsistent() const;
 };
+
+// Applies target_from_source to positions and rotates normals (other attributes are copied).
+PointCloud TransformCloud(const PointCloud& cloud, const Rigid3d& target_from_source);
+// The same with a similarity: positions scaled, rotated and moved; normals rotated.
+PointCloud TransformCloud(const PointCloud& cloud, const Sim3d& target_from_source);
 
 }  // namespace prism

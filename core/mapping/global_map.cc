@@ -251,6 +251,8 @@ void GlobalMap::WriteVoxel(const Voxel& v, size_t i, PointCloud* cloud) const {
 MapChunk GlobalMap::TakeChanges() {
   MapChunk chunk;
   chunk.sequence = ++chunk_sequence_;
+  chunk.replaces_map = cleared_;
+  cleared_ = false;
   const size_t n = changed_.size();
   PrepareOutput(n, &chunk.cloud);
   chunk.keys.resize(n);
@@ -264,6 +266,17 @@ MapChunk GlobalMap::TakeChanges() {
   }
   changed_.clear();
   return chunk;
+}
+
+void GlobalMap::Clear() {
+  voxels_.clear();
+  slots_.assign(1024, Slot{});
+  recent_.assign(recent_.size(), Slot{});
+  changed_.clear();
+  has_normals_ = false;
+  has_colors_ = false;
+  totals_ = MapInsertStats();
+  cleared_ = true;
 }
 
 PointCloud GlobalMap::ToPointCloud(double min_confidence, int min_observations) const {

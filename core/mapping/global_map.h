@@ -46,6 +46,9 @@ struct MapChunk {
   PointCloud cloud;
   std::vector<VoxelKey> keys;
   std::vector<uint32_t> observations;
+  // The map was cleared (GlobalMap::Clear) before these changes: every voxel of earlier chunks is void,
+  // and this chunk with the ones after it is the whole map.
+  bool replaces_map = false;
 
   size_t size() const { return keys.size(); }
   bool empty() const { return keys.empty(); }
@@ -81,6 +84,9 @@ class GlobalMap {
   // The voxels created or changed since the previous call (all of them the first time), then forgets
   // them: the next call returns only later changes.
   MapChunk TakeChanges();
+  // Removes every voxel (a map rebuilt from moved keyframes). The chunk sequence goes on, and the next
+  // TakeChanges() returns replaces_map = true. totals() start again from zero.
+  void Clear();
   // Voxels changed since the last TakeChanges().
   size_t pending_changes() const { return changed_.size(); }
 
@@ -94,7 +100,7 @@ class GlobalMap {
   size_t size() const { return voxels_.size(); }
   bool empty() const { return voxels_.empty(); }
   const MapOptions& options() const { return options_; }
-  // Everything Insert did since construction.
+  // Everything Insert did since construction or the last Clear().
   const MapInsertStats& totals() const { return totals_; }
 
   // Voxel of a point (floor(p / voxel_m)); false when a coordinate is not finite or out of key range.
@@ -141,7 +147,8 @@ class GlobalMap {
   std::vector<Slot> slots_;
   // Direct-mapped cache of recently used voxels, indexed by the low kRecentBits bits of each voxel
   // coordinate: the next image row revisits the voxels of the last one, and a hit here avoids a cache
-  // miss in slots_. Voxels are never removed, so entries never go stale.
+  // miss in slots_. Voxels are removed only all at once (Clear, which empties it too), so entries never
+  // go stale.
   static constexpr int kRecentBits = 4;
   static size_t RecentSlot(const Eigen::Vector3i& v) {
     constexpr int kMask = (1 << kRecentBits) - 1;
@@ -151,6 +158,7 @@ class GlobalMap {
   std::vector<Slot> recent_;
   std::vector<uint32_t> changed_;  // voxel indices changed since the last TakeChanges
   uint64_t chunk_sequence_ = 0;
+  bool cleared_ = false;  // Clear() since the last TakeChanges()
   bool has_normals_ = false;
   bool has_colors_ = false;
   MapInsertStats totals_;

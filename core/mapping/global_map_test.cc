@@ -129,6 +129,36 @@ TEST(GlobalMapTest, TakeChangesReturnsOnlyChangedVoxels) {
   EXPECT_TRUE(map.TakeChanges().empty());
 }
 
+// Clear (a map rebuilt from moved keyframes): no voxel survives, the next chunk says it replaces the
+// map and goes on with the sequence, and the same cloud inserted again builds the same voxels anew (the
+// cache of recent voxels must not hand back a cleared one).
+TEST(GlobalMapTest, ClearEmptiesTheMapAndTheNextChunkReplacesIt) {
+  const PointCloud cloud = RenderWorldCloud(0);
+  GlobalMap map;
+  ASSERT_TRUE(map.Insert(cloud, 1).ok());
+  const MapChunk first = map.TakeChanges();
+  EXPECT_FALSE(first.replaces_map);
+  const size_t voxels = map.size();
+  ASSERT_GT(voxels, 0u);
+  map.Clear();
+  EXPECT_TRUE(map.empty());
+  EXPECT_EQ(map.pending_changes(), 0u);
+  EXPECT_EQ(map.totals().merged_points, 0u);
+  ASSERT_TRUE(map.Insert(cloud, 2).ok());
+  EXPECT_EQ(map.size(), voxels);
+  const MapChunk rebuilt = map.TakeChanges();
+  EXPECT_TRUE(rebuilt.replaces_map);
+  EXPECT_EQ(rebuilt.sequence, first.sequence + 1);
+  ASSERT_EQ(rebuilt.size(), voxels);
+  for (size_t i = 0; i < rebuilt.size(); ++i) {
+    EXPECT_EQ(rebuilt.observations[i], first.observations[i]);
+    EXPECT_EQ(rebuilt.keys[i], first.keys[i]);
+    EXPECT_EQ(rebuilt.cloud.positions[i], first.cloud.positions[i]);
+  }
+  ASSERT_TRUE(map.Insert(cloud, 3).ok());
+  EXPECT_FALSE(map.TakeChanges().replaces_map);  // only the first chunk after Clear
+}
+
 TEST(GlobalMapTest, BadPointsAreSkippedAndCounted) {
   PointCloud cloud;
   auto add = [&](const Eigen::Vector3f& p, float confidence) {

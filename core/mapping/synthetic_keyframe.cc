@@ -48,13 +48,4 @@ PointCloud RenderKeyframeCloud(const synth::SynthSetup& setup, const Rigid3d& wo
   return BackProjectFrame(setup.rig.camera, frame, stride);
 }
 
-PointCloud TransformCloud(const PointCloud& cloud, const Rigid3d& target_from_source) {
-  PointCloud out = cloud;
-  const Eigen::Matrix3f r = target_from_source.RotationMatrix().cast<float>();
-  const Eigen::Vector3f t = target_from_source.translation.cast<float>();
-  for (Eigen::Vector3f& p : out.positions) p = r * p + t;
-  for (Eigen::Vector3f& n : out.normals) n = r * n;
-  return out;
-}
-
 }  // namespace prism

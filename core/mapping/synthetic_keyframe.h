@@ -22,7 +22,4 @@ PointCloud BackProjectFrame(const PinholeCamera& camera, const synth::RenderedFr
 PointCloud RenderKeyframeCloud(const synth::SynthSetup& setup, const Rigid3d& world_from_camera, uint64_t noise_seed,
                                int stride = 1);
 
-// Applies target_from_source to positions and rotates normals (other attributes are copied).
-PointCloud TransformCloud(const PointCloud& cloud, const Rigid3d& target_from_source);
-
 }  // namespace prism

@@ -31,6 +31,7 @@ Status DenseStageOptions::Check() const {
   if (!(max_icp_correction_m >= 0)) return Violated("max_icp_correction_m", max_icp_correction_m, ">= 0");
   if (!(max_icp_correction_deg >= 0)) return Violated("max_icp_correction_deg", max_icp_correction_deg, ">= 0");
   if (!(min_brightness >= 0 && min_brightness <= 255)) return Violated("min_brightness", min_brightness, "in [0, 255]");
+  if (remap_max_points < 0) return Violated("remap_max_points", static_cast<double>(remap_max_points), ">= 0");
   if (!(min_icp_inlier_fraction >= 0 && min_icp_inlier_fraction <= 1))
     return Violated("min_icp_inlier_fraction", min_icp_inlier_fraction, "in [0, 1]");
   return Status::Ok();
@@ -109,11 +110,13 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
     cv::transform(keyframe.rgb, grey, cv::Matx13f(1.0f / 3, 1.0f / 3, 1.0f / 3));
     bright = grey >= options_.min_brightness;
   }
-  PRISM_ASSIGN_OR_RETURN(result.cloud,
-                         DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera,
-                                      keyframe.world_from_keyframe, 1, bright, result.photometric.confidence));
+  PRISM_ASSIGN_OR_RETURN(PointCloud cloud_in_keyframe,
+                         DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera, Sim3d(), 1, bright,
+                                      result.photometric.confidence));
+  result.cloud = TransformCloud(cloud_in_keyframe, keyframe.world_from_keyframe);
+  Keep(keyframe.id, keyframe.world_from_keyframe, std::move(cloud_in_keyframe));
   if (!options_.world_in_slam_units) {
-    PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, &result));
+    PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, options_.icp_enabled, &result));
   } else {
     pending_.push_back({keyframe.id, result.cloud});
     result.pending = !ScaleSettled();
@@ -127,12 +130,12 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   return result;
 }
 
-Status DenseStage::Merge(const PointCloud& cloud, uint64_t keyframe_id, DenseKeyframeResult* result) {
+Status DenseStage::Merge(const PointCloud& cloud, uint64_t keyframe_id, bool icp, DenseKeyframeResult* result) {
   Rigid3d correction;  // map_from_cloud; identity unless ICP passes the guard
   result->icp_attempted = false;
   result->icp_applied = false;
   result->icp_estimate = Rigid3d();
-  if (options_.icp_enabled && !map_.empty()) {
+  if (icp && !map_.empty()) {
     StatusOr<IcpTarget> target = IcpTarget::Create(map_.ToPointCloud(), options_.icp);
     if (target.ok()) {
       StatusOr<IcpSummary> s = AlignIcp(cloud, *target, Rigid3d(), options_.icp, &result->icp_estimate);
@@ -157,7 +160,7 @@ Status DenseStage::MergePending(double metres_per_unit, DenseKeyframeResult* res
   pending.swap(pending_);
   for (PendingCloud& p : pending) {
     for (Eigen::Vector3f& x : p.cloud_in_slam_world.positions) x *= static_cast<float>(metres_per_unit);
-    PRISM_RETURN_IF_ERROR(Merge(p.cloud_in_slam_world, p.keyframe_id, result));
+    PRISM_RETURN_IF_ERROR(Merge(p.cloud_in_slam_world, p.keyframe_id, options_.icp_enabled, result));
   }
   return Status::Ok();
 }
@@ -170,6 +173,56 @@ StatusOr<MapChunk> DenseStage::Flush() {
   if (pending_.empty() || !depth_scale_.has_value()) return MapChunk();
   DenseKeyframeResult scratch;
   PRISM_RETURN_IF_ERROR(MergePending(depth_scale_.value(), &scratch));
+  return map_.TakeChanges();
+}
+
+void DenseStage::Keep(uint64_t keyframe_id, const Sim3d& world_from_keyframe, PointCloud cloud_in_keyframe) {
+  if (kept_overflow_ || options_.remap_max_points == 0) return;
+  const int64_t n = static_cast<int64_t>(cloud_in_keyframe.size());
+  if (kept_points_ + n > options_.remap_max_points) {
+    PRISM_LOG(WARNING) << "dense: keyframe " << keyframe_id << " would take the clouds kept for a remap past "
+                       << options_.remap_max_points << " points (remap_max_points): freed, the map will not "
+                       << "follow moved keyframe poses";
+    kept_.clear();
+    kept_.shrink_to_fit();
+    kept_points_ = 0;
+    kept_overflow_ = true;
+    return;
+  }
+  kept_points_ += n;
+  kept_.push_back({keyframe_id, world_from_keyframe, std::move(cloud_in_keyframe)});
+}
+
+StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m) {
+  if (options_.remap_max_points == 0) return FailedPreconditionError("remap: no clouds kept (remap_max_points = 0)");
+  if (kept_overflow_)
+    return FailedPreconditionError("remap: the kept clouds passed remap_max_points = " +
+                                   std::to_string(options_.remap_max_points) + " and were freed");
+  PRISM_ASSIGN_OR_RETURN(MapChunk flushed, Flush());
+  if (options_.world_in_slam_units && !depth_scale_.has_value())
+    return FailedPreconditionError("remap: the session has no depth scale (no keyframe estimated it)");
+  const double metres = options_.world_in_slam_units ? depth_scale_.value() : 1.0;
+  bool moved = false;
+  for (const KeptCloud& k : kept_) {
+    if (k.keyframe_id >= world_from_keyframe.size()) continue;
+    const Sim3d& to = world_from_keyframe[k.keyframe_id];
+    const Sim3d& from = k.world_from_keyframe;
+    if (!(to.scale > 0) || !std::isfinite(to.scale) || !to.translation.allFinite())
+      return InvalidArgumentError("remap: keyframe " + std::to_string(k.keyframe_id) + " has an invalid pose");
+    moved = moved || metres * (to.translation - from.translation).norm() > min_move_m ||
+            RotationAngle(to.rotation * from.rotation.inverse()) > min_move_m ||
+            std::abs(to.scale / from.scale - 1.0) > min_move_m;
+  }
+  if (!moved) return flushed;
+  map_.Clear();
+  DenseKeyframeResult scratch;
+  for (KeptCloud& k : kept_) {
+    if (k.keyframe_id < world_from_keyframe.size()) k.world_from_keyframe = world_from_keyframe[k.keyframe_id];
+    const Sim3d& p = k.world_from_keyframe;
+    const PointCloud cloud =
+        TransformCloud(k.cloud_in_keyframe, Sim3d(metres * p.scale, p.rotation, metres * p.translation));
+    PRISM_RETURN_IF_ERROR(Merge(cloud, k.keyframe_id, options_.icp_enabled && options_.remap_icp, &scratch));
+  }
   return map_.TakeChanges();
 }
 

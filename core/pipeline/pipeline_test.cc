@@ -18,6 +18,7 @@
 #include "core/pipeline/session_pipeline.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
+#include "core/synth/semidense.h"
 #include "core/synth/trajectory.h"
 #include "core/util/thread_pool.h"
 
@@ -310,6 +311,93 @@ TEST(SessionPipelineTest, ADistortedCameraIsUndistortedAndTrackedAccurately) {
             << chunks << " map chunks\n";
   constexpr double kAtePercentTolerance = 1.0;  // the SLAM bar
   EXPECT_LT(percent, kAtePercentTolerance);
+}
+
+// DenseStage::Remap, the map rebuilt at moved keyframe poses. Keyframes merged at poses off by up to
+// 3 cm and 3 deg, then rebuilt at the true poses, give the very map that merging at the true poses
+// gives (ICP off, so the merge is the same arithmetic): the same voxels in the same order with the same
+// means. A second Remap at the same poses changes nothing, and a budget too small for the clouds
+// refuses the rebuild.
+TEST(DenseStageRemapTest, TheMapRebuiltAtTheTruePosesIsTheMapMergedAtThem) {
+  synth::PresetOptions po;
+  po.width = 256;
+  po.height = 256;
+  po.frames = 40;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset("sphere-multicolor-sideways", po);
+  ASSERT_TRUE(setup.ok()) << setup.status();
+  const Trajectory trajectory = synth::MakeTrajectory(setup->trajectory);
+  ThreadPool pool(2);
+  std::vector<DenseKeyframe> truth, moved;
+  std::vector<Sim3d> true_poses(40);
+  for (int i = 0; i < 40; i += 10) {
+    const Rigid3d& pose = trajectory[static_cast<size_t>(i)].world_from_camera;
+    const synth::RenderedFrame r = synth::RenderFrame(setup->scene, setup->rig, pose, setup->render, i + 1, &pool);
+    synth::SemiDenseOptions sd;
+    sd.seed = static_cast<uint32_t>(i + 1);
+    DenseKeyframe k;
+    k.id = static_cast<uint64_t>(i);
+    k.rgb = r.rgb;
+    k.depth = synth::SimulateSemiDenseDepth(r.depth, r.rgb, sd);
+    k.world_from_keyframe = Sim3d(1.0, pose.rotation, pose.translation);
+    true_poses[static_cast<size_t>(i)] = k.world_from_keyframe;
+    truth.push_back(k);
+    const double off = i / 10.0;  // keyframe 0 stays, the others drift further and further
+    k.world_from_keyframe = Sim3d(1.0, ExpSo3(Eigen::Vector3d(0.0, 0.017 * off, 0.01 * off)) * pose.rotation,
+                                  pose.translation + Eigen::Vector3d(0.01 * off, -0.005 * off, 0.0));
+    moved.push_back(k);
+  }
+  DenseStageOptions options;
+  options.world_in_slam_units = false;  // metric poses: every cloud is merged at once
+  options.icp_enabled = false;
+  auto run = [&](const std::vector<DenseKeyframe>& keyframes) {
+    StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(setup->rig, options, &pool);
+    EXPECT_TRUE(stage.ok()) << stage.status();
+    uint64_t last_sequence = 0;
+    for (const DenseKeyframe& k : keyframes) {
+      StatusOr<DenseKeyframeResult> r = (*stage)->Process(k);
+      EXPECT_TRUE(r.ok()) << r.status();
+      if (r.ok()) last_sequence = r->changes.sequence;
+    }
+    return std::make_pair(std::move(stage).value(), last_sequence);
+  };
+  auto [reference, unused] = run(truth);
+  auto [stage, last_sequence] = run(moved);
+  EXPECT_EQ(stage->kept_clouds(), 4u);
+  const PointCloud want = reference->map().ToPointCloud();
+  const PointCloud before = stage->map().ToPointCloud();
+  std::cout << "remap: " << stage->kept_points() << " points kept; map " << before.size()
+            << " voxels at the moved poses, " << want.size() << " at the true ones\n";
+  ASSERT_GT(want.size(), 10000u);
+  EXPECT_NE(before.size(), want.size());
+
+  StatusOr<MapChunk> rebuilt = stage->Remap(true_poses);
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  EXPECT_TRUE(rebuilt->replaces_map);
+  EXPECT_GT(rebuilt->sequence, last_sequence);  // the chunk sequence goes on
+  EXPECT_EQ(rebuilt->size(), want.size());      // the whole map in one chunk
+  const PointCloud got = stage->map().ToPointCloud();
+  ASSERT_EQ(got.size(), want.size());
+  size_t differing = 0;
+  for (size_t i = 0; i < got.size(); ++i) {
+    differing += got.positions[i] != want.positions[i] || got.normals[i] != want.normals[i] ||
+                 got.colors[i] != want.colors[i] || got.confidences[i] != want.confidences[i];
+  }
+  EXPECT_EQ(differing, 0u);
+
+  StatusOr<MapChunk> again = stage->Remap(true_poses);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_FALSE(again->replaces_map);
+  EXPECT_TRUE(again->empty());
+  EXPECT_EQ(stage->map().size(), want.size());
+
+  options.remap_max_points = stage->kept_points() - 1;  // the last cloud does not fit
+  auto [small, small_sequence] = run(moved);
+  EXPECT_EQ(small->kept_clouds(), 0u);
+  EXPECT_EQ(small->Remap(true_poses).status().code(), StatusCode::kFailedPrecondition);
+  EXPECT_EQ(small->map().size(), before.size());  // the map as merged is untouched
+  options.remap_max_points = 0;
+  auto [none, none_sequence] = run(moved);
+  EXPECT_EQ(none->Remap(true_poses).status().code(), StatusCode::kFailedPrecondition);
 }
 
 TEST(SessionPipelineTest, InvalidOptionsAreRefused) {

@@ -215,18 +215,21 @@ void SessionPipeline::SlamLoop() {
       Fail(InternalError(std::string("SLAM failed: ") + ex.what()));
     }
   }
+  std::vector<Sim3d> final_keyframe_poses;
   if (!aborted_ && !failed_) {
     try {
       for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
       if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
       EmitRefinedPoses();
+      if (options_.remap_at_end) final_keyframe_poses = slam_->KeyframePoses();
     } catch (const std::exception& ex) {
       Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));
     }
   }
   // Last job of the strand: after every keyframe queued above. Clouds still waiting for the session
-  // scale (it had not settled: DenseStageOptions::scale_keyframes) enter the map now.
-  strand_->Post([this] {
+  // scale (it had not settled: DenseStageOptions::scale_keyframes) enter the map now; then the map is
+  // rebuilt at the final keyframe poses when they moved (remap_at_end).
+  strand_->Post([this, final_keyframe_poses = std::move(final_keyframe_poses)] {
     if (!aborted_ && !failed_) {
       try {
         StatusOr<MapChunk> rest = InternalError("not run");
@@ -237,6 +240,24 @@ void SessionPipeline::SlamLoop() {
           map_points = dense_->map().size();
         }
         if (rest.ok() && !rest->empty()) EmitChunk(*rest, 0, Rigid3d(), map_points);
+        if (options_.remap_at_end && !final_keyframe_poses.empty() && dense_->kept_clouds() > 0) {
+          const auto t0 = std::chrono::steady_clock::now();
+          StatusOr<MapChunk> rebuilt = InternalError("not run");
+          {
+            std::lock_guard<std::mutex> lock(map_mutex_);
+            rebuilt = dense_->Remap(final_keyframe_poses);
+            map_points = dense_->map().size();
+          }
+          if (!rebuilt.ok()) {
+            PRISM_LOG(WARNING) << "pipeline: map not rebuilt at the final keyframe poses: " << rebuilt.status();
+          } else if (!rebuilt->empty()) {
+            if (rebuilt->replaces_map) {
+              PRISM_LOG(INFO) << "pipeline: map rebuilt at the final keyframe poses, " << map_points << " voxels from "
+                              << dense_->kept_clouds() << " keyframe clouds in " << MsSince(t0) << " ms";
+            }
+            EmitChunk(*rebuilt, 0, Rigid3d(), map_points);
+          }
+        }
       } catch (const std::exception& ex) {
         Fail(InternalError(std::string("dense stage failed at the end: ") + ex.what()));
       }
@@ -310,6 +331,8 @@ void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, c
   e.draco = std::move(encoded->bytes);
   e.world_from_keyframe = world_from_keyframe;
   e.map_points = map_points;
+  e.replaces_map = changes.replaces_map;
+  e.kept_points = dense_->kept_points();
   {
     std::lock_guard<std::mutex> lock(mutex_);
     ++stats_.chunks;

@@ -50,6 +50,11 @@ struct SessionPipelineOptions {
   // room, so it stops consuming frames, the frame queue fills and the server stops granting frame
   // credits (memory stays bounded by the two queue capacities).
   int keyframe_queue_capacity = 4;
+  // At the end of the stream, after the final adjustment: when keyframe poses moved since their clouds
+  // entered the map, the map is rebuilt from the kept clouds at the final poses (DenseStage::Remap)
+  // and sent as one chunk with replaces_map. false: the map keeps the poses each keyframe had when it
+  // was handed over (the refined poses and the map then disagree by what the poses moved).
+  bool remap_at_end = true;
 
   Status Check() const;
 };
@@ -97,6 +102,11 @@ struct PipelineEvent {
   size_t num_points = 0;
   Rigid3d world_from_keyframe;  // metres
   size_t map_points = 0;
+  // The map was rebuilt at the final keyframe poses (SessionPipelineOptions::remap_at_end): this chunk
+  // is the whole map and voids every earlier one (keyframe_id 0, identity pose).
+  bool replaces_map = false;
+  // Points of the keyframe clouds the dense stage keeps for that rebuild (memory accounting).
+  int64_t kept_points = 0;
   // kError: a frame or keyframe failed (has_frame), or the session failed (fatal).
   Status status;
   bool has_frame = false;

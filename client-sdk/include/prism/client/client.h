@@ -131,6 +131,10 @@ struct MapChunk {
   uint64_t sequence_number = 0;
   std::vector<uint8_t> draco;  // the chunk as sent (a .drc file)
   std::vector<Point> points;   // decoded
+  // The server rebuilt its map at the final keyframe poses (end of the session): this chunk voids every
+  // earlier one. Session::Map() clears itself before applying it; a client keeping its own map does the
+  // same, and ignores older chunks that arrive after it.
+  bool replaces_map = false;
 };
 
 struct Summary {
@@ -183,7 +187,9 @@ class Session {
   // and the summary (at most timeout_ms). Events received meanwhile stay pollable.
   Status Close(int timeout_ms, Summary* summary);
 
-  // The running map: every chunk received so far, merged by voxel (a later chunk replaces a voxel).
+  // The running map: every chunk received so far, merged by voxel (a later chunk replaces a voxel);
+  // from a chunk with replaces_map on (the map rebuilt at the final keyframe poses) only that chunk and
+  // the ones after it.
   std::vector<Point> Map() const;
   const std::string& session_id() const;
   // The secret that lets this client (or another) resume the session; keep it with the id.
