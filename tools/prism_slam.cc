@@ -55,8 +55,11 @@ without the 'P0:' label), times.txt and, when present, poses.txt as ground truth
 
 options:
   --dense          also run the dense stage (photometric stereo, fusion, ICP map; core/pipeline) on
-                   every keyframe as it is finished and write map.ply and trajectory_metres.txt
-                   (metres, by the session depth scale the dense stage estimates from the shading)
+                   every keyframe at the end, with its refined depth at its final pose, and write
+                   map.ply and trajectory_metres.txt (metres, by the session depth scale the dense
+                   stage estimates from the shading)
+  --dense-online   run it instead on each keyframe as it is finished (as prism-server does), then
+                   rebuild map.ply at the final keyframe poses (DenseStage::Remap)
   --slam-config FILE  SLAM options from FILE, one 'key = value' per line (core/slam/slam_config.h); the
                    same keys as prism-server's slam.KEY and the written slam_config.txt
   --set KEY=VALUE  one SLAM option, e.g. --set tracker.min_gradient=5 (applied in command-line order
@@ -66,9 +69,10 @@ options:
   --no-repropagation  a new keyframe keeps the depth propagated along the tracked pose
                    (= --set repropagate_after_adjustment=false)
   --no-final-adjustment  no adjustment of all keyframes at the end (= --set final_adjustment=false)
-  --no-remap       write map.ply as the keyframe clouds were merged (at their poses when handed over)
-                   instead of rebuilt at the final keyframe poses (DenseStage::Remap)
-  --remap-icp      register each keyframe cloud again with ICP as map.ply is rebuilt at the final poses
+  --no-remap       with --dense-online: write map.ply as the keyframe clouds were merged (at their
+                   poses when handed over) instead of rebuilt at the final keyframe poses
+  --remap-icp      with --dense-online: register each keyframe cloud again with ICP as map.ply is
+                   rebuilt at the final poses
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
@@ -133,6 +137,7 @@ int main(int argc, char** argv) {
   bool eval = true;
   bool dense = false;
   bool remap = true;
+  bool dense_online = false;
   SlamOptions options;
   DenseStageOptions dense_options;
   // Switches without a value: the flag sets its bool to the given value.
@@ -143,6 +148,7 @@ int main(int argc, char** argv) {
   } kSwitches[] = {
       {"--no-eval", &eval, false},
       {"--dense", &dense, true},
+      {"--dense-online", &dense_online, true},
       {"--no-remap", &remap, false},
       {"--remap-icp", &dense_options.remap_icp, true},
       {"--no-keyframe-adjustment", &options.keyframe_adjustment, false},
@@ -260,7 +266,7 @@ int main(int argc, char** argv) {
     if (!r.ok()) return Fail("frame " + std::to_string(i) + ": " + r.status().ToString());
     if (r->state == SlamState::kLost) std::cerr << "prism-slam: frame " << i << ": " << r->message << "\n";
     for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) {
-      run_dense(k);
+      if (dense_online) run_dense(k);
       keyframes.push_back(std::move(k));
     }
   }
@@ -268,26 +274,35 @@ int main(int argc, char** argv) {
   std::vector<SlamKeyframe> last_keyframes = (*slam)->Finish();
   const double finish_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - finish_start).count();
   for (SlamKeyframe& k : last_keyframes) {
-    run_dense(k);
+    if (dense_online) run_dense(k);
     keyframes.push_back(std::move(k));
   }
-  if (dense_stage) {
+  if (dense_stage && dense_online) {
     StatusOr<MapChunk> rest = dense_stage->Flush();
     if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
   }
-  const double metres_per_unit =
-      dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
   // The keyframes' depth re-estimated at the final poses (SlamOptions::final_refinement_neighbours; the
   // dense stage above ran on each keyframe as handed over).
   const auto refine_start = std::chrono::steady_clock::now();
   (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
                                 options.final_refinement_rounds, &keyframes);
   const double refine_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
-  // The map at the final keyframe poses (the keyframe clouds as merged, each placed again).
+  // The dense stage on the final keyframes: their refined depth at their final poses.
+  if (dense_stage && !dense_online) {
+    const std::vector<Sim3d> final_poses = (*slam)->KeyframePoses();
+    for (const SlamKeyframe& k : keyframes) {
+      SlamKeyframe placed = k;
+      placed.world_from_keyframe = final_poses[static_cast<size_t>(k.id)];
+      run_dense(placed);
+    }
+    StatusOr<MapChunk> rest = dense_stage->Flush();
+    if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
+  }
+  // --dense-online: the keyframe clouds as merged, each placed again at its final pose.
   double remap_seconds = 0;
   bool remapped = false;
   if (dense_stage) {
-    if (remap) {
+    if (dense_online && remap) {
       const auto remap_start = std::chrono::steady_clock::now();
       StatusOr<MapChunk> changed = dense_stage->Remap((*slam)->KeyframePoses());
       remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
@@ -297,6 +312,9 @@ int main(int argc, char** argv) {
     if (Status s = WritePointCloudPly(out_dir + "/map.ply", dense_stage->map().ToPointCloud()); !s.ok())
       return Fail(s.ToString());
   }
+
+  const double metres_per_unit =
+      dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
 
   // Outputs.
   const std::vector<SlamFrameResult> results = (*slam)->Trajectory();
