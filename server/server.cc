@@ -128,8 +128,8 @@ std::string RandomHex(int bytes) {
 
 // Approximate bytes per voxel of a session's map (position, normal, colour, confidence, hash entry).
 constexpr double kMapBytesPerPoint = 96;
-// A point of a keyframe cloud kept for the map's rebuild (DenseStage::Remap): 31 bytes of attributes.
-constexpr double kKeptBytesPerPoint = 32;
+// A point of a keyframe cloud kept for the map's rebuild (DenseStage::Remap).
+constexpr double kKeptBytesPerPoint = DenseStage::kKeptBytesPerPoint;
 
 struct Server::Impl {
   // Per session, transport thread only (except pipeline, which is thread-safe).

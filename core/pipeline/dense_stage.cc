@@ -114,7 +114,7 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
                          DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera, Sim3d(), 1, bright,
                                       result.photometric.confidence));
   result.cloud = TransformCloud(cloud_in_keyframe, keyframe.world_from_keyframe);
-  Keep(keyframe.id, keyframe.world_from_keyframe, std::move(cloud_in_keyframe));
+  Keep(keyframe.id, keyframe.world_from_keyframe, cloud_in_keyframe);
   if (!options_.world_in_slam_units) {
     PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, options_.icp_enabled, &result));
   } else {
@@ -176,28 +176,89 @@ StatusOr<MapChunk> DenseStage::Flush() {
   return map_.TakeChanges();
 }
 
-void DenseStage::Keep(uint64_t keyframe_id, const Sim3d& world_from_keyframe, PointCloud cloud_in_keyframe) {
+namespace {
+
+// Every other element, from the first.
+template <typename T>
+void KeepEveryOther(std::vector<T>* v) {
+  size_t n = 0;
+  for (size_t i = 0; i < v->size(); i += 2) (*v)[n++] = (*v)[i];
+  v->resize(n);
+  v->shrink_to_fit();
+}
+
+}  // namespace
+
+void DenseStage::KeptCloud::Thin() {
+  KeepEveryOther(&positions);
+  KeepEveryOther(&normals);
+  KeepEveryOther(&colors);
+  KeepEveryOther(&confidences);
+}
+
+PointCloud DenseStage::KeptCloud::ToPointCloud() const {
+  PointCloud cloud;
+  cloud.positions = positions;
+  cloud.normals.reserve(normals.size());
+  for (const Eigen::Matrix<int16_t, 3, 1>& n : normals) cloud.normals.push_back(n.cast<float>() / 32767.0f);
+  cloud.colors = colors;
+  cloud.confidences = confidences;
+  return cloud;
+}
+
+void DenseStage::Keep(uint64_t keyframe_id, const Sim3d& world_from_keyframe, const PointCloud& cloud_in_keyframe) {
   if (kept_overflow_ || options_.remap_max_points == 0) return;
-  const int64_t n = static_cast<int64_t>(cloud_in_keyframe.size());
-  if (kept_points_ + n > options_.remap_max_points) {
-    PRISM_LOG(WARNING) << "dense: keyframe " << keyframe_id << " would take the clouds kept for a remap past "
-                       << options_.remap_max_points << " points (remap_max_points): freed, the map will not "
-                       << "follow moved keyframe poses";
-    kept_.clear();
-    kept_.shrink_to_fit();
-    kept_points_ = 0;
-    kept_overflow_ = true;
-    return;
+  constexpr int kMaxStride = 64;
+  KeptCloud k;
+  k.keyframe_id = keyframe_id;
+  k.world_from_keyframe = world_from_keyframe;
+  const bool has_normals = cloud_in_keyframe.HasNormals(), has_colors = cloud_in_keyframe.HasColors(),
+             has_confidences = cloud_in_keyframe.HasConfidences();
+  const size_t stride = static_cast<size_t>(kept_stride_);
+  const size_t n = (cloud_in_keyframe.size() + stride - 1) / stride;
+  k.positions.reserve(n);
+  if (has_normals) k.normals.reserve(n);
+  if (has_colors) k.colors.reserve(n);
+  if (has_confidences) k.confidences.reserve(n);
+  for (size_t i = 0; i < cloud_in_keyframe.size(); i += stride) {
+    k.positions.push_back(cloud_in_keyframe.positions[i]);
+    if (has_normals) {
+      const Eigen::Vector3f n = cloud_in_keyframe.normals[i].cwiseMax(-1.0f).cwiseMin(1.0f) * 32767.0f;
+      k.normals.push_back(n.array().round().cast<int16_t>().matrix());
+    }
+    if (has_colors) k.colors.push_back(cloud_in_keyframe.colors[i]);
+    if (has_confidences) k.confidences.push_back(cloud_in_keyframe.confidences[i]);
   }
-  kept_points_ += n;
-  kept_.push_back({keyframe_id, world_from_keyframe, std::move(cloud_in_keyframe)});
+  kept_points_ += static_cast<int64_t>(k.size());
+  kept_.push_back(std::move(k));
+  while (kept_points_ > options_.remap_max_points) {
+    if (kept_stride_ >= kMaxStride) {
+      PRISM_LOG(WARNING) << "dense: the clouds kept for a remap pass " << options_.remap_max_points
+                         << " points (remap_max_points) even at one point in " << kept_stride_
+                         << ": freed, the map will not follow moved keyframe poses";
+      kept_.clear();
+      kept_.shrink_to_fit();
+      kept_points_ = 0;
+      kept_overflow_ = true;
+      return;
+    }
+    kept_stride_ *= 2;
+    kept_points_ = 0;
+    for (KeptCloud& c : kept_) {
+      c.Thin();
+      kept_points_ += static_cast<int64_t>(c.size());
+    }
+    PRISM_LOG(WARNING) << "dense: keyframe " << keyframe_id << " took the clouds kept for a remap past "
+                       << options_.remap_max_points << " points (remap_max_points): thinned to one point in "
+                       << kept_stride_ << " (" << kept_points_ << " points in " << kept_.size() << " clouds)";
+  }
 }
 
 StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m) {
   if (options_.remap_max_points == 0) return FailedPreconditionError("remap: no clouds kept (remap_max_points = 0)");
   if (kept_overflow_)
     return FailedPreconditionError("remap: the kept clouds passed remap_max_points = " +
-                                   std::to_string(options_.remap_max_points) + " and were freed");
+                                   std::to_string(options_.remap_max_points) + " even thinned, and were freed");
   PRISM_ASSIGN_OR_RETURN(MapChunk flushed, Flush());
   if (options_.world_in_slam_units && !depth_scale_.has_value())
     return FailedPreconditionError("remap: the session has no depth scale (no keyframe estimated it)");
@@ -220,7 +281,7 @@ StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyfra
     if (k.keyframe_id < world_from_keyframe.size()) k.world_from_keyframe = world_from_keyframe[k.keyframe_id];
     const Sim3d& p = k.world_from_keyframe;
     const PointCloud cloud =
-        TransformCloud(k.cloud_in_keyframe, Sim3d(metres * p.scale, p.rotation, metres * p.translation));
+        TransformCloud(k.ToPointCloud(), Sim3d(metres * p.scale, p.rotation, metres * p.translation));
     PRISM_RETURN_IF_ERROR(Merge(cloud, k.keyframe_id, options_.icp_enabled && options_.remap_icp, &scratch));
   }
   return map_.TakeChanges();

@@ -61,8 +61,9 @@ struct DenseStageOptions {
   bool world_in_slam_units = true;
   // Every merged keyframe cloud is also kept in its keyframe's own frame, so that Remap can rebuild
   // the map once the keyframe poses have moved (a loop closure, the final adjustment), up to this many
-  // points over the session (31 bytes each: 8M points is about 250 MB). Past it the kept clouds are
-  // freed and Remap is no longer possible (logged). 0 keeps none.
+  // points over the session (DenseStage::kKeptBytesPerPoint each: 8M points is about 190 MB). Past it
+  // every kept cloud is thinned to every other point, and later clouds likewise (logged; the rebuilt
+  // map then has fewer samples per voxel), down to one point in 64. 0 keeps none.
   int64_t remap_max_points = 8000000;
   // Remap registers each cloud to the rebuilt map again with ICP (the guard as above); false places
   // each at its moved pose alone. Measured with prism-slam --dense on the 9 presets x seeds 1-2: the
@@ -127,9 +128,12 @@ class DenseStage {
   // min_move_m (metres; rotations count as their arc at 1 m). FAILED_PRECONDITION when the clouds were
   // not kept (over the budget, or remap_max_points = 0).
   StatusOr<MapChunk> Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m = 1e-6);
-  // Clouds kept for Remap, and their points.
+  // Clouds kept for Remap, their points, and the thinning (1 = every point, 2 = every other, ...).
   size_t kept_clouds() const { return kept_.size(); }
   int64_t kept_points() const { return kept_points_; }
+  int kept_stride() const { return kept_stride_; }
+  // Memory of a kept point: position (3 floats), normal (3 int16), colour (3 bytes), confidence.
+  static constexpr int kKeptBytesPerPoint = 25;
 
   const GlobalMap& map() const { return map_; }
   const SessionDepthScale& depth_scale() const { return depth_scale_; }
@@ -141,7 +145,7 @@ class DenseStage {
   // ICP against the map (with the guard) and merge; fills the ICP fields and insert stats of result.
   Status Merge(const PointCloud& cloud_in_world, uint64_t keyframe_id, bool icp, DenseKeyframeResult* result);
   // Keeps a cloud for Remap within the budget (DenseStageOptions::remap_max_points).
-  void Keep(uint64_t keyframe_id, const Sim3d& world_from_keyframe, PointCloud cloud_in_keyframe);
+  void Keep(uint64_t keyframe_id, const Sim3d& world_from_keyframe, const PointCloud& cloud_in_keyframe);
   Status MergePending(double metres_per_unit, DenseKeyframeResult* result);
   // The session depth scale is fixed (see DenseStageOptions::scale_keyframes).
   bool ScaleSettled() const;
@@ -159,14 +163,23 @@ class DenseStage {
   std::vector<PendingCloud> pending_;
   // Every merged or pending cloud in the order it entered the map, in its keyframe's frame (keyframe
   // depth units) with the pose it was made with (DenseKeyframe::world_from_keyframe).
+  // Normals are kept as int16 (unit vector * 32767); an empty array = the cloud had none.
   struct KeptCloud {
     uint64_t keyframe_id = 0;
     Sim3d world_from_keyframe;
-    PointCloud cloud_in_keyframe;
+    std::vector<Eigen::Vector3f> positions;
+    std::vector<Eigen::Matrix<int16_t, 3, 1>> normals;
+    std::vector<Eigen::Matrix<uint8_t, 3, 1>> colors;
+    std::vector<float> confidences;
+    size_t size() const { return positions.size(); }
+    // Keeps every other point.
+    void Thin();
+    PointCloud ToPointCloud() const;
   };
   std::vector<KeptCloud> kept_;
   int64_t kept_points_ = 0;
-  bool kept_overflow_ = false;  // the budget was exceeded: kept_ is empty and stays so
+  int kept_stride_ = 1;
+  bool kept_overflow_ = false;  // even one point in 64 passed the budget: kept_ is empty and stays so
 };
 
 }  // namespace prism
