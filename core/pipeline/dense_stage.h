@@ -1,7 +1,9 @@
 // The dense stage of one session (paper §3.3-3.4): per finished SLAM keyframe, multispectral
 // photometric stereo with the session depth scale, positions+normals fusion, removal of depth-edge
 // (flying) pixels, the dense keyframe cloud, ICP against the map with a plausibility guard, and the
-// merge into the GlobalMap; it hands back the map voxels that changed (an incremental chunk).
+// merge into the GlobalMap; it hands back the map voxels that changed (an incremental chunk). It keeps
+// each merged cloud in its keyframe's frame, so that Remap can rebuild the whole map once the keyframe
+// poses have moved (the end of a session: final adjustment, loop closures).
 //
 // Thread safety: not internally synchronised; one thread at a time calls Process (the keyframes of
 // a session are processed in order). The heavy loops run on the ThreadPool given at construction,

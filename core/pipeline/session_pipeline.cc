@@ -322,7 +322,13 @@ void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, c
   MapChunkCodecOptions chunk_options = options_.chunk;
   chunk_options.voxel_m = options_.dense.map.voxel_m;
   StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(changes.cloud, chunk_options);
-  if (!encoded.ok()) return;  // nothing encodable (every point off the grid)
+  if (!encoded.ok()) {  // nothing encodable (every point off the grid)
+    if (changes.replaces_map) {
+      PRISM_LOG(WARNING) << "pipeline: the rebuilt map could not be encoded (" << encoded.status()
+                         << "); clients keep the map as merged";
+    }
+    return;
+  }
   PipelineEvent e;
   e.kind = PipelineEvent::Kind::kChunk;
   e.keyframe_id = keyframe_id;
