@@ -786,7 +786,7 @@ struct Server::Impl {
         QueueChunk(s, std::move(pc));
         FlushChunks(s);
         // Memory per session: the map (voxels) and the chunks held for the client.
-        const double session_mb = (static_cast<double>(e.map_points) * kMapBytesPerPoint +
+        const double session_mb = (static_cast<double>(e.map_voxels) * kMapBytesPerPoint +
                                    static_cast<double>(e.kept_points) * kKeptBytesPerPoint +
                                    static_cast<double>(s->pending_bytes_in_memory)) /
                                   (1 << 20);

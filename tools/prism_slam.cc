@@ -379,7 +379,7 @@ int main(int argc, char** argv) {
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
          << ",\n  \"dense_failed_keyframes\": " << dense_failed << ",\n  \"metres_per_unit\": " << metres_per_unit
-         << ",\n  \"map_points\": " << dense_stage->map().size()
+         << ",\n  \"map_points\": " << dense_stage->map().output_size()
          << ",\n  \"map_remapped\": " << (remapped ? "true" : "false")
          << ",\n  \"remap_ms\": " << 1000.0 * remap_seconds;
     if (dense_failed) json << ",\n  \"dense_first_error\": \"" << dense_first_error << "\"";

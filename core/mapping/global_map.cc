@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <sstream>
+#include <string>
 
 #include "core/util/check.h"
 
@@ -48,6 +49,9 @@ Status MapOptions::Check() const {
     s << "MapOptions.voxel_m = " << voxel_m << "; violated: in [1e-5, 10]";
     return InvalidArgumentError(s.str());
   }
+  if (min_keyframes < 1 || min_keyframes > 1000)
+    return InvalidArgumentError("MapOptions.min_keyframes = " + std::to_string(min_keyframes) +
+                                "; violated: in [1, 1000]");
   return Status::Ok();
 }
 
@@ -196,6 +200,9 @@ StatusOr<MapInsertStats> GlobalMap::InsertImpl(const PointCloud& cloud, const Tr
       voxel.color_sum += w * cloud.colors[i].cast<float>();
       voxel.color_weight += w;
     }
+    if (voxel.observations == 0 || voxel.last_keyframe_id != keyframe_id) {
+      if (++voxel.keyframes == static_cast<uint32_t>(options_.min_keyframes)) ++output_voxels_;
+    }
     ++voxel.observations;
     voxel.last_keyframe_id = keyframe_id;
     if (!voxel.changed) {
@@ -253,16 +260,21 @@ MapChunk GlobalMap::TakeChanges() {
   chunk.sequence = ++chunk_sequence_;
   chunk.replaces_map = cleared_;
   cleared_ = false;
-  const size_t n = changed_.size();
+  const uint32_t min_keyframes = static_cast<uint32_t>(options_.min_keyframes);
+  size_t n = 0;
+  for (uint32_t index : changed_) n += voxels_[index].keyframes >= min_keyframes ? 1 : 0;
   PrepareOutput(n, &chunk.cloud);
   chunk.keys.resize(n);
   chunk.observations.resize(n);
-  for (size_t i = 0; i < n; ++i) {
-    Voxel& v = voxels_[changed_[i]];
+  size_t i = 0;
+  for (uint32_t index : changed_) {
+    Voxel& v = voxels_[index];
     v.changed = false;
+    if (v.keyframes < min_keyframes) continue;  // not in the output yet: sent once a later keyframe adds to it
     WriteVoxel(v, i, &chunk.cloud);
     chunk.keys[i] = v.key;
     chunk.observations[i] = v.observations;
+    ++i;
   }
   changed_.clear();
   return chunk;
@@ -276,13 +288,15 @@ void GlobalMap::Clear() {
   has_normals_ = false;
   has_colors_ = false;
   totals_ = MapInsertStats();
+  output_voxels_ = 0;
   cleared_ = true;
 }
 
 PointCloud GlobalMap::ToPointCloud(double min_confidence, int min_observations) const {
   PointCloud cloud;
   const auto keep = [&](const Voxel& v) {
-    return v.weight >= min_confidence && static_cast<int64_t>(v.observations) >= min_observations;
+    return v.keyframes >= static_cast<uint32_t>(options_.min_keyframes) && v.weight >= min_confidence &&
+           static_cast<int64_t>(v.observations) >= min_observations;
   };
   size_t n = 0;
   for (const Voxel& v : voxels_) n += keep(v) ? 1 : 0;

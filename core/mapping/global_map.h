@@ -25,6 +25,11 @@ struct MapOptions {
   // Edge of the cubic voxels, metres, in [1e-5, 10]. About the pixel footprint or coarser: a 512x512
   // keyframe of a 0.2 m object at 0.6 m has ~1 mm pixels, so 2 mm merges ~4 pixels per keyframe.
   double voxel_m = 0.002;
+  // A voxel enters the map's output (ToPointCloud, TakeChanges) once points of at least this many
+  // keyframes were merged into it, in [1, 1000]. A surface is seen by several keyframes; a stray point
+  // (a flying pixel, a wrong depth) by one, each in a voxel of its own, so their share of the map grows
+  // with every keyframe. 1 = every voxel.
+  int min_keyframes = 1;
 
   Status Check() const;
 };
@@ -38,9 +43,9 @@ constexpr int64_t kMinVoxelCoordinate = -(int64_t{1} << 20);
 VoxelKey PackVoxelKey(const Eigen::Vector3i& voxel);
 Eigen::Vector3i UnpackVoxelKey(VoxelKey key);
 
-// Voxels created or changed since the previous TakeChanges(), one point per voxel in the order they
-// were first touched. cloud holds each voxel's current state (as in ToPointCloud); keys[i] and
-// observations[i] belong to cloud point i.
+// Voxels created or changed since the previous TakeChanges() that have at least MapOptions::min_keyframes
+// keyframes, one point per voxel in the order they were first touched. cloud holds each voxel's current state (as in
+// ToPointCloud); keys[i] and observations[i] belong to cloud point i.
 struct MapChunk {
   uint64_t sequence = 0;  // 1 for the first chunk of a map, then 2, 3, ...
   PointCloud cloud;
@@ -90,14 +95,16 @@ class GlobalMap {
   // Voxels changed since the last TakeChanges().
   size_t pending_changes() const { return changed_.size(); }
 
-  // One point per voxel with summed confidence >= min_confidence and >= min_observations observations:
+  // One point per voxel with at least MapOptions::min_keyframes keyframes, summed confidence >=
+  // min_confidence and >= min_observations observations:
   // mean position, unit normal (zero = none; the normals array is present once any inserted point had
   // a normal), mean colour (present once any inserted cloud had colours; zero for voxels without
   // colour), summed confidence. Order: voxel creation order.
   PointCloud ToPointCloud(double min_confidence = 0.0, int min_observations = 1) const;
 
-  // Number of voxels.
+  // Number of voxels, and of those with at least MapOptions::min_keyframes keyframes (the output).
   size_t size() const { return voxels_.size(); }
+  size_t output_size() const { return output_voxels_; }
   bool empty() const { return voxels_.empty(); }
   const MapOptions& options() const { return options_; }
   // Everything Insert did since construction or the last Clear().
@@ -120,7 +127,8 @@ class GlobalMap {
     float weight = 0.0f;                                   // summed confidence
     float color_weight = 0.0f;
     uint32_t observations = 0;
-    bool changed = false;  // listed in changed_
+    uint32_t keyframes = 0;  // distinct keyframes merged (consecutive inserts of one keyframe count once)
+    bool changed = false;    // listed in changed_
     uint64_t last_keyframe_id = 0;
     VoxelKey key = 0;
   };
@@ -158,7 +166,8 @@ class GlobalMap {
   std::vector<Slot> recent_;
   std::vector<uint32_t> changed_;  // voxel indices changed since the last TakeChanges
   uint64_t chunk_sequence_ = 0;
-  bool cleared_ = false;  // Clear() since the last TakeChanges()
+  size_t output_voxels_ = 0;  // voxels with at least min_keyframes keyframes
+  bool cleared_ = false;      // Clear() since the last TakeChanges()
   bool has_normals_ = false;
   bool has_colors_ = false;
   MapInsertStats totals_;

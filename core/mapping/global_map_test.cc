@@ -159,6 +159,34 @@ TEST(GlobalMapTest, ClearEmptiesTheMapAndTheNextChunkReplacesIt) {
   EXPECT_FALSE(map.TakeChanges().replaces_map);  // only the first chunk after Clear
 }
 
+// MapOptions::min_keyframes: a voxel enters the output (ToPointCloud, TakeChanges, output_size) only
+// once a second keyframe adds to it; inserts of one keyframe count once. A voxel held back is sent
+// with the chunk of the keyframe that completes it.
+TEST(GlobalMapTest, VoxelsSeenByOneKeyframeStayOutOfTheOutput) {
+  const PointCloud first = RenderWorldCloud(0), second = RenderWorldCloud(3);
+  MapOptions options;
+  options.min_keyframes = 2;
+  GlobalMap map(options);
+  ASSERT_TRUE(map.Insert(first, 1).ok());
+  ASSERT_TRUE(map.Insert(first, 1).ok());  // the same keyframe again
+  EXPECT_GT(map.size(), 0u);
+  EXPECT_EQ(map.output_size(), 0u);
+  EXPECT_TRUE(map.ToPointCloud().empty());
+  EXPECT_TRUE(map.TakeChanges().empty());
+  ASSERT_TRUE(map.Insert(second, 2).ok());
+  const std::set<VoxelKey> a = VoxelsOf(map, first), b = VoxelsOf(map, second);
+  size_t shared = 0;
+  for (VoxelKey k : b) shared += a.count(k);
+  ASSERT_GT(shared, 1000u);
+  EXPECT_EQ(map.output_size(), shared);
+  EXPECT_EQ(map.ToPointCloud().size(), shared);
+  const MapChunk chunk = map.TakeChanges();
+  EXPECT_EQ(chunk.size(), shared);
+  for (VoxelKey k : chunk.keys) EXPECT_TRUE(a.count(k) && b.count(k));
+  options.min_keyframes = 0;
+  EXPECT_FALSE(options.Check().ok());
+}
+
 TEST(GlobalMapTest, BadPointsAreSkippedAndCounted) {
   PointCloud cloud;
   auto add = [&](const Eigen::Vector3f& p, float confidence) {

@@ -32,7 +32,10 @@ struct DenseStageOptions {
   // Photometric stereo; estimate_depth_scale and depth_scale are set per keyframe by the stage.
   PhotometricOptions photometric;
   FusionOptions fusion;
-  MapOptions map;
+  // The map's output keeps voxels seen by at least 2 keyframes (MapOptions::min_keyframes; 1 for
+  // MapOptions alone). Measured with prism-slam --dense on the 9 presets, seed 1: see README, "The map
+  // keeps what two keyframes saw".
+  MapOptions map{/*voxel_m=*/0.002, /*min_keyframes=*/2};
   IcpOptions icp;
   // Register each keyframe cloud to the map with ICP before merging it.
   bool icp_enabled = true;

@@ -237,7 +237,7 @@ void SessionPipeline::SlamLoop() {
         {
           std::lock_guard<std::mutex> lock(map_mutex_);
           rest = dense_->Flush();
-          map_points = dense_->map().size();
+          map_points = dense_->map().output_size();
         }
         if (rest.ok() && !rest->empty()) EmitChunk(*rest, 0, Rigid3d(), map_points);
         if (options_.remap_at_end && !final_keyframe_poses.empty() && dense_->kept_clouds() > 0) {
@@ -246,7 +246,7 @@ void SessionPipeline::SlamLoop() {
           {
             std::lock_guard<std::mutex> lock(map_mutex_);
             rebuilt = dense_->Remap(final_keyframe_poses);
-            map_points = dense_->map().size();
+            map_points = dense_->map().output_size();
           }
           if (!rebuilt.ok()) {
             PRISM_LOG(WARNING) << "pipeline: map not rebuilt at the final keyframe poses: " << rebuilt.status();
@@ -338,6 +338,7 @@ void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, c
   e.world_from_keyframe = world_from_keyframe;
   e.map_points = map_points;
   e.replaces_map = changes.replaces_map;
+  e.map_voxels = dense_->map().size();
   e.kept_points = dense_->kept_points();
   {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -374,7 +375,7 @@ void SessionPipeline::DenseJob() {
     {
       std::lock_guard<std::mutex> lock(map_mutex_);
       r = dense_->Process(dk);
-      map_points = dense_->map().size();
+      map_points = dense_->map().output_size();
     }
     if (!r.ok()) {
       {

@@ -105,7 +105,9 @@ struct PipelineEvent {
   // The map was rebuilt at the final keyframe poses (SessionPipelineOptions::remap_at_end): this chunk
   // is the whole map and voids every earlier one (keyframe_id 0, identity pose).
   bool replaces_map = false;
-  // Points of the keyframe clouds the dense stage keeps for that rebuild (memory accounting).
+  // Memory accounting: all of the map's voxels (map_points counts those in its output,
+  // MapOptions::min_keyframes) and the points of the keyframe clouds kept for the rebuild.
+  size_t map_voxels = 0;
   int64_t kept_points = 0;
   // kError: a frame or keyframe failed (has_frame), or the session failed (fatal).
   Status status;
