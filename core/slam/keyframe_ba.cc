@@ -138,6 +138,24 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   for (const DirectBaPoint& p : problem->points)
     if (p.host < 0 || p.host >= num_kf || !(p.inverse_depth > 0))
       return InvalidArgumentError("AdjustKeyframeWindowDirect: point with a bad host or inverse depth");
+  const DirectBaRelit& relit = problem->relit;
+  const bool use_relit = relit.rig != nullptr;
+  if (use_relit) {
+    if (static_cast<int>(relit.rgb.size()) != num_kf)
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: relit needs one colour image per keyframe");
+    for (const cv::Mat& c : relit.rgb)
+      if (c.type() != CV_8UC3 || c.cols != cam.width || c.rows != cam.height)
+        return InvalidArgumentError(
+            "AdjustKeyframeWindowDirect: relit colour images must be CV_8UC3 of the camera's size");
+    if (!(relit.metres_per_world_unit > 0) || !std::isfinite(relit.metres_per_world_unit))
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: relit metres_per_world_unit must be > 0");
+    if (!(relit.albedo_colour.minCoeff() > 0) || !relit.albedo_colour.allFinite())
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: relit albedo_colour must be > 0");
+    if (!(relit.min_band_fraction >= 0 && relit.min_band_fraction < 1))
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: relit min_band_fraction must be in [0, 1)");
+    if (options.pyramid_levels != 1)
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: the relit residual needs pyramid_levels = 1");
+  }
 
   struct Pose {
     Eigen::Matrix3d rotation;
@@ -157,6 +175,62 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     rho[static_cast<size_t>(i)] = p.inverse_depth;
     ray[static_cast<size_t>(i)] = cam.Unproject(Eigen::Vector2d(p.u, p.v));
   }
+  // Relit: each point's demixed host colour (NaN intensity marks a point left out), and the model.
+  std::vector<Eigen::Vector3d> bands(use_relit ? static_cast<size_t>(num_points) : 0);
+  std::vector<Eigen::Vector3d> normal_rho(use_relit ? static_cast<size_t>(num_points) : 0);       // rho n, host camera
+  std::vector<Eigen::Vector3d> normal_rho_drho(use_relit ? static_cast<size_t>(num_points) : 0);  // its d / d rho
+  Eigen::RowVector3d grey_of_light = Eigen::RowVector3d::Constant(1.0 / 3);
+  const double metres = relit.metres_per_world_unit;
+  if (use_relit) {
+    const Eigen::Matrix3d demix = relit.rig->crosstalk.inverse();
+    grey_of_light = relit.rig->crosstalk.colwise().sum() / 3.0;
+    for (int i = 0; i < num_points; ++i) {
+      DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+      const cv::Vec3b c =
+          relit.rgb[static_cast<size_t>(p.host)].at<cv::Vec3b>(static_cast<int>(p.v), static_cast<int>(p.u));
+      const Eigen::Vector3d b = demix * Eigen::Vector3d(c[0], c[1], c[2]);
+      bands[static_cast<size_t>(i)] = b.cwiseQuotient(relit.albedo_colour);
+      const bool usable = std::max({c[0], c[1], c[2]}) < 250 && b.maxCoeff() > 0 &&
+                          b.minCoeff() >= relit.min_band_fraction * b.maxCoeff();
+      if (!usable) bands[static_cast<size_t>(i)].setConstant(std::numeric_limits<double>::quiet_NaN());
+    }
+  }
+  // S(p): rows E_l(p) L_l(p)^T at a metric point in the camera.
+  auto lighting = [&](const Eigen::Vector3d& point_m) {
+    Eigen::Matrix3d m;
+    for (int l = 0; l < 3; ++l) {
+      Eigen::Vector3d to_light;
+      double irradiance;
+      relit.rig->lights[static_cast<size_t>(l)].Illuminate(point_m, &to_light, &irradiance);
+      m.row(l) = irradiance * to_light.transpose();
+    }
+    return m;
+  };
+  // rho n of point i at inverse depth r (host camera), NaN when its implied normal faces away.
+  auto implied_normal = [&](const std::vector<Pose>& ps, int i, double r) -> Eigen::Vector3d {
+    const Pose& h = ps[static_cast<size_t>(problem->points[static_cast<size_t>(i)].host)];
+    const Eigen::Vector3d x = (metres * h.scale / r) * ray[static_cast<size_t>(i)];
+    const Eigen::Vector3d m = lighting(x).inverse() * bands[static_cast<size_t>(i)];
+    if (!m.allFinite() || m.dot(-x.normalized()) < 0.1 * m.norm())
+      return Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());
+    return m;
+  };
+  // The predicted raw grey level of point i (rho n = m in its host's camera) at pt in target t's camera
+  // (world units).
+  auto relit_prediction = [&](const std::vector<Pose>& ps, int i, int t, const Eigen::Vector3d& pt,
+                              const Eigen::Vector3d& m) {
+    const Pose& h = ps[static_cast<size_t>(problem->points[static_cast<size_t>(i)].host)];
+    const Eigen::Vector3d n_t = ps[static_cast<size_t>(t)].rotation.transpose() * (h.rotation * m);
+    const Eigen::Vector3d x = metres * pt;
+    Eigen::Vector3d shading;
+    for (int l = 0; l < 3; ++l) {
+      Eigen::Vector3d to_light;
+      double irradiance;
+      relit.rig->lights[static_cast<size_t>(l)].Illuminate(x, &to_light, &irradiance);
+      shading[l] = irradiance * std::max(0.0, n_t.dot(to_light)) * relit.albedo_colour(l);
+    }
+    return (grey_of_light * shading)(0);
+  };
   Eigen::Vector3d baseline = poses[1].centre - poses[0].centre;
   const double baseline_norm = baseline.norm();
   baseline = baseline_norm > 0 ? Eigen::Vector3d(baseline / baseline_norm) : Eigen::Vector3d::UnitX();
@@ -191,6 +265,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   const std::vector<cv::Mat>* limg = &pyramid[0];
   std::vector<float> lint(static_cast<size_t>(num_points));
   for (int i = 0; i < num_points; ++i) lint[static_cast<size_t>(i)] = problem->points[static_cast<size_t>(i)].intensity;
+  if (use_relit)  // relit: lint only marks the points left out (NaN)
+    for (int i = 0; i < num_points; ++i)
+      lint[static_cast<size_t>(i)] =
+          bands[static_cast<size_t>(i)].allFinite() ? 0.0f : std::numeric_limits<float>::quiet_NaN();
 
   // The cost, target by target (each target's image read in about raster order).
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
@@ -199,8 +277,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     *count = 0;
     *sq = 0;
     for (int i = 0; i < num_points; ++i)
-      if (rs[static_cast<size_t>(i)] > 0)
+      if (rs[static_cast<size_t>(i)] > 0) {
         eval_world[static_cast<size_t>(i)] = world_point(ps, i, rs[static_cast<size_t>(i)]);
+        if (use_relit && !std::isnan(lint[static_cast<size_t>(i)]))
+          normal_rho[static_cast<size_t>(i)] = implied_normal(ps, i, rs[static_cast<size_t>(i)]);
+      }
     for (int t = 0; t < num_kf; ++t) {
       const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
       const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
@@ -215,7 +296,12 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         if (!lcam.InImage(px, border)) continue;
         double value;
         if (!SampleValue(image, px.x(), px.y(), &value)) continue;
-        const double e = std::abs(value - lint[static_cast<size_t>(i)]);
+        double expected = lint[static_cast<size_t>(i)];
+        if (use_relit) {
+          if (!normal_rho[static_cast<size_t>(i)].allFinite()) continue;
+          expected = relit_prediction(ps, i, t, pt, normal_rho[static_cast<size_t>(i)]);
+        }
+        const double e = std::abs(value - expected);
         cost += HuberCost(e, options.huber);
         *sq += e * e;
         ++*count;
@@ -282,6 +368,13 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           const double r = rho[static_cast<size_t>(i)];
           point_ok[static_cast<size_t>(i)] = r > 0 && !std::isnan(lint[static_cast<size_t>(i)]);
           if (point_ok[static_cast<size_t>(i)]) world[static_cast<size_t>(i)] = world_point(poses, i, r);
+          if (point_ok[static_cast<size_t>(i)] && use_relit) {
+            normal_rho[static_cast<size_t>(i)] = implied_normal(poses, i, r);
+            normal_rho_drho[static_cast<size_t>(i)] =
+                (implied_normal(poses, i, r * (1 + 1e-5)) - implied_normal(poses, i, r * (1 - 1e-5))) / (2e-5 * r);
+            point_ok[static_cast<size_t>(i)] =
+                normal_rho[static_cast<size_t>(i)].allFinite() && normal_rho_drho[static_cast<size_t>(i)].allFinite();
+          }
         }
         for (int t = 0; t < num_kf; ++t) {
           const Pose& tp = poses[static_cast<size_t>(t)];
@@ -303,16 +396,48 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             Eigen::Vector2d g;
             if (!SampleWithGradient(image, px.x(), px.y(), &value, &g)) continue;
             const double r = rho[static_cast<size_t>(i)];
-            const double res = value - lint[static_cast<size_t>(i)];
+            const double res =
+                value - (use_relit ? relit_prediction(poses, i, t, pt, normal_rho[static_cast<size_t>(i)])
+                                   : static_cast<double>(lint[static_cast<size_t>(i)]));
             const double e = std::abs(res);
             const double w = e <= options.huber ? 1.0 : options.huber / e;
             const double iz = 1.0 / pt.z();
             Eigen::Matrix<double, 2, 3> du_dp;
             du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
-            const Eigen::RowVector3d j_pt = g.transpose() * du_dp;  // d residual / d point in target
+            Eigen::RowVector3d j_pt = g.transpose() * du_dp;  // d residual / d point in target
+            // Relit: the prediction moves with the point in the target (through the lights' irradiance and
+            // directions) and with rho n seen from the target, n_t = R_t^T R_h m; a right rotation of the
+            // target turns n_t by Skew(n_t), one of the host by -R_th Skew(m) (which is Skew(n_t) times
+            // DirectBaHostFromTarget's rotation block, so the pair sums below still hold), and rho moves
+            // m through the host point's lighting.
+            Eigen::RowVector3d j_n = Eigen::RowVector3d::Zero();  // d residual / d n_t
+            Eigen::Vector3d n_t = Eigen::Vector3d::Zero();
+            Eigen::Matrix3d r_th = Eigen::Matrix3d::Identity();
+            if (use_relit) {
+              const Eigen::Vector3d& m = normal_rho[static_cast<size_t>(i)];
+              r_th = rt_t * poses[static_cast<size_t>(p.host)].rotation;
+              n_t = r_th * m;
+              const Eigen::Vector3d x = metres * pt;
+              Eigen::RowVector3d dpred_dx = Eigen::RowVector3d::Zero();
+              for (int l = 0; l < 3; ++l) {
+                Eigen::Vector3d to_light;
+                double irradiance;
+                relit.rig->lights[static_cast<size_t>(l)].Illuminate(x, &to_light, &irradiance);
+                if (n_t.dot(to_light) > 0)
+                  j_n -= grey_of_light(l) * relit.albedo_colour(l) * irradiance * to_light.transpose();
+              }
+              const double hx = 1e-6 * std::max(1e-3, x.norm());
+              for (int c = 0; c < 3; ++c) {
+                Eigen::Vector3d d = Eigen::Vector3d::Zero();
+                d(c) = hx / metres;
+                dpred_dx(c) = (relit_prediction(poses, i, t, pt + d, m) - relit_prediction(poses, i, t, pt - d, m)) /
+                              (2 * hx / metres);
+              }
+              j_pt -= dpred_dx;
+            }
             // Target pose: right rotation perturbation and centre.
             Eigen::Matrix<double, 1, 6> j_target;
-            j_target.head<3>() = j_pt * Skew(pt);
+            j_target.head<3>() = j_pt * Skew(pt) + j_n * Skew(n_t);
             j_target.tail<3>() = -j_pt * rt_t;
             // Host pose: x = c_h + s_h R_h exp(w) q with q = ray / rho; and rho.
             const Eigen::RowVector3d j_q = j_pt * target_from_host[static_cast<size_t>(p.host)];
@@ -320,7 +445,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             Eigen::Matrix<double, 1, 6> j_host;
             j_host.head<3>() = -j_q * Skew(ray_i / r);
             j_host.tail<3>() = -j_target.tail<3>();
-            const double j_rho = -j_q.dot(ray_i) / (r * r);
+            double j_rho = -j_q.dot(ray_i) / (r * r);
+            if (use_relit) {
+              j_host.head<3>() -= j_n * r_th * Skew(normal_rho[static_cast<size_t>(i)]);
+              j_rho += j_n.dot(r_th * normal_rho_drho[static_cast<size_t>(i)]);
+            }
             hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
             bp[static_cast<size_t>(i)] += w * j_rho * res;
             const int kh = p.host, kt = t;
@@ -454,8 +583,13 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           double value;
           if (!lcam.InImage(px, border) || !SampleValue((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value))
             continue;
-          if (std::abs(value - lint[static_cast<size_t>(i)]) > options.outlier)
-            active[static_cast<size_t>(i) * num_kf + t] = 0;
+          double expected = lint[static_cast<size_t>(i)];
+          if (use_relit) {
+            const Eigen::Vector3d m = implied_normal(poses, i, rho[static_cast<size_t>(i)]);
+            if (!m.allFinite()) continue;
+            expected = relit_prediction(poses, i, t, pt, m);
+          }
+          if (std::abs(value - expected) > options.outlier) active[static_cast<size_t>(i) * num_kf + t] = 0;
         }
       }
     }

@@ -29,6 +29,7 @@
 
 #include "core/geometry/camera.h"
 #include "core/geometry/rigid3.h"
+#include "core/io/calibration_io.h"
 #include "core/util/status.h"
 
 namespace prism {
@@ -41,13 +42,37 @@ struct DirectBaPoint {
   bool ok = true;           // out: kept at least one residual and a positive inverse depth
 };
 
+// The relit residual (optional): instead of the host's normalised grey level against the target's,
+// the target's raw grey level against the one predicted from the rig. The host's colour c at the point
+// gives rho n = S(K x_h)^-1 X^-1 c under a grey albedo (one-pixel photometric stereo: S's rows are each
+// light's irradiance times its direction at the point, X the crosstalk, K the metres per world unit,
+// x_h the point in the host's camera in world units), and the target sees the grey level of
+// X max(0, S(K x_t) R rho n) (R: the host's camera to the target's). The co-moving lights' shading
+// change between keyframes is then predicted instead of left in the residual. Points whose colour is
+// saturated, lit by fewer than all three lights (min_band_fraction) or whose implied normal faces away
+// from the camera are left out. The prediction's own dependence on the poses and depths is not
+// differentiated (only the image's): at the solution the residuals are noise, so the minimum is the
+// same.
+struct DirectBaRelit {
+  const RigCalibration* rig = nullptr;  // lights and crosstalk; null: the J residual
+  double metres_per_world_unit = 1.0;   // K, > 0
+  std::vector<cv::Mat> rgb;             // CV_8UC3 (RGB) per keyframe, the hosts' colours
+  double min_band_fraction = 0.15;      // in [0, 1)
+  // The albedo's colour (per light band, any scale, all > 0): rho = a * albedo_colour with a unknown per
+  // point, so rho n a = S^-1 diag(albedo_colour)^-1 X^-1 c. (1, 1, 1): grey.
+  Eigen::Vector3d albedo_colour = Eigen::Vector3d::Ones();
+};
+
 struct DirectBaProblem {
   PinholeCamera camera;  // no distortion
   // world_from_keyframe; the scale is the keyframe's depth unit and is held fixed. In: initial values,
   // out: adjusted ([0] unchanged; see the gauge above).
   std::vector<Sim3d> world_from_keyframe;
-  std::vector<cv::Mat> grey_j;  // CV_32F of the camera's size, one per keyframe
+  // CV_32F of the camera's size, one per keyframe: the normalised grey level J, or with `relit.rig` the
+  // raw grey level (mean of the channels).
+  std::vector<cv::Mat> grey_j;
   std::vector<DirectBaPoint> points;
+  DirectBaRelit relit;
 };
 
 struct DirectBaOptions {

@@ -21,6 +21,8 @@ namespace {
 // ground-truth poses (metres) and points taken from the ground-truth depth.
 struct Window {
   DirectBaProblem truth;
+  std::vector<cv::Mat> rgb, raw_grey;  // for the relit residual
+  RigCalibration rig;
   bool ok = false;
   std::string why;
 };
@@ -47,6 +49,14 @@ Window MakeWindow(const std::string& preset) {
     cv::Mat j, mean;
     KeyframeDepth::NormalisedGrey(f.rgb, depth_options, &j, &mean);
     w.truth.grey_j.push_back(j);
+    w.rgb.push_back(f.rgb);
+    cv::Mat raw(f.rgb.size(), CV_32F);
+    for (int y = 0; y < raw.rows; ++y)
+      for (int x = 0; x < raw.cols; ++x) {
+        const cv::Vec3b c = f.rgb.at<cv::Vec3b>(y, x);
+        raw.at<float>(y, x) = (c[0] + c[1] + c[2]) / 3.0f;
+      }
+    w.raw_grey.push_back(raw);
     // One point per 12x12 cell: the strongest gradient with a surface (as SlamSystem picks them).
     cv::Mat inverse_depth = cv::Mat::zeros(f.depth.size(), CV_32F);
     for (int y = 0; y < f.depth.rows; ++y)
@@ -58,8 +68,19 @@ Window MakeWindow(const std::string& preset) {
         j, inverse_depth, k, 12, 36.0f, [&](int x, int y) { return mean.at<float>(y, x) >= min_mean; },
         &w.truth.points);
   }
+  w.rig = setup->rig;
   w.ok = true;
   return w;
+}
+
+// The same window with the relit residual (the world is in metres: 1 metre per world unit).
+DirectBaProblem Relit(const Window& w, const DirectBaProblem& start) {
+  DirectBaProblem p = start;
+  p.grey_j = w.raw_grey;
+  p.relit.rig = &w.rig;
+  p.relit.metres_per_world_unit = 1.0;
+  p.relit.rgb = w.rgb;
+  return p;
 }
 
 double Spacing(const DirectBaProblem& p) {
@@ -147,6 +168,110 @@ INSTANTIATE_TEST_SUITE_P(Presets, KeyframeBaPresetTest,
                              if (c == '-') c = '_';
                            return n;
                          });
+
+// The relit residual (DirectBaRelit: the co-moving lights' shading change predicted from the rig under a
+// grey albedo) on the same windows, against the J residual. Measured (printed), from the truth: keyframes
+// 2-3 move by 1.9 / 1.5 / 0.8% of the spacing on the uniform sphere / uniform bunny / uniform relief
+// (J: 2.1-4.6%); on the forward torus window both drift (relit 11-23% with any albedo colour tried,
+// so it is not in the list). From the perturbed start (3% short in scale) only the uniform sphere is
+// clearly better: relit ends 4.2% of the spacing off with the scale 1.1% short, J 9.7% and 2.8% short;
+// on the uniform bunny and relief relit ends as far off as J or further (15 / 12% against 12 / 12%).
+// In the SLAM's final adjustment it was measured and not kept (see the README).
+constexpr double kRelitMaxCentreErrorFromTruth = 0.03;  // of the spacing
+constexpr double kRelitMaxScaleErrorFromTruth = 0.008;
+
+class RelitKeyframeBaPresetTest : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(RelitKeyframeBaPresetTest, StaysNearerTheTruthThanJ) {
+  const Window w = MakeWindow(GetParam());
+  if (!w.ok) GTEST_SKIP() << "preset unavailable: " << w.why;
+  DirectBaOptions options;
+  options.huber = 4.0;
+  options.outlier = 20.0;
+  DirectBaProblem relit = Relit(w, w.truth);
+  StatusOr<DirectBaSummary> s0 = AdjustKeyframeWindowDirect(options, &relit);
+  ASSERT_TRUE(s0.ok()) << s0.status();
+  DirectBaProblem j = w.truth;
+  ASSERT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &j).ok());
+  std::printf(
+      "%s from the truth: centre error relit %.4f / J %.4f of the spacing, scale relit %.4f / J %.4f, "
+      "relit RMS %.2f -> %.2f over %d residuals\n",
+      GetParam().c_str(), CentreError(relit, w.truth), CentreError(j, w.truth), ScaleRatio(relit, w.truth),
+      ScaleRatio(j, w.truth), s0->initial_rms, s0->final_rms, s0->residuals);
+  EXPECT_LE(CentreError(relit, w.truth), kRelitMaxCentreErrorFromTruth);
+  EXPECT_LT(CentreError(relit, w.truth), CentreError(j, w.truth));
+  EXPECT_NEAR(ScaleRatio(relit, w.truth), 1.0, kRelitMaxScaleErrorFromTruth);
+  EXPECT_GT(s0->residuals, 1000);
+}
+
+INSTANTIATE_TEST_SUITE_P(GreyAlbedoPresets, RelitKeyframeBaPresetTest,
+                         ::testing::Values("sphere-uniform-sideways", "bunny-uniform-sideways",
+                                           "relief-uniform-sideways"),
+                         [](const ::testing::TestParamInfo<std::string>& info) {
+                           std::string n = info.param;
+                           for (char& c : n)
+                             if (c == '-') c = '_';
+                           return n;
+                         });
+
+// On the uniform sphere the shading is the only signal on the object, and the relit residual makes the
+// scale observable: from keyframes 2-3 3% short (and 5% of the spacing sideways, 5% depth noise) it
+// recovers the scale, which J does not.
+constexpr double kRelitMaxScaleErrorFromPerturbed = 0.02;
+constexpr double kRelitMaxCentreErrorFromPerturbed = 0.07;  // of the spacing
+
+TEST(RelitKeyframeBa, RecoversTheScaleOnTheUniformSphere) {
+  const Window w = MakeWindow("sphere-uniform-sideways");
+  ASSERT_TRUE(w.ok) << w.why;
+  DirectBaProblem start = w.truth;
+  const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
+  const Eigen::Vector3d side =
+      (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
+  for (int k = 2; k < 4; ++k) {
+    Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
+    p.translation = c0 + 0.97 * (p.translation - c0) + side;
+    p.rotation = p.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.2 * M_PI / 180, Eigen::Vector3d::UnitX()));
+  }
+  std::mt19937 rng(7);
+  std::normal_distribution<float> noise(0.0f, 0.05f);
+  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  DirectBaOptions options;
+  options.huber = 4.0;
+  options.outlier = 20.0;
+  DirectBaProblem relit = Relit(w, start);
+  ASSERT_TRUE(AdjustKeyframeWindowDirect(options, &relit).ok());
+  DirectBaProblem j = start;
+  ASSERT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &j).ok());
+  std::printf("perturbed: centre error %.4f -> relit %.4f / J %.4f of the spacing, scale 0.97 -> relit %.4f / J %.4f\n",
+              CentreError(start, w.truth), CentreError(relit, w.truth), CentreError(j, w.truth),
+              ScaleRatio(relit, w.truth), ScaleRatio(j, w.truth));
+  EXPECT_NEAR(ScaleRatio(relit, w.truth), 1.0, kRelitMaxScaleErrorFromPerturbed);
+  EXPECT_LE(CentreError(relit, w.truth), kRelitMaxCentreErrorFromPerturbed);
+  EXPECT_LT(std::abs(ScaleRatio(relit, w.truth) - 1), std::abs(ScaleRatio(j, w.truth) - 1));
+}
+
+TEST(RelitKeyframeBa, RejectsBadInput) {
+  DirectBaProblem p;
+  p.camera = PinholeCamera::FromFov(64, 48, 60.0);
+  p.world_from_keyframe.resize(2);
+  p.world_from_keyframe[1].translation = Eigen::Vector3d(0.1, 0, 0);
+  p.grey_j.assign(2, cv::Mat::zeros(48, 64, CV_32F));
+  RigCalibration rig;
+  rig.camera = p.camera;
+  p.relit.rig = &rig;
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "no colour images";
+  p.relit.rgb.assign(2, cv::Mat::zeros(48, 64, CV_8UC3));
+  EXPECT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok());
+  p.relit.metres_per_world_unit = 0;
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "metres per world unit 0";
+  p.relit.metres_per_world_unit = 1;
+  p.relit.albedo_colour = Eigen::Vector3d(1, 0, 1);
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "albedo colour with a zero";
+  p.relit.albedo_colour = Eigen::Vector3d::Ones();
+  DirectBaOptions pyramid;
+  pyramid.pyramid_levels = 2;
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(pyramid, &p).ok()) << "relit needs one level";
+}
 
 // A point of a host keyframe in a target keyframe's camera, with both poses perturbed as the adjustment
 // perturbs them: R exp(w) and c + dc; d = (w_h, dc_h, w_t, dc_t).

@@ -133,6 +133,8 @@ std::vector<Field> Fields(SlamOptions& o) {
   AddDepthFilter("depth.", o.depth, &f);
   AddDirectBa("keyframe_window_ba.", o.keyframe_window_ba, &f);
   AddDirectBa("final_adjustment_ba.", o.final_adjustment_ba, &f);
+  f.push_back({"final_adjustment_relit", &o.final_adjustment_relit});
+  AddDirectBa("final_adjustment_relit_ba.", o.final_adjustment_relit_ba, &f);
   return f;
 }
 

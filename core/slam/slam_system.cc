@@ -12,6 +12,7 @@
 
 #include "core/photometric/depth_prior.h"
 #include "core/slam/pose_graph.h"
+#include "core/slam/shading_scale.h"
 #include "core/util/logging.h"
 #include "core/util/thread_pool.h"
 
@@ -117,6 +118,9 @@ Status SlamOptions::Check() const {
   if (final_refinement_rounds < 1 || final_refinement_rounds > 10)
     return InvalidArgumentError("SlamOptions: final_refinement_rounds must be in [1, 10]");
   PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
+  PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
+  if (final_adjustment_relit && final_adjustment_relit_ba.pyramid_levels != 1)
+    return InvalidArgumentError("SlamOptions: final_adjustment_relit_ba.pyramid_levels must be 1");
   return Status::Ok();
 }
 
@@ -143,6 +147,11 @@ struct SlamSystem::Impl {
   int loop_closures = 0;
   int keyframe_adjustments = 0;
   bool final_adjustment_done = false;  // SlamSystem::AdjustAllKeyframes ran
+  // SlamOptions::final_adjustment_relit: the metres per world unit from the shading (0 = not yet
+  // estimated, < 0 = failed).
+  double relit_metres_per_world_unit = 0;
+  // Estimates relit_metres_per_world_unit once (median over consecutive finished keyframe pairs).
+  double RelitMetresPerWorldUnit();
   SlamTimings timings;
   // Tracks the initialisation frames on the first, rough depth: a looser residual limit.
   std::unique_ptr<Tracker> init_tracker;
@@ -881,6 +890,34 @@ int SlamSystem::Impl::WindowStart(int first) const {
   return first;
 }
 
+double SlamSystem::Impl::RelitMetresPerWorldUnit() {
+  if (relit_metres_per_world_unit != 0) return relit_metres_per_world_unit;
+  relit_metres_per_world_unit = -1;
+  for (const Light& l : rig.lights)
+    if (l.type != LightType::kPoint || !(l.intensity > 0)) return -1;
+  std::vector<double> estimates;
+  ShadingScaleOptions so;
+  for (size_t k = 0; k + 1 < keyframes.size(); ++k) {
+    const Keyframe& a = keyframes[k];
+    const Keyframe& b = keyframes[k + 1];
+    if (!a.finished || a.final_depth.inverse_depth.empty()) continue;
+    const std::vector<ShadingScaleFrame> frames = {
+        {b.rgb, BFromAInUnitsOfA(a.world_from_keyframe, b.world_from_keyframe)}};
+    StatusOr<ShadingScaleResult> r = EstimateShadingScale(rig, a.rgb, a.final_depth.inverse_depth, frames, so);
+    if (!r.ok()) continue;
+    estimates.push_back(r->metres_per_unit / a.world_from_keyframe.scale);
+  }
+  if (estimates.size() < 3) {
+    PRISM_LOG(INFO) << "slam: relit adjustment off: " << estimates.size() << " keyframe pairs gave a shading scale";
+    return -1;
+  }
+  std::nth_element(estimates.begin(), estimates.begin() + estimates.size() / 2, estimates.end());
+  relit_metres_per_world_unit = estimates[estimates.size() / 2];
+  PRISM_LOG(INFO) << "slam: relit adjustment at " << relit_metres_per_world_unit << " metres per world unit ("
+                  << estimates.size() << " keyframe pairs)";
+  return relit_metres_per_world_unit;
+}
+
 void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish) {
   const int n = static_cast<int>(keyframes.size());
   if (n - first < 3 || !current_depth) return;
@@ -933,10 +970,29 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     }
   }
   if (static_cast<int>(problem.points.size()) < options.keyframe_window_min_points) return;
+  const bool relit = at_finish && options.final_adjustment_relit && RelitMetresPerWorldUnit() > 0;
+  DirectBaOptions used_options = ba_options;
+  if (relit) {
+    // The raw grey level of every keyframe and the hosts' colours (the points stay those J selected).
+    for (int k = first; k < n; ++k) {
+      const cv::Mat& rgb = keyframes[static_cast<size_t>(k)].rgb;
+      cv::Mat raw(rgb.size(), CV_32F);
+      for (int y = 0; y < rgb.rows; ++y) {
+        const cv::Vec3b* in = rgb.ptr<cv::Vec3b>(y);
+        float* out = raw.ptr<float>(y);
+        for (int x = 0; x < rgb.cols; ++x) out[x] = (in[x][0] + in[x][1] + in[x][2]) / 3.0f;
+      }
+      problem.grey_j[static_cast<size_t>(k - first)] = raw;
+      problem.relit.rgb.push_back(rgb);
+    }
+    problem.relit.rig = &rig;
+    problem.relit.metres_per_world_unit = relit_metres_per_world_unit;
+    used_options = options.final_adjustment_relit_ba;
+  }
   std::vector<float> initial_inverse_depth;
   initial_inverse_depth.reserve(problem.points.size());
   for (const DirectBaPoint& p : problem.points) initial_inverse_depth.push_back(p.inverse_depth);
-  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(ba_options, &problem);
+  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(used_options, &problem);
   if (at_finish)
     for (Keyframe& kf : keyframes) kf.grey_j.release();
   if (!summary.ok()) {

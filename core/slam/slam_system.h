@@ -254,6 +254,19 @@ struct SlamOptions {
     b.max_iterations = 6;
     return b;
   }();
+  // The final adjustment (and the refinement rounds' re-adjustments) on the relit residual
+  // (keyframe_ba.h, DirectBaRelit) instead of J: the co-moving lights' shading change between keyframes
+  // predicted from the rig under a grey albedo, at the metres per world unit estimated from the shading
+  // (shading_scale.h, the median over consecutive keyframe pairs). Needs three point lights; with
+  // final_adjustment_relit_ba's thresholds (raw grey levels).
+  bool final_adjustment_relit = false;
+  DirectBaOptions final_adjustment_relit_ba = [] {
+    DirectBaOptions b;
+    b.max_iterations = 6;
+    b.huber = 4.0;
+    b.outlier = 20.0;
+    return b;
+  }();
   Status Check() const;
 };
 
