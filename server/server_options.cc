@@ -48,6 +48,9 @@ const char* ServerOptionsHelp() {
   remap-at-end true|false at a session's end, rebuild the map at the final keyframe poses and send it as
                           one chunk that replaces the map (default true; the keyframe clouds it needs
                           are kept within a quarter of max-session-memory-mb)
+  metric-scale-at-end true|false  with remap-at-end, rebuild the map at the SLAM's metric scale from the
+                          co-moving lights instead of the dense stage's (default true; 2-7 s more at a
+                          session's end)
   shutdown-deadline-ms MS on SIGTERM, time to finish queued work before stopping (default 10000)
   curve-keys FILE         CURVE: this server's key pair (from `prism-server keygen`); default off = plain TCP
   allowed-clients FILE    CURVE: client public keys admitted, one per line (required with curve-keys)
@@ -157,6 +160,10 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   } else if (key == "remap-at-end") {
     if (value == "true" || value == "1") o->pipeline.remap_at_end = true;
     else if (value == "false" || value == "0") o->pipeline.remap_at_end = false;
+    else return bad();
+  } else if (key == "metric-scale-at-end") {
+    if (value == "true" || value == "1") o->pipeline.metric_scale_at_end = true;
+    else if (value == "false" || value == "0") o->pipeline.metric_scale_at_end = false;
     else return bad();
   } else if (key == "curve-keys") o->curve_keys = value;
   else if (key == "allowed-clients") o->allowed_clients = value;

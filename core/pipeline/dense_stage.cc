@@ -254,7 +254,10 @@ void DenseStage::Keep(uint64_t keyframe_id, const Sim3d& world_from_keyframe, co
   }
 }
 
-StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m) {
+StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m,
+                                     double metres_per_world_unit) {
+  if (!(metres_per_world_unit >= 0) || !std::isfinite(metres_per_world_unit))
+    return InvalidArgumentError("remap: metres_per_world_unit must be finite and >= 0");
   if (options_.remap_max_points == 0) return FailedPreconditionError("remap: no clouds kept (remap_max_points = 0)");
   if (kept_overflow_)
     return FailedPreconditionError("remap: the kept clouds passed remap_max_points = " +
@@ -262,8 +265,10 @@ StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyfra
   PRISM_ASSIGN_OR_RETURN(MapChunk flushed, Flush());
   if (options_.world_in_slam_units && !depth_scale_.has_value())
     return FailedPreconditionError("remap: the session has no depth scale (no keyframe estimated it)");
-  const double metres = options_.world_in_slam_units ? depth_scale_.value() : 1.0;
-  bool moved = false;
+  const double session_metres = options_.world_in_slam_units ? depth_scale_.value() : 1.0;
+  const double metres =
+      options_.world_in_slam_units && metres_per_world_unit > 0 ? metres_per_world_unit : session_metres;
+  bool moved = std::abs(metres / session_metres - 1.0) > min_move_m;
   for (const KeptCloud& k : kept_) {
     if (k.keyframe_id >= world_from_keyframe.size()) continue;
     const Sim3d& to = world_from_keyframe[k.keyframe_id];
@@ -275,6 +280,10 @@ StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyfra
             std::abs(to.scale / from.scale - 1.0) > min_move_m;
   }
   if (!moved) return flushed;
+  if (metres != session_metres) {
+    depth_scale_ = SessionDepthScale();
+    depth_scale_.Add(metres);
+  }
   map_.Clear();
   DenseKeyframeResult scratch;
   for (KeptCloud& k : kept_) {

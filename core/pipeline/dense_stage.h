@@ -131,8 +131,11 @@ class DenseStage {
   // order, each registered again with ICP when remap_icp. Returns the whole new map as one chunk with
   // replaces_map = true; an empty chunk (map unchanged) when no keyframe moved by more than
   // min_move_m (metres; rotations count as their arc at 1 m). FAILED_PRECONDITION when the clouds were
-  // not kept (over the budget, or remap_max_points = 0).
-  StatusOr<MapChunk> Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m = 1e-6);
+  // not kept (over the budget, or remap_max_points = 0). metres_per_world_unit > 0 rebuilds the map at
+  // that scale instead of the session's (world_in_slam_units; the SLAM's own metric scale from
+  // SlamSystem::EstimateMetricScale); depth_scale() then reports that value alone.
+  StatusOr<MapChunk> Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m = 1e-6,
+                           double metres_per_world_unit = 0);
   // Clouds kept for Remap, their points, and the thinning (1 = every point, 2 = every other, ...).
   size_t kept_clouds() const { return kept_.size(); }
   int64_t kept_points() const { return kept_points_; }

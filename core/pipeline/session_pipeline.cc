@@ -220,6 +220,17 @@ void SessionPipeline::SlamLoop() {
     try {
       for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
       if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
+      if (options_.remap_at_end && options_.metric_scale_at_end) {
+        const auto t0 = std::chrono::steady_clock::now();
+        StatusOr<MetricScaleEstimate> metric = slam_->EstimateMetricScale();
+        if (metric.ok()) {
+          PRISM_LOG(INFO) << "pipeline: metric scale from the co-moving lights " << metric->metres_per_world_unit
+                          << " m per unit (dense stage " << metres_per_unit_ << ") in " << MsSince(t0) << " ms";
+          final_metres_per_unit_ = metric->metres_per_world_unit;
+        } else {
+          PRISM_LOG(INFO) << "pipeline: no metric scale from the co-moving lights: " << metric.status();
+        }
+      }
       EmitRefinedPoses();
       if (options_.remap_at_end) final_keyframe_poses = slam_->KeyframePoses();
     } catch (const std::exception& ex) {
@@ -245,7 +256,7 @@ void SessionPipeline::SlamLoop() {
           StatusOr<MapChunk> rebuilt = InternalError("not run");
           {
             std::lock_guard<std::mutex> lock(map_mutex_);
-            rebuilt = dense_->Remap(final_keyframe_poses);
+            rebuilt = dense_->Remap(final_keyframe_poses, 1e-6, final_metres_per_unit_);
             map_points = dense_->map().output_size();
           }
           if (!rebuilt.ok()) {
@@ -254,6 +265,8 @@ void SessionPipeline::SlamLoop() {
             if (rebuilt->replaces_map) {
               PRISM_LOG(INFO) << "pipeline: map rebuilt at the final keyframe poses, " << map_points << " voxels from "
                               << dense_->kept_clouds() << " keyframe clouds in " << MsSince(t0) << " ms";
+              // The rebuilt map is at the SLAM's metric scale when there was one: the summary says so.
+              if (final_metres_per_unit_ > 0) metres_per_unit_ = final_metres_per_unit_.load();
             }
             EmitChunk(*rebuilt, 0, Rigid3d(), map_points);
           }

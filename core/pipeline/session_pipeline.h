@@ -55,6 +55,12 @@ struct SessionPipelineOptions {
   // and sent as one chunk with replaces_map. false: the map keeps the poses each keyframe had when it
   // was handed over (the refined poses and the map then disagree by what the poses moved).
   bool remap_at_end = true;
+  // With remap_at_end: the map is rebuilt at the SLAM's metric scale from the co-moving lights
+  // (SlamSystem::EstimateMetricScale, after the final adjustment; median error 2.3% on 25 preset runs
+  // against 8.3% for the dense stage's own estimate, see the README), which the session's summary then
+  // carries as metres_per_unit (poses sent before, the refined ones included, carry the dense stage's).
+  // When it fails, or the map is not rebuilt, the dense stage's scale stays.
+  bool metric_scale_at_end = true;
 
   Status Check() const;
 };
@@ -181,6 +187,8 @@ class SessionPipeline {
   std::atomic<bool> aborted_{false};
   std::atomic<bool> failed_{false};
   std::atomic<double> metres_per_unit_{0.0};
+  // The SLAM's metric scale at the end (metric_scale_at_end; 0 = none), for the map's rebuild.
+  std::atomic<double> final_metres_per_unit_{0.0};
   mutable std::mutex mutex_;
   std::condition_variable keyframe_room_;  // signalled when keyframes_ shrinks or on Abort/Fail
   std::deque<SlamKeyframe> keyframes_;     // Guarded by mutex_.

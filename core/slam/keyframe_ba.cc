@@ -180,7 +180,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   std::vector<Eigen::Vector3d> normal_rho(use_relit ? static_cast<size_t>(num_points) : 0);       // rho n, host camera
   std::vector<Eigen::Vector3d> normal_rho_drho(use_relit ? static_cast<size_t>(num_points) : 0);  // its d / d rho
   Eigen::RowVector3d grey_of_light = Eigen::RowVector3d::Constant(1.0 / 3);
-  const double metres = relit.metres_per_world_unit;
+  double metres = relit.metres_per_world_unit;  // K: changes when it is estimated
+  const bool estimate_k = use_relit && relit.estimate_metres_per_world_unit;
+  const double log_k_step = 1e-4;  // for d residual / d log K
+  std::vector<Eigen::Vector3d> normal_rho_kp(estimate_k ? static_cast<size_t>(num_points) : 0);  // at K e^+step
+  std::vector<Eigen::Vector3d> normal_rho_km(estimate_k ? static_cast<size_t>(num_points) : 0);  // at K e^-step
   if (use_relit) {
     const Eigen::Matrix3d demix = relit.rig->crosstalk.inverse();
     grey_of_light = relit.rig->crosstalk.colwise().sum() / 3.0;
@@ -207,9 +211,9 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     return m;
   };
   // rho n of point i at inverse depth r (host camera), NaN when its implied normal faces away.
-  auto implied_normal = [&](const std::vector<Pose>& ps, int i, double r) -> Eigen::Vector3d {
+  auto implied_normal = [&](const std::vector<Pose>& ps, int i, double r, double k) -> Eigen::Vector3d {
     const Pose& h = ps[static_cast<size_t>(problem->points[static_cast<size_t>(i)].host)];
-    const Eigen::Vector3d x = (metres * h.scale / r) * ray[static_cast<size_t>(i)];
+    const Eigen::Vector3d x = (k * h.scale / r) * ray[static_cast<size_t>(i)];
     const Eigen::Vector3d m = lighting(x).inverse() * bands[static_cast<size_t>(i)];
     if (!m.allFinite() || m.dot(-x.normalized()) < 0.1 * m.norm())
       return Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN());
@@ -218,10 +222,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // The predicted raw grey level of point i (rho n = m in its host's camera) at pt in target t's camera
   // (world units).
   auto relit_prediction = [&](const std::vector<Pose>& ps, int i, int t, const Eigen::Vector3d& pt,
-                              const Eigen::Vector3d& m) {
+                              const Eigen::Vector3d& m, double k) {
     const Pose& h = ps[static_cast<size_t>(problem->points[static_cast<size_t>(i)].host)];
     const Eigen::Vector3d n_t = ps[static_cast<size_t>(t)].rotation.transpose() * (h.rotation * m);
-    const Eigen::Vector3d x = metres * pt;
+    const Eigen::Vector3d x = k * pt;
     Eigen::Vector3d shading;
     for (int l = 0; l < 3; ++l) {
       Eigen::Vector3d to_light;
@@ -280,7 +284,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       if (rs[static_cast<size_t>(i)] > 0) {
         eval_world[static_cast<size_t>(i)] = world_point(ps, i, rs[static_cast<size_t>(i)]);
         if (use_relit && !std::isnan(lint[static_cast<size_t>(i)]))
-          normal_rho[static_cast<size_t>(i)] = implied_normal(ps, i, rs[static_cast<size_t>(i)]);
+          normal_rho[static_cast<size_t>(i)] = implied_normal(ps, i, rs[static_cast<size_t>(i)], metres);
       }
     for (int t = 0; t < num_kf; ++t) {
       const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
@@ -299,7 +303,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         double expected = lint[static_cast<size_t>(i)];
         if (use_relit) {
           if (!normal_rho[static_cast<size_t>(i)].allFinite()) continue;
-          expected = relit_prediction(ps, i, t, pt, normal_rho[static_cast<size_t>(i)]);
+          expected = relit_prediction(ps, i, t, pt, normal_rho[static_cast<size_t>(i)], metres);
         }
         const double e = std::abs(value - expected);
         cost += HuberCost(e, options.huber);
@@ -329,6 +333,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   std::vector<uint8_t> point_ok(static_cast<size_t>(num_points));
   std::vector<Eigen::Matrix3d> target_from_host(static_cast<size_t>(num_kf));
   std::vector<double> hinv0(static_cast<size_t>(num_points)), hinv(static_cast<size_t>(num_points));
+  std::vector<double> h_pk(static_cast<size_t>(num_points), 0.0);  // relit, K estimated
   for (int level = levels - 1; level >= 0; --level) {
     const double f = std::ldexp(1.0, -level);
     lcam = cam;
@@ -358,6 +363,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         ++summary.iterations;
         Eigen::MatrixXd hcc = Eigen::MatrixXd::Zero(dim, dim);
         Eigen::VectorXd bc = Eigen::VectorXd::Zero(dim);
+        // Relit with K estimated: log K's Hessian, gradient and couplings with the poses and the points.
+        double h_kk = 0, b_k = 0;
+        Eigen::VectorXd h_ck = Eigen::VectorXd::Zero(dim);
+        std::fill(h_pk.begin(), h_pk.end(), 0.0);
         std::fill(hpp.begin(), hpp.end(), 0.0);
         std::fill(bp.begin(), bp.end(), 0.0);
         // The points' world positions; then the residuals target by target (each target's image is read
@@ -369,11 +378,18 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           point_ok[static_cast<size_t>(i)] = r > 0 && !std::isnan(lint[static_cast<size_t>(i)]);
           if (point_ok[static_cast<size_t>(i)]) world[static_cast<size_t>(i)] = world_point(poses, i, r);
           if (point_ok[static_cast<size_t>(i)] && use_relit) {
-            normal_rho[static_cast<size_t>(i)] = implied_normal(poses, i, r);
+            normal_rho[static_cast<size_t>(i)] = implied_normal(poses, i, r, metres);
             normal_rho_drho[static_cast<size_t>(i)] =
-                (implied_normal(poses, i, r * (1 + 1e-5)) - implied_normal(poses, i, r * (1 - 1e-5))) / (2e-5 * r);
+                (implied_normal(poses, i, r * (1 + 1e-5), metres) - implied_normal(poses, i, r * (1 - 1e-5), metres)) /
+                (2e-5 * r);
             point_ok[static_cast<size_t>(i)] =
                 normal_rho[static_cast<size_t>(i)].allFinite() && normal_rho_drho[static_cast<size_t>(i)].allFinite();
+            if (estimate_k && point_ok[static_cast<size_t>(i)]) {
+              normal_rho_kp[static_cast<size_t>(i)] = implied_normal(poses, i, r, metres * std::exp(log_k_step));
+              normal_rho_km[static_cast<size_t>(i)] = implied_normal(poses, i, r, metres * std::exp(-log_k_step));
+              point_ok[static_cast<size_t>(i)] = normal_rho_kp[static_cast<size_t>(i)].allFinite() &&
+                                                 normal_rho_km[static_cast<size_t>(i)].allFinite();
+            }
           }
         }
         for (int t = 0; t < num_kf; ++t) {
@@ -397,7 +413,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             if (!SampleWithGradient(image, px.x(), px.y(), &value, &g)) continue;
             const double r = rho[static_cast<size_t>(i)];
             const double res =
-                value - (use_relit ? relit_prediction(poses, i, t, pt, normal_rho[static_cast<size_t>(i)])
+                value - (use_relit ? relit_prediction(poses, i, t, pt, normal_rho[static_cast<size_t>(i)], metres)
                                    : static_cast<double>(lint[static_cast<size_t>(i)]));
             const double e = std::abs(res);
             const double w = e <= options.huber ? 1.0 : options.huber / e;
@@ -430,7 +446,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
               for (int c = 0; c < 3; ++c) {
                 Eigen::Vector3d d = Eigen::Vector3d::Zero();
                 d(c) = hx / metres;
-                dpred_dx(c) = (relit_prediction(poses, i, t, pt + d, m) - relit_prediction(poses, i, t, pt - d, m)) /
+                dpred_dx(c) = (relit_prediction(poses, i, t, pt + d, m, metres) -
+                               relit_prediction(poses, i, t, pt - d, m, metres)) /
                               (2 * hx / metres);
               }
               j_pt -= dpred_dx;
@@ -449,6 +466,19 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             if (use_relit) {
               j_host.head<3>() -= j_n * r_th * Skew(normal_rho[static_cast<size_t>(i)]);
               j_rho += j_n.dot(r_th * normal_rho_drho[static_cast<size_t>(i)]);
+            }
+            if (estimate_k) {
+              // d residual / d log K: the target's lighting and the host's implied normal both move with K.
+              const double j_k = -(relit_prediction(poses, i, t, pt, normal_rho_kp[static_cast<size_t>(i)],
+                                                    metres * std::exp(log_k_step)) -
+                                   relit_prediction(poses, i, t, pt, normal_rho_km[static_cast<size_t>(i)],
+                                                    metres * std::exp(-log_k_step))) /
+                                 (2 * log_k_step);
+              h_kk += w * j_k * j_k;
+              b_k += w * j_k * res;
+              if (t > 0) h_ck.segment<6>(6 * (t - 1)) += w * j_target.transpose() * j_k;
+              if (p.host > 0) h_ck.segment<6>(6 * (p.host - 1)) += w * j_host.transpose() * j_k;
+              h_pk[static_cast<size_t>(i)] += w * j_rho * j_k;
             }
             hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
             bp[static_cast<size_t>(i)] += w * j_rho * res;
@@ -524,6 +554,18 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             schur_b.segment<6>(segments[cb]) += scaled * bp[static_cast<size_t>(i)];
           }
         }
+        // Relit with K estimated: log K's row of the Schur complement (every point couples to it).
+        double schur_kk = 0, schur_bk = 0;
+        Eigen::VectorXd schur_ck = Eigen::VectorXd::Zero(estimate_k ? dim : 0);
+        if (estimate_k) {
+          for (int i = 0; i < num_points; ++i) {
+            const double hi = hinv0[static_cast<size_t>(i)], pk = h_pk[static_cast<size_t>(i)];
+            if (hi == 0 || pk == 0) continue;
+            schur_kk -= hi * pk * pk;
+            schur_bk -= hi * pk * bp[static_cast<size_t>(i)];
+            schur_ck.noalias() -= (hi * pk) * hcp[static_cast<size_t>(i)];
+          }
+        }
         bool accepted = false;
         for (int attempt = 0; attempt < 8 && !accepted; ++attempt) {
           const double damp = 1.0 / (1 + lambda);
@@ -531,8 +573,24 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           const Eigen::VectorXd b = bc + damp * schur_b;
           for (int i = 0; i < num_points; ++i) hinv[static_cast<size_t>(i)] = damp * hinv0[static_cast<size_t>(i)];
           for (int d = 0; d < dim; ++d) s(d, d) += lambda * std::max(1e-6, hcc(d, d));
-          const Eigen::VectorXd dc = s.selfadjointView<Eigen::Lower>().ldlt().solve(-b);
-          if (!dc.allFinite()) {
+          Eigen::VectorXd dc;
+          double d_log_k = 0;
+          if (estimate_k) {
+            // The poses' system bordered by log K (lower triangle filled).
+            Eigen::MatrixXd full = Eigen::MatrixXd::Zero(dim + 1, dim + 1);
+            full.topLeftCorner(dim, dim) = s.selfadjointView<Eigen::Lower>();
+            full.block(dim, 0, 1, dim) = (h_ck + damp * schur_ck).transpose();
+            full.block(0, dim, dim, 1) = h_ck + damp * schur_ck;
+            full(dim, dim) = (h_kk + damp * schur_kk) + lambda * std::max(1e-6, h_kk);
+            Eigen::VectorXd full_b(dim + 1);
+            full_b << b, b_k + damp * schur_bk;
+            const Eigen::VectorXd sol = full.ldlt().solve(-full_b);
+            dc = sol.head(dim);
+            d_log_k = std::clamp(sol(dim), -0.2, 0.2);
+          } else {
+            dc = s.selfadjointView<Eigen::Lower>().ldlt().solve(-b);
+          }
+          if (!dc.allFinite() || !std::isfinite(d_log_k)) {
             lambda *= 10;
             continue;
           }
@@ -547,7 +605,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           for (int i = 0; i < num_points; ++i) {
             if (hinv[static_cast<size_t>(i)] == 0) continue;
             const double d =
-                -hinv[static_cast<size_t>(i)] * (bp[static_cast<size_t>(i)] + hcp[static_cast<size_t>(i)].dot(dc));
+                -hinv[static_cast<size_t>(i)] * (bp[static_cast<size_t>(i)] + hcp[static_cast<size_t>(i)].dot(dc) +
+                                                 (estimate_k ? h_pk[static_cast<size_t>(i)] * d_log_k : 0.0));
             // Keep the inverse depth positive (a step to <= 0 is halved towards it).
             nr[static_cast<size_t>(i)] = rho[static_cast<size_t>(i)] + d > 0.2 * rho[static_cast<size_t>(i)]
                                              ? rho[static_cast<size_t>(i)] + d
@@ -555,7 +614,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           }
           int nc = 0;
           double nsq = 0;
+          const double k_before = metres;
+          metres = k_before * std::exp(d_log_k);  // evaluate at the trial K (restored if rejected)
           const double ncost = evaluate(np, nr, &nc, &nsq);
+          if (!(ncost < cost)) metres = k_before;
           if (ncost < cost) {
             const double decrease = (cost - ncost) / std::max(1e-300, cost);
             poses.swap(np);
@@ -585,9 +647,9 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             continue;
           double expected = lint[static_cast<size_t>(i)];
           if (use_relit) {
-            const Eigen::Vector3d m = implied_normal(poses, i, rho[static_cast<size_t>(i)]);
+            const Eigen::Vector3d m = implied_normal(poses, i, rho[static_cast<size_t>(i)], metres);
             if (!m.allFinite()) continue;
-            expected = relit_prediction(poses, i, t, pt, m);
+            expected = relit_prediction(poses, i, t, pt, m, metres);
           }
           if (std::abs(value - expected) > options.outlier) active[static_cast<size_t>(i) * num_kf + t] = 0;
         }
@@ -602,6 +664,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     out.rotation = Eigen::Quaterniond(poses[static_cast<size_t>(k)].rotation).normalized();
     out.translation = poses[static_cast<size_t>(k)].centre;
   }
+  if (estimate_k) problem->relit.metres_per_world_unit = metres;
   for (int i = 0; i < num_points; ++i) {
     DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
     p.inverse_depth = static_cast<float>(rho[static_cast<size_t>(i)]);

@@ -55,9 +55,13 @@ struct DirectBaPoint {
 // same.
 struct DirectBaRelit {
   const RigCalibration* rig = nullptr;  // lights and crosstalk; null: the J residual
-  double metres_per_world_unit = 1.0;   // K, > 0
-  std::vector<cv::Mat> rgb;             // CV_8UC3 (RGB) per keyframe, the hosts' colours
-  double min_band_fraction = 0.15;      // in [0, 1)
+  // K, > 0. In: the start; out: the adjusted value when estimate_metres_per_world_unit.
+  double metres_per_world_unit = 1.0;
+  // Adjust log K with the poses and depths (the gauge still fixes the world's unit; K then says how many
+  // metres it is). Else K is held.
+  bool estimate_metres_per_world_unit = false;
+  std::vector<cv::Mat> rgb;         // CV_8UC3 (RGB) per keyframe, the hosts' colours
+  double min_band_fraction = 0.15;  // in [0, 1)
   // The albedo's colour (per light band, any scale, all > 0): rho = a * albedo_colour with a unknown per
   // point, so rho n a = S^-1 diag(albedo_colour)^-1 X^-1 c. (1, 1, 1): grey.
   Eigen::Vector3d albedo_colour = Eigen::Vector3d::Ones();

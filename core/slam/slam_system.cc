@@ -235,6 +235,9 @@ struct SlamSystem::Impl {
   // The direct adjustment of keyframes first..newest (keyframe_ba.h): after a new keyframe over the
   // window (SlamOptions::keyframe_adjustment), after Finish over all keyframes (final_adjustment).
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
+  // The adjustment's problem over keyframes first..newest (false: too few points); with `relit`, the
+  // relit residual at metres_per_world_unit, estimated with the poses.
+  bool BuildAdjustmentProblem(int first, bool relit, double metres_per_world_unit, DirectBaProblem* problem);
   // The first keyframe of the adjustment window: from `first`, older keyframes that share less than
   // keyframe_window_min_overlap of the newest keyframe's view are left out (at least 3 stay).
   int WindowStart(int first) const;
@@ -918,29 +921,19 @@ double SlamSystem::Impl::RelitMetresPerWorldUnit() {
   return relit_metres_per_world_unit;
 }
 
-void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish) {
+bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, double metres_per_world_unit,
+                                              DirectBaProblem* problem) {
   const int n = static_cast<int>(keyframes.size());
-  if (n - first < 3 || !current_depth) return;
-  // Keyframes that left the window are not adjusted again until the final adjustment (which recomputes
-  // them): drop their normalised images (1 MB each at 512x512, which would otherwise grow with the
-  // session).
-  for (int k = 0; k < first; ++k) {
-    Keyframe& kf = keyframes[static_cast<size_t>(k)];
-    kf.grey_j.release();
-    kf.DropWindowPoints();
-  }
-  const PinholeCamera& cam = rig.camera;
-  DirectBaProblem problem;
-  problem.camera = cam;
+  problem->camera = rig.camera;
   std::vector<InverseDepthMap> maps;
   for (int k = first; k < n; ++k) {
     Keyframe& kf = keyframes[static_cast<size_t>(k)];
-    problem.world_from_keyframe.push_back(kf.world_from_keyframe);
+    problem->world_from_keyframe.push_back(kf.world_from_keyframe);
     if (kf.grey_j.empty()) {
       cv::Mat mean;
       KeyframeDepth::NormalisedGrey(kf.rgb, options.depth, &kf.grey_j, &mean);
     }
-    problem.grey_j.push_back(kf.grey_j);
+    problem->grey_j.push_back(kf.grey_j);
     // The newest keyframe's depth is the one propagated into it.
     maps.push_back(kf.finished ? kf.final_depth : current_depth->ToInverseDepthMap());
   }
@@ -953,25 +946,23 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     if (kf.finished && kf.has_window_points) {
       for (DirectBaPoint p : kf.window_points) {
         p.host = k;
-        problem.points.push_back(p);
+        problem->points.push_back(p);
       }
       continue;
     }
-    const size_t begin = problem.points.size();
+    const size_t begin = problem->points.size();
     const double max_sigma = options.tracking_max_relative_sigma;
     SelectCellPoints(
-        problem.grey_j[static_cast<size_t>(k)], d, k, options.keyframe_window_cell_px, 0.0f,
+        problem->grey_j[static_cast<size_t>(k)], d, k, options.keyframe_window_cell_px, 0.0f,
         [&](int x, int y) { return var.empty() || std::sqrt(var.at<float>(y, x)) <= max_sigma * d.at<float>(y, x); },
-        &problem.points);
+        &problem->points);
     if (kf.finished) {
-      kf.window_points.assign(problem.points.begin() + static_cast<std::ptrdiff_t>(begin), problem.points.end());
+      kf.window_points.assign(problem->points.begin() + static_cast<std::ptrdiff_t>(begin), problem->points.end());
       for (DirectBaPoint& p : kf.window_points) p.host = 0;
       kf.has_window_points = true;
     }
   }
-  if (static_cast<int>(problem.points.size()) < options.keyframe_window_min_points) return;
-  const bool relit = at_finish && options.final_adjustment_relit && RelitMetresPerWorldUnit() > 0;
-  DirectBaOptions used_options = ba_options;
+  if (static_cast<int>(problem->points.size()) < options.keyframe_window_min_points) return false;
   if (relit) {
     // The raw grey level of every keyframe and the hosts' colours (the points stay those J selected).
     for (int k = first; k < n; ++k) {
@@ -982,19 +973,42 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
         float* out = raw.ptr<float>(y);
         for (int x = 0; x < rgb.cols; ++x) out[x] = (in[x][0] + in[x][1] + in[x][2]) / 3.0f;
       }
-      problem.grey_j[static_cast<size_t>(k - first)] = raw;
-      problem.relit.rgb.push_back(rgb);
+      problem->grey_j[static_cast<size_t>(k - first)] = raw;
+      problem->relit.rgb.push_back(rgb);
     }
-    problem.relit.rig = &rig;
-    problem.relit.metres_per_world_unit = relit_metres_per_world_unit;
-    used_options = options.final_adjustment_relit_ba;
+    problem->relit.rig = &rig;
+    problem->relit.metres_per_world_unit = metres_per_world_unit;
+    problem->relit.estimate_metres_per_world_unit = true;
   }
+  return true;
+}
+
+void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish) {
+  const int n = static_cast<int>(keyframes.size());
+  if (n - first < 3 || !current_depth) return;
+  // Keyframes that left the window are not adjusted again until the final adjustment (which recomputes
+  // them): drop their normalised images (1 MB each at 512x512, which would otherwise grow with the
+  // session).
+  for (int k = 0; k < first; ++k) {
+    Keyframe& kf = keyframes[static_cast<size_t>(k)];
+    kf.grey_j.release();
+    kf.DropWindowPoints();
+  }
+  const bool relit = at_finish && options.final_adjustment_relit && RelitMetresPerWorldUnit() > 0;
+  DirectBaProblem problem;
+  if (!BuildAdjustmentProblem(first, relit, relit_metres_per_world_unit, &problem)) return;
+  const DirectBaOptions& used_options = relit ? options.final_adjustment_relit_ba : ba_options;
   std::vector<float> initial_inverse_depth;
   initial_inverse_depth.reserve(problem.points.size());
   for (const DirectBaPoint& p : problem.points) initial_inverse_depth.push_back(p.inverse_depth);
   StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(used_options, &problem);
   if (at_finish)
     for (Keyframe& kf : keyframes) kf.grey_j.release();
+  if (relit && summary.ok()) {
+    PRISM_LOG(INFO) << "slam: relit adjustment: " << relit_metres_per_world_unit << " -> "
+                    << problem.relit.metres_per_world_unit << " metres per world unit";
+    relit_metres_per_world_unit = problem.relit.metres_per_world_unit;
+  }
   if (!summary.ok()) {
     PRISM_LOG(WARNING) << "slam: keyframe adjustment: " << summary.status();
     return;
@@ -1123,6 +1137,41 @@ void SlamSystem::AdjustAllKeyframes() {
   if (m.final_adjustment_done || !m.CanAdjustAllKeyframes()) return;
   m.final_adjustment_done = true;
   m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
+}
+
+StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
+  Impl& m = *impl_;
+  const int n = static_cast<int>(m.keyframes.size());
+  if (n < 3 || !m.current_depth || !m.keyframes.back().finished)
+    return FailedPreconditionError("EstimateMetricScale: needs at least 3 finished keyframes (call Finish first)");
+  for (const Light& l : m.rig.lights)
+    if (l.type != LightType::kPoint || !(l.intensity > 0))
+      return FailedPreconditionError("EstimateMetricScale: needs three point lights on the rig");
+  const double start = m.RelitMetresPerWorldUnit();
+  if (!(start > 0)) return FailedPreconditionError("EstimateMetricScale: no keyframe pair gave a shading scale");
+  // At most final_adjustment_max_keyframes, the newest.
+  const int first = std::max(0, n - m.options.final_adjustment_max_keyframes);
+  MetricScaleEstimate e;
+  e.start_metres_per_world_unit = start;
+  double k = start;
+  for (int pass = 0; pass < 4; ++pass) {
+    DirectBaProblem problem;
+    if (!m.BuildAdjustmentProblem(first, /*relit=*/true, k, &problem))
+      return FailedPreconditionError("EstimateMetricScale: too few adjustment points");
+    StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(m.options.final_adjustment_relit_ba, &problem);
+    if (!summary.ok()) return summary.status();
+    const double next = problem.relit.metres_per_world_unit;
+    e.passes = pass + 1;
+    e.residuals = summary->residuals;
+    e.final_rms = summary->final_rms;
+    const bool settled = std::abs(std::log(next / k)) < 0.005;
+    k = next;
+    if (settled) break;
+  }
+  for (Impl::Keyframe& kf : m.keyframes) kf.grey_j.release();
+  e.metres_per_world_unit = k;
+  e.keyframes = n - first;
+  return e;
 }
 
 std::vector<SlamFrameResult> SlamSystem::Trajectory() const {

@@ -270,6 +270,16 @@ struct SlamOptions {
   Status Check() const;
 };
 
+// SlamSystem::EstimateMetricScale: the metres per SLAM world unit from the co-moving lights.
+struct MetricScaleEstimate {
+  double metres_per_world_unit = 0;
+  double start_metres_per_world_unit = 0;  // the median over keyframe pairs it started from
+  int keyframes = 0;                       // keyframes in the adjustment
+  int passes = 0;                          // relit adjustments run (until K moved by < 0.5%)
+  int residuals = 0;                       // of the last pass
+  double final_rms = 0;                    // grey levels, of the last pass
+};
+
 enum class SlamState {
   kInitializing,  // first keyframe, depth not converged yet; poses are provisional
   kTracking,      // pose is good
@@ -341,6 +351,14 @@ class SlamSystem {
   // caller that hands the last keyframes on first (the server's session pipeline: the map is done
   // without waiting for it) with final_adjustment off; runs once (later calls do nothing).
   void AdjustAllKeyframes();
+  // The metres per world unit from the rig's co-moving lights (after Finish): the relit keyframe
+  // adjustment (keyframe_ba.h, DirectBaRelit) over the keyframes (at most
+  // final_adjustment_max_keyframes, the newest) with log K free, started from the median of
+  // EstimateShadingScale over consecutive keyframe pairs, repeated (up to 4 passes) until K moves by less
+  // than 0.5%. The adjusted poses and depths are discarded: the SLAM's state does not change. Under a grey
+  // albedo; coloured albedo biases it (see the README for the figures). FAILED_PRECONDITION before
+  // Finish, with fewer than 3 keyframes, without three point lights, or without usable points.
+  StatusOr<MetricScaleEstimate> EstimateMetricScale();
   // After Finish: re-estimates the depth of each of `keyframes` (as handed out; matched by id) at the
   // keyframes' final poses (KeyframePoses): its own depth as the prior (relative sigma
   // `relative_sigma`, counted as 2 observations), one stereo update with each of up to `neighbours`

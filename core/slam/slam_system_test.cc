@@ -55,6 +55,8 @@ struct SlamCase {
   int min_loop_closures = 0;
   int supersampling = 1;         // RenderOptions::supersampling
   std::string slam_config = "";  // applied to the default SlamOptions (slam_config.h format)
+  // |EstimateMetricScale / the trajectory's Sim(3) scale - 1| after the rounds (0: not checked).
+  double max_metric_scale_rel_error = 0;
 };
 
 void PrintTo(const SlamCase& c, std::ostream* os) { *os << c.preset << ", " << c.frames << " frames"; }
@@ -177,6 +179,24 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
               defaults.final_refinement_rounds, ate_rounds_percent, rounds_median, rel_rounds.size());
   EXPECT_LE(rounds_median, refined_median + kRoundsDepthSlack);
   EXPECT_LE(ate_rounds_percent, ate_percent + kRoundsAteSlackPercent);
+  // The metres per world unit from the co-moving lights, against the trajectory's Sim(3) scale (the
+  // truth's metres per world unit); the SLAM's state does not change.
+  if (c.max_metric_scale_rel_error > 0) {
+    StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
+    ASSERT_TRUE(metric.ok()) << metric.status();
+    const double metric_error = metric->metres_per_world_unit / ate_rounds->gt_from_est.scale - 1;
+    std::printf("%s: metric scale %.4f m per unit (start %.4f, %d passes), truth %.4f: %+.2f%%\n", c.preset.c_str(),
+                metric->metres_per_world_unit, metric->start_metres_per_world_unit, metric->passes,
+                ate_rounds->gt_from_est.scale, 100 * metric_error);
+    EXPECT_LE(std::abs(metric_error), c.max_metric_scale_rel_error);
+    size_t j = 0;
+    for (const SlamFrameResult& f : (*slam)->Trajectory()) {
+      if (f.state != SlamState::kTracking) continue;
+      ASSERT_LT(j, estimate_after_rounds.size());
+      EXPECT_EQ(f.world_from_camera.translation, estimate_after_rounds[j++].world_from_camera.translation);
+    }
+    EXPECT_EQ(j, estimate_after_rounds.size());
+  }
   std::printf(
       "%s: %zu frames, %zu keyframes, %d loop closures, ATE %.4f m = %.3f%% of %.3f m, depth median rel "
       "error %.4f on %zu pixels\n",
@@ -198,20 +218,31 @@ INSTANTIATE_TEST_SUITE_P(
     // tolerances of the sphere, relief, boxes and torus are regression bounds above the
     // issue's 3% bar, which they miss (other seeds: 3.1-15.6%). No loop closure on these
     // 120 deg arcs.
+    // Metric scale (EstimateMetricScale against the trajectory's Sim(3) scale, after the 8
+    // rounds; twenty-first round, prism-slam on the same sequences): bunny -3.7%, dragon
+    // -1.9%, armadillo -1.0%, multi-coloured sphere -8.8%, relief +0.8%, boxes -7.4%, torus
+    // -3.7%: its grey-albedo model is wrong on the multi-coloured presets.
     ::testing::Values(SlamCase{"bunny-multicolor-forward", 150, /*max_ate_percent_of_path=*/1.0,
-                               /*max_depth_median_rel_error=*/0.03},
+                               /*max_depth_median_rel_error=*/0.03, /*min_loop_closures=*/0,
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.06},
                       SlamCase{"dragon-multicolor-sideways", 150, /*max_ate_percent_of_path=*/1.0,
-                               /*max_depth_median_rel_error=*/0.03},
+                               /*max_depth_median_rel_error=*/0.03, /*min_loop_closures=*/0,
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.04},
                       SlamCase{"armadillo-textured-forward", 150, /*max_ate_percent_of_path=*/1.0,
-                               /*max_depth_median_rel_error=*/0.03},
+                               /*max_depth_median_rel_error=*/0.03, /*min_loop_closures=*/0,
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.03},
                       SlamCase{"sphere-multicolor-sideways", 150, /*max_ate_percent_of_path=*/1.0,
-                               /*max_depth_median_rel_error=*/0.04},
+                               /*max_depth_median_rel_error=*/0.04, /*min_loop_closures=*/0,
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.12},
                       SlamCase{"relief-uniform-sideways", 150, /*max_ate_percent_of_path=*/1.0,
-                               /*max_depth_median_rel_error=*/0.06},
+                               /*max_depth_median_rel_error=*/0.06, /*min_loop_closures=*/0,
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.03},
                       SlamCase{"boxes-multicolor-forward", 150, /*max_ate_percent_of_path=*/1.0,
-                               /*max_depth_median_rel_error=*/0.05},
+                               /*max_depth_median_rel_error=*/0.05, /*min_loop_closures=*/0,
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.10},
                       SlamCase{"torus-textured-forward", 150, /*max_ate_percent_of_path=*/1.0,
-                               /*max_depth_median_rel_error=*/0.07},
+                               /*max_depth_median_rel_error=*/0.07, /*min_loop_closures=*/0,
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.06},
                       // A full orbit and 40 deg beyond: loop closure. Measured 0.099% / 2.2%
                       // with 22 loop edges, now with the final adjustment at Finish (its 62
                       // keyframes are within final_adjustment_max_keyframes = 64 since the
