@@ -329,7 +329,7 @@ int main(int argc, char** argv) {
     }
   }
   // Metres per world unit of the outputs: the SLAM's estimate from the co-moving lights when there is one
-  // (median error 2.3% on 25 preset runs, against 8.3% for the dense stage's; see the README), else the
+  // (median error 1.9% on 27 preset runs, against 11.2% for the dense stage's; see the README), else the
   // dense stage's session scale. The dense stage keeps its own scale for its photometric stereo (its maps
   // scored better with it), and the map it built is rescaled to the output scale.
   const double dense_metres_per_unit =

@@ -119,6 +119,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: final_refinement_rounds must be in [1, 10]");
   PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
+  if (!(metric_scale_min_band_fraction >= 0 && metric_scale_min_band_fraction < 1))
+    return InvalidArgumentError("SlamOptions: metric_scale_min_band_fraction must be in [0, 1)");
   if (final_adjustment_relit && final_adjustment_relit_ba.pyramid_levels != 1)
     return InvalidArgumentError("SlamOptions: final_adjustment_relit_ba.pyramid_levels must be 1");
   return Status::Ok();
@@ -237,7 +239,8 @@ struct SlamSystem::Impl {
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
   // The adjustment's problem over keyframes first..newest (false: too few points); with `relit`, the
   // relit residual at metres_per_world_unit, estimated with the poses.
-  bool BuildAdjustmentProblem(int first, bool relit, double metres_per_world_unit, DirectBaProblem* problem);
+  bool BuildAdjustmentProblem(int first, bool relit, double metres_per_world_unit, double min_band_fraction,
+                              DirectBaProblem* problem);
   // The first keyframe of the adjustment window: from `first`, older keyframes that share less than
   // keyframe_window_min_overlap of the newest keyframe's view are left out (at least 3 stay).
   int WindowStart(int first) const;
@@ -922,7 +925,7 @@ double SlamSystem::Impl::RelitMetresPerWorldUnit() {
 }
 
 bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, double metres_per_world_unit,
-                                              DirectBaProblem* problem) {
+                                              double min_band_fraction, DirectBaProblem* problem) {
   const int n = static_cast<int>(keyframes.size());
   problem->camera = rig.camera;
   std::vector<InverseDepthMap> maps;
@@ -979,6 +982,7 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, double metr
     problem->relit.rig = &rig;
     problem->relit.metres_per_world_unit = metres_per_world_unit;
     problem->relit.estimate_metres_per_world_unit = true;
+    problem->relit.min_band_fraction = min_band_fraction;
   }
   return true;
 }
@@ -996,7 +1000,8 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   }
   const bool relit = at_finish && options.final_adjustment_relit && RelitMetresPerWorldUnit() > 0;
   DirectBaProblem problem;
-  if (!BuildAdjustmentProblem(first, relit, relit_metres_per_world_unit, &problem)) return;
+  if (!BuildAdjustmentProblem(first, relit, relit_metres_per_world_unit, DirectBaRelit().min_band_fraction, &problem))
+    return;
   const DirectBaOptions& used_options = relit ? options.final_adjustment_relit_ba : ba_options;
   std::vector<float> initial_inverse_depth;
   initial_inverse_depth.reserve(problem.points.size());
@@ -1156,7 +1161,7 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   double k = start;
   for (int pass = 0; pass < 4; ++pass) {
     DirectBaProblem problem;
-    if (!m.BuildAdjustmentProblem(first, /*relit=*/true, k, &problem))
+    if (!m.BuildAdjustmentProblem(first, /*relit=*/true, k, m.options.metric_scale_min_band_fraction, &problem))
       return FailedPreconditionError("EstimateMetricScale: too few adjustment points");
     StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(m.options.final_adjustment_relit_ba, &problem);
     if (!summary.ok()) return summary.status();
