@@ -41,11 +41,11 @@ namespace {
 using Vector6d = Eigen::Matrix<double, 6, 1>;
 
 struct ScalePoint {
-  Eigen::Vector3d x;       // in the keyframe, depth units
-  Eigen::Vector3d bands;   // demixed keyframe colour X^-1 c, grey levels
-  Eigen::Vector3d m;       // rho n at the current k (keyframe frame)
-  Eigen::Vector3d m_plus;  // ... at k * exp(+h) and k * exp(-h), for d / d log k
-  Eigen::Vector3d m_minus;
+  Eigen::Vector3d x = Eigen::Vector3d::Zero();       // in the keyframe, depth units
+  Eigen::Vector3d bands = Eigen::Vector3d::Zero();   // demixed keyframe colour X^-1 c, grey levels
+  Eigen::Vector3d m = Eigen::Vector3d::Zero();       // rho n at the current k (keyframe frame)
+  Eigen::Vector3d m_plus = Eigen::Vector3d::Zero();  // ... at k * exp(+h), k * exp(-h): d / d log k
+  Eigen::Vector3d m_minus = Eigen::Vector3d::Zero();
 };
 
 // S(p): rows E_l(p) L_l(p)^T.
