@@ -155,6 +155,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       return InvalidArgumentError("AdjustKeyframeWindowDirect: relit min_band_fraction must be in [0, 1)");
     if (options.pyramid_levels != 1)
       return InvalidArgumentError("AdjustKeyframeWindowDirect: the relit residual needs pyramid_levels = 1");
+    if (relit.mixed && !(relit.relit_residual_scale > 0 && std::isfinite(relit.relit_residual_scale)))
+      return InvalidArgumentError("AdjustKeyframeWindowDirect: relit relit_residual_scale must be > 0");
+  } else if (relit.mixed) {
+    return InvalidArgumentError("AdjustKeyframeWindowDirect: relit.mixed needs relit.rig");
   }
 
   struct Pose {
@@ -175,6 +179,32 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     rho[static_cast<size_t>(i)] = p.inverse_depth;
     ray[static_cast<size_t>(i)] = cam.Unproject(Eigen::Vector2d(p.u, p.v));
   }
+  // Which points take the relit residual (all with relit.rig, those marked with relit.mixed), its scale
+  // (1 for J points), and in mixed mode the raw grey images they are compared against.
+  std::vector<uint8_t> relit_point(static_cast<size_t>(num_points), 0);
+  std::vector<double> residual_scale(static_cast<size_t>(num_points), 1.0);
+  for (int i = 0; i < num_points; ++i) {
+    relit_point[static_cast<size_t>(i)] = use_relit && (!relit.mixed || problem->points[static_cast<size_t>(i)].relit);
+    if (relit.mixed && relit_point[static_cast<size_t>(i)])
+      residual_scale[static_cast<size_t>(i)] = relit.relit_residual_scale;
+  }
+  std::vector<cv::Mat> raw_grey;
+  if (use_relit && relit.mixed)
+    for (const cv::Mat& rgb : relit.rgb) {
+      cv::Mat raw(rgb.size(), CV_32F);
+      for (int y = 0; y < rgb.rows; ++y) {
+        const cv::Vec3b* in = rgb.ptr<cv::Vec3b>(y);
+        float* out = raw.ptr<float>(y);
+        for (int x = 0; x < rgb.cols; ++x) out[x] = (in[x][0] + in[x][1] + in[x][2]) / 3.0f;
+      }
+      raw_grey.push_back(raw);
+    }
+  // The image point i's residual in target t reads: J (or with relit.rig alone the raw grey level, which
+  // grey_j then holds), or in mixed mode the raw grey level for relit points.
+  auto image_of = [&](const std::vector<cv::Mat>& level_images, int i, int t) -> const cv::Mat& {
+    return relit.mixed && relit_point[static_cast<size_t>(i)] ? raw_grey[static_cast<size_t>(t)]
+                                                              : level_images[static_cast<size_t>(t)];
+  };
   // Relit: each point's demixed host colour (NaN intensity marks a point left out), and the model.
   std::vector<Eigen::Vector3d> bands(use_relit ? static_cast<size_t>(num_points) : 0);
   std::vector<Eigen::Vector3d> normal_rho(use_relit ? static_cast<size_t>(num_points) : 0);       // rho n, host camera
@@ -190,6 +220,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     grey_of_light = relit.rig->crosstalk.colwise().sum() / 3.0;
     for (int i = 0; i < num_points; ++i) {
       DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+      if (!relit_point[static_cast<size_t>(i)]) {
+        bands[static_cast<size_t>(i)].setConstant(std::numeric_limits<double>::quiet_NaN());
+        continue;
+      }
       const cv::Vec3b c =
           relit.rgb[static_cast<size_t>(p.host)].at<cv::Vec3b>(static_cast<int>(p.v), static_cast<int>(p.u));
       const Eigen::Vector3d b = demix * Eigen::Vector3d(c[0], c[1], c[2]);
@@ -269,8 +303,9 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   const std::vector<cv::Mat>* limg = &pyramid[0];
   std::vector<float> lint(static_cast<size_t>(num_points));
   for (int i = 0; i < num_points; ++i) lint[static_cast<size_t>(i)] = problem->points[static_cast<size_t>(i)].intensity;
-  if (use_relit)  // relit: lint only marks the points left out (NaN)
-    for (int i = 0; i < num_points; ++i)
+  // Relit points: lint only marks the points left out (NaN).
+  for (int i = 0; i < num_points; ++i)
+    if (relit_point[static_cast<size_t>(i)])
       lint[static_cast<size_t>(i)] =
           bands[static_cast<size_t>(i)].allFinite() ? 0.0f : std::numeric_limits<float>::quiet_NaN();
 
@@ -283,13 +318,12 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     for (int i = 0; i < num_points; ++i)
       if (rs[static_cast<size_t>(i)] > 0) {
         eval_world[static_cast<size_t>(i)] = world_point(ps, i, rs[static_cast<size_t>(i)]);
-        if (use_relit && !std::isnan(lint[static_cast<size_t>(i)]))
+        if (relit_point[static_cast<size_t>(i)] && !std::isnan(lint[static_cast<size_t>(i)]))
           normal_rho[static_cast<size_t>(i)] = implied_normal(ps, i, rs[static_cast<size_t>(i)], metres);
       }
     for (int t = 0; t < num_kf; ++t) {
       const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
       const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
-      const cv::Mat& image = (*limg)[static_cast<size_t>(t)];
       for (int i = 0; i < num_points; ++i) {
         const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
         if (!(rs[static_cast<size_t>(i)] > 0) || std::isnan(lint[static_cast<size_t>(i)])) continue;
@@ -299,13 +333,13 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
         if (!lcam.InImage(px, border)) continue;
         double value;
-        if (!SampleValue(image, px.x(), px.y(), &value)) continue;
+        if (!SampleValue(image_of(*limg, i, t), px.x(), px.y(), &value)) continue;
         double expected = lint[static_cast<size_t>(i)];
-        if (use_relit) {
+        if (relit_point[static_cast<size_t>(i)]) {
           if (!normal_rho[static_cast<size_t>(i)].allFinite()) continue;
           expected = relit_prediction(ps, i, t, pt, normal_rho[static_cast<size_t>(i)], metres);
         }
-        const double e = std::abs(value - expected);
+        const double e = residual_scale[static_cast<size_t>(i)] * std::abs(value - expected);
         cost += HuberCost(e, options.huber);
         *sq += e * e;
         ++*count;
@@ -377,7 +411,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           const double r = rho[static_cast<size_t>(i)];
           point_ok[static_cast<size_t>(i)] = r > 0 && !std::isnan(lint[static_cast<size_t>(i)]);
           if (point_ok[static_cast<size_t>(i)]) world[static_cast<size_t>(i)] = world_point(poses, i, r);
-          if (point_ok[static_cast<size_t>(i)] && use_relit) {
+          if (point_ok[static_cast<size_t>(i)] && relit_point[static_cast<size_t>(i)]) {
             normal_rho[static_cast<size_t>(i)] = implied_normal(poses, i, r, metres);
             normal_rho_drho[static_cast<size_t>(i)] =
                 (implied_normal(poses, i, r * (1 + 1e-5), metres) - implied_normal(poses, i, r * (1 - 1e-5), metres)) /
@@ -399,7 +433,6 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           for (int k = 0; k < num_kf; ++k)
             target_from_host[static_cast<size_t>(k)] =
                 rt_t * (poses[static_cast<size_t>(k)].scale * poses[static_cast<size_t>(k)].rotation);
-          const cv::Mat& image = (*limg)[static_cast<size_t>(t)];
           for (int i = 0; i < num_points; ++i) {
             const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
             if (!point_ok[static_cast<size_t>(i)] || t == p.host || !active[static_cast<size_t>(i) * num_kf + t])
@@ -410,13 +443,16 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             if (!lcam.InImage(px, border)) continue;
             double value;
             Eigen::Vector2d g;
-            if (!SampleWithGradient(image, px.x(), px.y(), &value, &g)) continue;
+            if (!SampleWithGradient(image_of(*limg, i, t), px.x(), px.y(), &value, &g)) continue;
             const double r = rho[static_cast<size_t>(i)];
+            const bool relit_i = relit_point[static_cast<size_t>(i)];
             const double res =
-                value - (use_relit ? relit_prediction(poses, i, t, pt, normal_rho[static_cast<size_t>(i)], metres)
-                                   : static_cast<double>(lint[static_cast<size_t>(i)]));
-            const double e = std::abs(res);
-            const double w = e <= options.huber ? 1.0 : options.huber / e;
+                value - (relit_i ? relit_prediction(poses, i, t, pt, normal_rho[static_cast<size_t>(i)], metres)
+                                 : static_cast<double>(lint[static_cast<size_t>(i)]));
+            // The residual scaled by s: Huber on s |res|, and s^2 in the weight of the unscaled rows.
+            const double s_i = residual_scale[static_cast<size_t>(i)];
+            const double e = s_i * std::abs(res);
+            const double w = (e <= options.huber ? 1.0 : options.huber / e) * s_i * s_i;
             const double iz = 1.0 / pt.z();
             Eigen::Matrix<double, 2, 3> du_dp;
             du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
@@ -429,7 +465,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             Eigen::RowVector3d j_n = Eigen::RowVector3d::Zero();  // d residual / d n_t
             Eigen::Vector3d n_t = Eigen::Vector3d::Zero();
             Eigen::Matrix3d r_th = Eigen::Matrix3d::Identity();
-            if (use_relit) {
+            if (relit_i) {
               const Eigen::Vector3d& m = normal_rho[static_cast<size_t>(i)];
               r_th = rt_t * poses[static_cast<size_t>(p.host)].rotation;
               n_t = r_th * m;
@@ -463,11 +499,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             j_host.head<3>() = -j_q * Skew(ray_i / r);
             j_host.tail<3>() = -j_target.tail<3>();
             double j_rho = -j_q.dot(ray_i) / (r * r);
-            if (use_relit) {
+            if (relit_i) {
               j_host.head<3>() -= j_n * r_th * Skew(normal_rho[static_cast<size_t>(i)]);
               j_rho += j_n.dot(r_th * normal_rho_drho[static_cast<size_t>(i)]);
             }
-            if (estimate_k) {
+            if (estimate_k && relit_i) {
               // d residual / d log K: the target's lighting and the host's implied normal both move with K.
               const double j_k = -(relit_prediction(poses, i, t, pt, normal_rho_kp[static_cast<size_t>(i)],
                                                     metres * std::exp(log_k_step)) -
@@ -643,15 +679,15 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           if (!project(poses, x, t, &pt)) continue;
           const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
           double value;
-          if (!lcam.InImage(px, border) || !SampleValue((*limg)[static_cast<size_t>(t)], px.x(), px.y(), &value))
-            continue;
+          if (!lcam.InImage(px, border) || !SampleValue(image_of(*limg, i, t), px.x(), px.y(), &value)) continue;
           double expected = lint[static_cast<size_t>(i)];
-          if (use_relit) {
+          if (relit_point[static_cast<size_t>(i)]) {
             const Eigen::Vector3d m = implied_normal(poses, i, rho[static_cast<size_t>(i)], metres);
             if (!m.allFinite()) continue;
             expected = relit_prediction(poses, i, t, pt, m, metres);
           }
-          if (std::abs(value - expected) > options.outlier) active[static_cast<size_t>(i) * num_kf + t] = 0;
+          if (residual_scale[static_cast<size_t>(i)] * std::abs(value - expected) > options.outlier)
+            active[static_cast<size_t>(i) * num_kf + t] = 0;
         }
       }
     }

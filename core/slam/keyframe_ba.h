@@ -39,7 +39,9 @@ struct DirectBaPoint {
   float u = 0, v = 0;       // pixel in the host
   float inverse_depth = 0;  // 1 / z in the host's units, > 0; in: initial value, out: adjusted
   float intensity = 0;      // the host's normalised grey level at (u, v)
-  bool ok = true;           // out: kept at least one residual and a positive inverse depth
+  // With DirectBaRelit::mixed: this point's residuals are relit ones (else J ones). Ignored otherwise.
+  bool relit = false;
+  bool ok = true;  // out: kept at least one residual and a positive inverse depth
 };
 
 // The relit residual (optional): instead of the host's normalised grey level against the target's,
@@ -65,6 +67,14 @@ struct DirectBaRelit {
   // The albedo's colour (per light band, any scale, all > 0): rho = a * albedo_colour with a unknown per
   // point, so rho n a = S^-1 diag(albedo_colour)^-1 X^-1 c. (1, 1, 1): grey.
   Eigen::Vector3d albedo_colour = Eigen::Vector3d::Ones();
+  // Mixed: both residuals in one problem. Points marked DirectBaPoint::relit take the relit residual
+  // (against the raw grey level, the mean of `rgb`'s channels, computed here), the others the J one
+  // (against grey_j, which then stays the normalised grey level). Each relit residual is multiplied by
+  // relit_residual_scale (> 0) before the Huber weight and the outlier test, so its weight is that
+  // squared: J pins the directions it sees well, and the relit residual the ones it barely sees (the
+  // bas-relief direction of a sideways arc).
+  bool mixed = false;
+  double relit_residual_scale = 1.0;
 };
 
 struct DirectBaProblem {
@@ -72,8 +82,8 @@ struct DirectBaProblem {
   // world_from_keyframe; the scale is the keyframe's depth unit and is held fixed. In: initial values,
   // out: adjusted ([0] unchanged; see the gauge above).
   std::vector<Sim3d> world_from_keyframe;
-  // CV_32F of the camera's size, one per keyframe: the normalised grey level J, or with `relit.rig` the
-  // raw grey level (mean of the channels).
+  // CV_32F of the camera's size, one per keyframe: the normalised grey level J, or with `relit.rig` (and
+  // not relit.mixed) the raw grey level (mean of the channels).
   std::vector<cv::Mat> grey_j;
   std::vector<DirectBaPoint> points;
   DirectBaRelit relit;

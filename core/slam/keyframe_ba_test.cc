@@ -274,6 +274,73 @@ TEST_P(RelitKeyframeBaPresetTest, EstimatesTheMetresPerWorldUnit) {
   EXPECT_LE(CentreError(relit, w.truth), kRelitMaxCentreErrorFromWrongK);
 }
 
+// Mixed (DirectBaRelit::mixed): J and the relit residual together, every point twice, the relit one
+// scaled by kMixedRelitScale. Measured (printed): from the truth, keyframes 2-3 move by 2.7 / 1.1 / 2.8%
+// of the spacing on the uniform sphere / bunny / relief (J 2.3 / 2.1 / 4.6%); from the perturbed start
+// on the uniform sphere (3% short) the scale comes back to 0.985 (J 0.972). With a relit scale of 1
+// (SlamOptions::final_adjustment_mixed_relit_scale's default, the better one in the SLAM) J dominates
+// there: 0.975; with 4, 0.973 (the scaled relit residuals reach the Huber threshold). In the SLAM's
+// final adjustment it was measured and not kept (see the README).
+constexpr double kMixedRelitScale = 2.0;
+constexpr double kMixedMaxCentreExcessOverJ = 0.01;  // of the spacing
+
+DirectBaProblem Mixed(const Window& w, const DirectBaProblem& start) {
+  DirectBaProblem p = start;
+  const size_t n = p.points.size();
+  for (size_t i = 0; i < n; ++i) {
+    DirectBaPoint q = p.points[i];
+    q.relit = true;
+    p.points.push_back(q);
+  }
+  p.relit.rig = &w.rig;
+  p.relit.metres_per_world_unit = 1.0;
+  p.relit.rgb = w.rgb;
+  p.relit.mixed = true;
+  p.relit.relit_residual_scale = kMixedRelitScale;
+  return p;
+}
+
+TEST_P(RelitKeyframeBaPresetTest, MixedStaysNearTheTruth) {
+  const Window w = MakeWindow(GetParam());
+  if (!w.ok) GTEST_SKIP() << "preset unavailable: " << w.why;
+  DirectBaProblem mixed = Mixed(w, w.truth);
+  StatusOr<DirectBaSummary> s0 = AdjustKeyframeWindowDirect(DirectBaOptions(), &mixed);
+  ASSERT_TRUE(s0.ok()) << s0.status();
+  DirectBaProblem j = w.truth;
+  ASSERT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &j).ok());
+  std::printf("%s mixed from the truth: centre error %.4f (J %.4f) of the spacing, scale %.4f (J %.4f)\n",
+              GetParam().c_str(), CentreError(mixed, w.truth), CentreError(j, w.truth), ScaleRatio(mixed, w.truth),
+              ScaleRatio(j, w.truth));
+  EXPECT_LE(CentreError(mixed, w.truth), CentreError(j, w.truth) + kMixedMaxCentreExcessOverJ);
+  EXPECT_NEAR(ScaleRatio(mixed, w.truth), 1.0, kMaxScaleErrorFromTruth);
+}
+
+TEST(RelitKeyframeBa, MixedRecoversTheScaleOnTheUniformSphere) {
+  const Window w = MakeWindow("sphere-uniform-sideways");
+  ASSERT_TRUE(w.ok) << w.why;
+  DirectBaProblem start = w.truth;
+  const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
+  const Eigen::Vector3d side =
+      (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
+  for (int k = 2; k < 4; ++k) {
+    Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
+    p.translation = c0 + 0.97 * (p.translation - c0) + side;
+    p.rotation = p.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.2 * M_PI / 180, Eigen::Vector3d::UnitX()));
+  }
+  std::mt19937 rng(7);
+  std::normal_distribution<float> noise(0.0f, 0.05f);
+  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  DirectBaProblem mixed = Mixed(w, start);
+  ASSERT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &mixed).ok());
+  DirectBaProblem j = start;
+  ASSERT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &j).ok());
+  std::printf("perturbed, mixed: centre error %.4f -> %.4f (J %.4f) of the spacing, scale 0.97 -> %.4f (J %.4f)\n",
+              CentreError(start, w.truth), CentreError(mixed, w.truth), CentreError(j, w.truth),
+              ScaleRatio(mixed, w.truth), ScaleRatio(j, w.truth));
+  EXPECT_NEAR(ScaleRatio(mixed, w.truth), 1.0, kRelitMaxScaleErrorFromPerturbed);
+  EXPECT_LT(std::abs(ScaleRatio(mixed, w.truth) - 1), std::abs(ScaleRatio(j, w.truth) - 1));
+}
+
 TEST(RelitKeyframeBa, RejectsBadInput) {
   DirectBaProblem p;
   p.camera = PinholeCamera::FromFov(64, 48, 60.0);
@@ -295,6 +362,13 @@ TEST(RelitKeyframeBa, RejectsBadInput) {
   DirectBaOptions pyramid;
   pyramid.pyramid_levels = 2;
   EXPECT_FALSE(AdjustKeyframeWindowDirect(pyramid, &p).ok()) << "relit needs one level";
+  p.relit.mixed = true;
+  p.relit.relit_residual_scale = 0;
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "mixed with a zero relit scale";
+  p.relit.relit_residual_scale = 1;
+  EXPECT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok());
+  p.relit.rig = nullptr;
+  EXPECT_FALSE(AdjustKeyframeWindowDirect(DirectBaOptions(), &p).ok()) << "mixed without a rig";
 }
 
 // A point of a host keyframe in a target keyframe's camera, with both poses perturbed as the adjustment

@@ -134,6 +134,8 @@ std::vector<Field> Fields(SlamOptions& o) {
   AddDirectBa("keyframe_window_ba.", o.keyframe_window_ba, &f);
   AddDirectBa("final_adjustment_ba.", o.final_adjustment_ba, &f);
   f.push_back({"final_adjustment_relit", &o.final_adjustment_relit});
+  f.push_back({"final_adjustment_mixed", &o.final_adjustment_mixed});
+  f.push_back({"final_adjustment_mixed_relit_scale", &o.final_adjustment_mixed_relit_scale});
   f.push_back({"metric_scale_min_band_fraction", &o.metric_scale_min_band_fraction});
   AddDirectBa("final_adjustment_relit_ba.", o.final_adjustment_relit_ba, &f);
   return f;

@@ -121,6 +121,10 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
   if (!(metric_scale_min_band_fraction >= 0 && metric_scale_min_band_fraction < 1))
     return InvalidArgumentError("SlamOptions: metric_scale_min_band_fraction must be in [0, 1)");
+  if (!(final_adjustment_mixed_relit_scale > 0))
+    return InvalidArgumentError("SlamOptions: final_adjustment_mixed_relit_scale must be > 0");
+  if (final_adjustment_mixed && final_adjustment_ba.pyramid_levels != 1)
+    return InvalidArgumentError("SlamOptions: final_adjustment_mixed needs final_adjustment_ba.pyramid_levels = 1");
   if (final_adjustment_relit && final_adjustment_relit_ba.pyramid_levels != 1)
     return InvalidArgumentError("SlamOptions: final_adjustment_relit_ba.pyramid_levels must be 1");
   return Status::Ok();
@@ -239,7 +243,7 @@ struct SlamSystem::Impl {
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
   // The adjustment's problem over keyframes first..newest (false: too few points); with `relit`, the
   // relit residual at metres_per_world_unit, estimated with the poses.
-  bool BuildAdjustmentProblem(int first, bool relit, double metres_per_world_unit, double min_band_fraction,
+  bool BuildAdjustmentProblem(int first, bool relit, bool mixed, double metres_per_world_unit, double min_band_fraction,
                               DirectBaProblem* problem);
   // The first keyframe of the adjustment window: from `first`, older keyframes that share less than
   // keyframe_window_min_overlap of the newest keyframe's view are left out (at least 3 stay).
@@ -924,7 +928,7 @@ double SlamSystem::Impl::RelitMetresPerWorldUnit() {
   return relit_metres_per_world_unit;
 }
 
-bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, double metres_per_world_unit,
+bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, bool mixed, double metres_per_world_unit,
                                               double min_band_fraction, DirectBaProblem* problem) {
   const int n = static_cast<int>(keyframes.size());
   problem->camera = rig.camera;
@@ -966,7 +970,18 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, double metr
     }
   }
   if (static_cast<int>(problem->points.size()) < options.keyframe_window_min_points) return false;
-  if (relit) {
+  if (relit && mixed) {
+    // J stays; every point is also a relit point (the adjustment computes the raw grey levels).
+    const size_t num_j = problem->points.size();
+    for (size_t i = 0; i < num_j; ++i) {
+      DirectBaPoint p = problem->points[i];
+      p.relit = true;
+      problem->points.push_back(p);
+    }
+    for (int k = first; k < n; ++k) problem->relit.rgb.push_back(keyframes[static_cast<size_t>(k)].rgb);
+    problem->relit.mixed = true;
+    problem->relit.relit_residual_scale = options.final_adjustment_mixed_relit_scale;
+  } else if (relit) {
     // The raw grey level of every keyframe and the hosts' colours (the points stay those J selected).
     for (int k = first; k < n; ++k) {
       const cv::Mat& rgb = keyframes[static_cast<size_t>(k)].rgb;
@@ -979,6 +994,8 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, double metr
       problem->grey_j[static_cast<size_t>(k - first)] = raw;
       problem->relit.rgb.push_back(rgb);
     }
+  }
+  if (relit) {
     problem->relit.rig = &rig;
     problem->relit.metres_per_world_unit = metres_per_world_unit;
     problem->relit.estimate_metres_per_world_unit = true;
@@ -998,11 +1015,14 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     kf.grey_j.release();
     kf.DropWindowPoints();
   }
-  const bool relit = at_finish && options.final_adjustment_relit && RelitMetresPerWorldUnit() > 0;
+  const bool mixed = at_finish && options.final_adjustment_mixed && RelitMetresPerWorldUnit() > 0;
+  const bool relit = mixed || (at_finish && options.final_adjustment_relit && RelitMetresPerWorldUnit() > 0);
   DirectBaProblem problem;
-  if (!BuildAdjustmentProblem(first, relit, relit_metres_per_world_unit, DirectBaRelit().min_band_fraction, &problem))
+  if (!BuildAdjustmentProblem(first, relit, mixed, relit_metres_per_world_unit,
+                              mixed ? options.metric_scale_min_band_fraction : DirectBaRelit().min_band_fraction,
+                              &problem))
     return;
-  const DirectBaOptions& used_options = relit ? options.final_adjustment_relit_ba : ba_options;
+  const DirectBaOptions& used_options = relit && !mixed ? options.final_adjustment_relit_ba : ba_options;
   std::vector<float> initial_inverse_depth;
   initial_inverse_depth.reserve(problem.points.size());
   for (const DirectBaPoint& p : problem.points) initial_inverse_depth.push_back(p.inverse_depth);
@@ -1025,7 +1045,9 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     std::vector<double> ratios;
     for (size_t i = 0; i < problem.points.size(); ++i) {
       const DirectBaPoint& p = problem.points[i];
-      if (p.host == k - first && p.ok) ratios.push_back(initial_inverse_depth[i] / p.inverse_depth);
+      // (Mixed: the J points alone; the keyframe's depth map is J's.)
+      if (p.host == k - first && p.ok && !(mixed && p.relit))
+        ratios.push_back(initial_inverse_depth[i] / p.inverse_depth);
     }
     if (ratios.size() >= 20) {
       std::nth_element(ratios.begin(), ratios.begin() + ratios.size() / 2, ratios.end());
@@ -1161,7 +1183,8 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   double k = start;
   for (int pass = 0; pass < 4; ++pass) {
     DirectBaProblem problem;
-    if (!m.BuildAdjustmentProblem(first, /*relit=*/true, k, m.options.metric_scale_min_band_fraction, &problem))
+    if (!m.BuildAdjustmentProblem(first, /*relit=*/true, /*mixed=*/false, k, m.options.metric_scale_min_band_fraction,
+                                  &problem))
       return FailedPreconditionError("EstimateMetricScale: too few adjustment points");
     StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(m.options.final_adjustment_relit_ba, &problem);
     if (!summary.ok()) return summary.status();
