@@ -304,6 +304,11 @@ int main(int argc, char** argv) {
     shading_scale_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     if (e.ok()) shading_scale = *e;
     else shading_scale_error = std::string(e.status().message());
+    if (shading_scale && !shading_scale->consistent)
+      std::cerr << "prism-slam: warning: the reconstruction disagrees with the co-moving lights' shading (keyframe "
+                   "pairs' shading scales spread by "
+                << shading_scale->pair_spread << " of their median, limit " << options.metric_scale_max_pair_spread
+                << "): the trajectory and depth are probably distorted\n";
   }
   // The dense stage on the final keyframes: their refined depth at their final poses.
   if (dense_stage && !dense_online) {
@@ -411,7 +416,10 @@ int main(int argc, char** argv) {
     json << ",\n  \"shading_metres_per_unit\": " << shading_scale->metres_per_world_unit
          << ",\n  \"shading_metres_per_unit_start\": " << shading_scale->start_metres_per_world_unit
          << ",\n  \"shading_scale_passes\": " << shading_scale->passes
-         << ",\n  \"shading_scale_ms\": " << 1000.0 * shading_scale_seconds;
+         << ",\n  \"shading_scale_ms\": " << 1000.0 * shading_scale_seconds
+         << ",\n  \"shading_scale_pairs\": " << shading_scale->pairs
+         << ",\n  \"shading_scale_pair_spread\": " << shading_scale->pair_spread
+         << ",\n  \"shading_scale_consistent\": " << (shading_scale->consistent ? "true" : "false");
   } else if (metric_scale) {
     json << ",\n  \"shading_scale_error\": \"" << shading_scale_error << "\"";
   }

@@ -227,6 +227,12 @@ void SessionPipeline::SlamLoop() {
           PRISM_LOG(INFO) << "pipeline: metric scale from the co-moving lights " << metric->metres_per_world_unit
                           << " m per unit (dense stage " << metres_per_unit_ << ") in " << MsSince(t0) << " ms";
           final_metres_per_unit_ = metric->metres_per_world_unit;
+          if (!metric->consistent) {
+            PRISM_LOG(WARNING) << "pipeline: the session's reconstruction disagrees with the co-moving lights' "
+                                  "shading (keyframe pairs' shading scales spread by "
+                               << metric->pair_spread << " of their median): its trajectory and map are probably "
+                               << "distorted";
+          }
         } else {
           PRISM_LOG(INFO) << "pipeline: no metric scale from the co-moving lights: " << metric.status();
         }

@@ -137,6 +137,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"final_adjustment_mixed", &o.final_adjustment_mixed});
   f.push_back({"final_adjustment_mixed_relit_scale", &o.final_adjustment_mixed_relit_scale});
   f.push_back({"metric_scale_min_band_fraction", &o.metric_scale_min_band_fraction});
+  f.push_back({"metric_scale_max_pair_spread", &o.metric_scale_max_pair_spread});
   AddDirectBa("final_adjustment_relit_ba.", o.final_adjustment_relit_ba, &f);
   return f;
 }

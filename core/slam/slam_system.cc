@@ -119,6 +119,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: final_refinement_rounds must be in [1, 10]");
   PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
+  if (!(metric_scale_max_pair_spread > 0))
+    return InvalidArgumentError("SlamOptions: metric_scale_max_pair_spread must be > 0");
   if (!(metric_scale_min_band_fraction >= 0 && metric_scale_min_band_fraction < 1))
     return InvalidArgumentError("SlamOptions: metric_scale_min_band_fraction must be in [0, 1)");
   if (!(final_adjustment_mixed_relit_scale > 0))
@@ -156,6 +158,8 @@ struct SlamSystem::Impl {
   // SlamOptions::final_adjustment_relit: the metres per world unit from the shading (0 = not yet
   // estimated, < 0 = failed).
   double relit_metres_per_world_unit = 0;
+  // The keyframe pairs' shading scales it is the median of (metres per world unit).
+  std::vector<double> relit_pair_estimates;
   // Estimates relit_metres_per_world_unit once (median over consecutive finished keyframe pairs).
   double RelitMetresPerWorldUnit();
   SlamTimings timings;
@@ -921,6 +925,7 @@ double SlamSystem::Impl::RelitMetresPerWorldUnit() {
     PRISM_LOG(INFO) << "slam: relit adjustment off: " << estimates.size() << " keyframe pairs gave a shading scale";
     return -1;
   }
+  relit_pair_estimates = estimates;
   std::nth_element(estimates.begin(), estimates.begin() + estimates.size() / 2, estimates.end());
   relit_metres_per_world_unit = estimates[estimates.size() / 2];
   PRISM_LOG(INFO) << "slam: relit adjustment at " << relit_metres_per_world_unit << " metres per world unit ("
@@ -1180,6 +1185,21 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   const int first = std::max(0, n - m.options.final_adjustment_max_keyframes);
   MetricScaleEstimate e;
   e.start_metres_per_world_unit = start;
+  {
+    std::vector<double> sorted = m.relit_pair_estimates;
+    std::sort(sorted.begin(), sorted.end());
+    const size_t np = sorted.size();
+    e.pairs = static_cast<int>(np);
+    e.pair_spread = (sorted[(3 * np) / 4 < np ? (3 * np) / 4 : np - 1] - sorted[np / 4]) / start;
+    e.consistent = e.pair_spread <= m.options.metric_scale_max_pair_spread;
+    if (!e.consistent) {
+      PRISM_LOG(WARNING) << "slam: the reconstruction disagrees with the co-moving lights' shading: the " << np
+                         << " keyframe pairs' shading scales spread by " << e.pair_spread
+                         << " of their median (interquartile range; limit " << m.options.metric_scale_max_pair_spread
+                         << "); the trajectory and depth are probably distorted (e.g. an initialisation in the "
+                            "bas-relief ambiguity of a sideways start)";
+    }
+  }
   double k = start;
   for (int pass = 0; pass < 4; ++pass) {
     DirectBaProblem problem;

@@ -280,6 +280,10 @@ struct SlamOptions {
   // (the multi-coloured presets 7-11% low); 0.3 median 1.9%, 21 within 5% (boxes and the multi-coloured
   // sphere within 1.3%, the relief and armadillo 1-6% high); 0.45 on seed 1: 6-12% high.
   double metric_scale_min_band_fraction = 0.3;
+  // EstimateMetricScale: above this spread of the keyframe pairs' shading scales
+  // (MetricScaleEstimate::pair_spread) the reconstruction is reported as inconsistent with the
+  // co-moving lights' shading (a warning; nothing else changes), > 0.
+  double metric_scale_max_pair_spread = 0.1;
   DirectBaOptions final_adjustment_relit_ba = [] {
     DirectBaOptions b;
     b.max_iterations = 6;
@@ -298,6 +302,13 @@ struct MetricScaleEstimate {
   int passes = 0;                          // relit adjustments run (until K moved by < 0.5%)
   int residuals = 0;                       // of the last pass
   double final_rms = 0;                    // grey levels, of the last pass
+  // A check of the SLAM's geometry against the shading: each consecutive keyframe pair gives its own
+  // shading scale (shading_scale.h, at the SLAM's poses and depths); on a consistent reconstruction
+  // they agree, on a distorted one (e.g. an initialisation in the bas-relief ambiguity of a sideways
+  // start) they scatter. pair_spread: their interquartile range over their median.
+  int pairs = 0;
+  double pair_spread = 0;
+  bool consistent = true;  // pair_spread <= SlamOptions::metric_scale_max_pair_spread
 };
 
 enum class SlamState {

@@ -185,10 +185,14 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
     StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
     ASSERT_TRUE(metric.ok()) << metric.status();
     const double metric_error = metric->metres_per_world_unit / ate_rounds->gt_from_est.scale - 1;
-    std::printf("%s: metric scale %.4f m per unit (start %.4f, %d passes), truth %.4f: %+.2f%%\n", c.preset.c_str(),
-                metric->metres_per_world_unit, metric->start_metres_per_world_unit, metric->passes,
-                ate_rounds->gt_from_est.scale, 100 * metric_error);
+    std::printf(
+        "%s: metric scale %.4f m per unit (start %.4f, %d passes), truth %.4f: %+.2f%%; keyframe pairs' shading "
+        "scales spread by %.4f (%d pairs)\n",
+        c.preset.c_str(), metric->metres_per_world_unit, metric->start_metres_per_world_unit, metric->passes,
+        ate_rounds->gt_from_est.scale, 100 * metric_error, metric->pair_spread, metric->pairs);
     EXPECT_LE(std::abs(metric_error), c.max_metric_scale_rel_error);
+    // These runs are within the trajectory bar: the shading agrees with them.
+    EXPECT_TRUE(metric->consistent) << "pair spread " << metric->pair_spread;
     size_t j = 0;
     for (const SlamFrameResult& f : (*slam)->Trajectory()) {
       if (f.state != SlamState::kTracking) continue;
@@ -275,6 +279,54 @@ INSTANTIATE_TEST_SUITE_P(
       if (info.param.supersampling > 1) n += "_supersampled" + std::to_string(info.param.supersampling);
       return n;
     });
+
+// The shading check (MetricScaleEstimate::consistent): the uniform bunny's seed 1 (the renderer's noise
+// as prism-synth --seed 1) starts in the bas-relief ambiguity of its sideways arc (rotation 30% short from
+// the first frames; 3.9% of path after prism-slam's rounds, README twenty-second round) without any
+// other sign. The keyframe pairs' shading scales then scatter (measured: a spread of 0.41 of their
+// median against 0.014 on seeds 2 and 3), and the check reports it. Written as an equivalence so that
+// a fix of the initialisation keeps the test meaningful: a run within the 1% bar must pass the check,
+// one above kDistortedAtePercent must fail it.
+constexpr double kDistortedAtePercent = 2.0;
+
+TEST(SlamSystem, TheShadingCheckReportsADistortedReconstruction) {
+  Rendered r;
+  std::string why;
+  if (!Render("bunny-uniform-sideways", 150, 1, &r, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ThreadPool pool(2);
+  const SlamOptions options;
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
+  ASSERT_TRUE(slam.ok()) << slam.status();
+  std::vector<SlamKeyframe> keyframes;
+  for (int i = 0; i < 150; ++i) {
+    StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
+    ASSERT_TRUE(f.ok()) << f.status();
+    for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) keyframes.push_back(std::move(k));
+  }
+  for (SlamKeyframe& k : (*slam)->Finish()) keyframes.push_back(std::move(k));
+  (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
+                                options.final_refinement_rounds, &keyframes);
+  Trajectory estimate;
+  for (const SlamFrameResult& f : (*slam)->Trajectory())
+    if (f.state == SlamState::kTracking) estimate.push_back({f.timestamp, f.world_from_camera});
+  TrajectoryEvalOptions eo;
+  eo.alignment = AlignmentModel::kSim3;
+  StatusOr<AteResult> ate = ComputeAte(r.trajectory, estimate, eo);
+  ASSERT_TRUE(ate.ok()) << ate.status();
+  const double ate_percent = 100 * ate->error_m.rmse / ate->trajectory_length_m;
+  StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
+  ASSERT_TRUE(metric.ok()) << metric.status();
+  std::printf("uniform bunny, seed 1: ATE %.3f%% of path; keyframe pairs' shading scales spread by %.4f (%d pairs)\n",
+              ate_percent, metric->pair_spread, metric->pairs);
+  if (ate_percent <= 1.0) {
+    EXPECT_TRUE(metric->consistent) << "pair spread " << metric->pair_spread;
+  }
+  if (ate_percent >= kDistortedAtePercent) {
+    EXPECT_FALSE(metric->consistent) << "pair spread " << metric->pair_spread;
+  }
+  EXPECT_TRUE(ate_percent <= 1.0 || ate_percent >= kDistortedAtePercent)
+      << "between the bar and the distorted case: the test says nothing; re-measure";
+}
 
 TEST(SlamSystem, RejectsBadInputAndReportsStates) {
   const RigCalibration rig = synth::MakeDefaultRig(128, 96);
