@@ -103,6 +103,9 @@ class PythonClientTest(unittest.TestCase):
         self.assertEqual(summary["frames_received"], self.frames)
         self.assertEqual(summary["reason"], "closed by client")
         self.assertGreater(summary["metres_per_unit"], 0)
+        # The server's check against the co-moving lights' shading: this run is within the SLAM's bar
+        # (measured pair spread 0.092, limit 0.16).
+        self.assertEqual(summary["shading_check"], "consistent", summary["shading_pair_spread"])
         self.assertEqual(all_poses.shape, (self.frames, 8))
         self.assertEqual(poses.shape[1], 8)
         self.assertGreaterEqual(len(poses), self.frames // 2)

@@ -280,15 +280,18 @@ int main(int argc, char** argv) {
       "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"map_replaced\": %s, \"errors\": %zu, "
       "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
       "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
-      "\"metres_per_unit\": %.6g, "
+      "\"metres_per_unit\": %.6g, \"shading_check\": \"%s\", \"shading_pair_spread\": %.4g, "
       "\"reconnects\": %d, \"reason\": \"%s\"}\n",
       session->session_id().c_str(), n - skipped, skipped, poses.size(), refined_poses, chunks, chunk_bytes, map.size(),
       remapped ? "true" : "false", frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
       n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0, seconds,
       seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,
       static_cast<unsigned long long>(summary.keyframes), static_cast<unsigned long long>(summary.keyframes_failed),
-      static_cast<unsigned long long>(summary.map_points), summary.metres_per_unit, session->reconnects(),
-      summary.reason.c_str());
+      static_cast<unsigned long long>(summary.map_points), summary.metres_per_unit,
+      summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
+      : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
+                                                                       : "not_run",
+      summary.shading_pair_spread, session->reconnects(), summary.reason.c_str());
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
   if (session->reconnects() > 0)

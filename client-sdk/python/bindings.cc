@@ -103,6 +103,10 @@ py::dict SummaryToDict(const pc::Summary& s) {
   d["map_points"] = s.map_points;
   d["metres_per_unit"] = s.metres_per_unit;
   d["reason"] = s.reason;
+  d["shading_check"] = s.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
+                       : s.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
+                                                                                  : "not_run";
+  d["shading_pair_spread"] = s.shading_pair_spread;
   return d;
 }
 

@@ -469,6 +469,10 @@ struct Session::Impl {
         summary.map_points = s.map_points();
         summary.metres_per_unit = s.metres_per_unit();
         summary.reason = s.reason();
+        summary.shading_check = s.shading_check() == v1::SHADING_CHECK_CONSISTENT  ? Summary::ShadingCheck::kConsistent
+                                : s.shading_check() == v1::SHADING_CHECK_DISTORTED ? Summary::ShadingCheck::kDistorted
+                                                                                   : Summary::ShadingCheck::kNotRun;
+        summary.shading_pair_spread = s.shading_pair_spread();
         summary_received = true;
         closed = true;
         Event e;

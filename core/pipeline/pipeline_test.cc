@@ -323,6 +323,10 @@ TEST(SessionPipelineTest, ADistortedCameraIsUndistortedAndTrackedAccurately) {
   std::cout << "distorted camera: metres per unit " << summary.metres_per_unit << ", truth " << ate->gt_from_est.scale
             << " (" << 100 * metric_error << "%)\n";
   EXPECT_LT(std::abs(metric_error), kMetricScaleTolerance);
+  // Within the trajectory bar, the shading check at the end agrees (1: consistent).
+  std::cout << "distorted camera: shading check " << summary.shading_check << ", pair spread "
+            << summary.shading_pair_spread << "\n";
+  EXPECT_EQ(summary.shading_check, 1) << "pair spread " << summary.shading_pair_spread;
 }
 
 // DenseStage::Remap, the map rebuilt at moved keyframe poses. Keyframes merged at poses off by up to

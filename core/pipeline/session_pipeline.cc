@@ -227,6 +227,11 @@ void SessionPipeline::SlamLoop() {
           PRISM_LOG(INFO) << "pipeline: metric scale from the co-moving lights " << metric->metres_per_world_unit
                           << " m per unit (dense stage " << metres_per_unit_ << ") in " << MsSince(t0) << " ms";
           final_metres_per_unit_ = metric->metres_per_world_unit;
+          {
+            std::lock_guard<std::mutex> lock(mutex_);
+            stats_.shading_check = metric->consistent ? 1 : 2;
+            stats_.shading_pair_spread = metric->pair_spread;
+          }
           if (!metric->consistent) {
             PRISM_LOG(WARNING) << "pipeline: the session's reconstruction disagrees with the co-moving lights' "
                                   "shading (keyframe pairs' shading scales spread by "

@@ -88,6 +88,10 @@ struct PipelineStats {
   uint64_t map_points = 0;
   double metres_per_unit = 0;  // 0 until estimated
   double slam_ms_total = 0, dense_ms_total = 0;
+  // The SLAM's check against the co-moving lights' shading at the end (MetricScaleEstimate::consistent,
+  // with metric_scale_at_end): 0 not run, 1 consistent, 2 distorted; and its pair spread.
+  int shading_check = 0;
+  double shading_pair_spread = 0;
 };
 
 struct PipelineEvent {

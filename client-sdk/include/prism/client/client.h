@@ -143,6 +143,11 @@ struct Summary {
   uint64_t chunks_sent = 0, map_points = 0;
   double metres_per_unit = 0;
   std::string reason;
+  // The server's check of the reconstruction against the co-moving lights' shading at the end:
+  // kDistorted says the trajectory and map are probably distorted (SessionSummary.shading_check).
+  enum class ShadingCheck { kNotRun, kConsistent, kDistorted };
+  ShadingCheck shading_check = ShadingCheck::kNotRun;
+  double shading_pair_spread = 0;
 };
 
 struct Event {
