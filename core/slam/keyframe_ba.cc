@@ -123,6 +123,16 @@ Status DirectBaOptions::Check() const {
   return InvalidArgumentError(e.str());
 }
 
+cv::Mat MeanOfChannels(const cv::Mat& rgb) {
+  cv::Mat grey(rgb.size(), CV_32F);
+  for (int y = 0; y < rgb.rows; ++y) {
+    const cv::Vec3b* in = rgb.ptr<cv::Vec3b>(y);
+    float* out = grey.ptr<float>(y);
+    for (int x = 0; x < rgb.cols; ++x) out[x] = (in[x][0] + in[x][1] + in[x][2]) / 3.0f;
+  }
+  return grey;
+}
+
 StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem) {
   PRISM_RETURN_IF_ERROR(options.Check());
   if (problem == nullptr) return InvalidArgumentError("AdjustKeyframeWindowDirect: problem is null");
@@ -190,15 +200,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   }
   std::vector<cv::Mat> raw_grey;
   if (use_relit && relit.mixed)
-    for (const cv::Mat& rgb : relit.rgb) {
-      cv::Mat raw(rgb.size(), CV_32F);
-      for (int y = 0; y < rgb.rows; ++y) {
-        const cv::Vec3b* in = rgb.ptr<cv::Vec3b>(y);
-        float* out = raw.ptr<float>(y);
-        for (int x = 0; x < rgb.cols; ++x) out[x] = (in[x][0] + in[x][1] + in[x][2]) / 3.0f;
-      }
-      raw_grey.push_back(raw);
-    }
+    for (const cv::Mat& rgb : relit.rgb) raw_grey.push_back(MeanOfChannels(rgb));
   // The image point i's residual in target t reads: J (or with relit.rig alone the raw grey level, which
   // grey_j then holds), or in mixed mode the raw grey level for relit points.
   auto image_of = [&](const std::vector<cv::Mat>& level_images, int i, int t) -> const cv::Mat& {

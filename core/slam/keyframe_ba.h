@@ -77,6 +77,9 @@ struct DirectBaRelit {
   double relit_residual_scale = 1.0;
 };
 
+// The raw grey level the relit residual compares: the mean of a CV_8UC3 image's channels, CV_32F.
+cv::Mat MeanOfChannels(const cv::Mat& rgb);
+
 struct DirectBaProblem {
   PinholeCamera camera;  // no distortion
   // world_from_keyframe; the scale is the keyframe's depth unit and is held fixed. In: initial values,

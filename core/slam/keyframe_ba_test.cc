@@ -50,13 +50,7 @@ Window MakeWindow(const std::string& preset) {
     KeyframeDepth::NormalisedGrey(f.rgb, depth_options, &j, &mean);
     w.truth.grey_j.push_back(j);
     w.rgb.push_back(f.rgb);
-    cv::Mat raw(f.rgb.size(), CV_32F);
-    for (int y = 0; y < raw.rows; ++y)
-      for (int x = 0; x < raw.cols; ++x) {
-        const cv::Vec3b c = f.rgb.at<cv::Vec3b>(y, x);
-        raw.at<float>(y, x) = (c[0] + c[1] + c[2]) / 3.0f;
-      }
-    w.raw_grey.push_back(raw);
+    w.raw_grey.push_back(MeanOfChannels(f.rgb));
     // One point per 12x12 cell: the strongest gradient with a surface (as SlamSystem picks them).
     cv::Mat inverse_depth = cv::Mat::zeros(f.depth.size(), CV_32F);
     for (int y = 0; y < f.depth.rows; ++y)
@@ -102,6 +96,24 @@ double ScaleRatio(const DirectBaProblem& p, const DirectBaProblem& truth) {
          (truth.world_from_keyframe[3].translation - truth.world_from_keyframe[0].translation).norm();
 }
 
+// Keyframes 2 and 3 moved 3% towards keyframe 0 (scale drift) and 5% of the spacing sideways, rotated
+// by 0.2 deg; every inverse depth 5% off at random.
+DirectBaProblem PerturbedStart(const Window& w) {
+  DirectBaProblem start = w.truth;
+  const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
+  const Eigen::Vector3d side =
+      (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
+  for (int k = 2; k < 4; ++k) {
+    Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
+    p.translation = c0 + 0.97 * (p.translation - c0) + side;
+    p.rotation = p.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.2 * M_PI / 180, Eigen::Vector3d::UnitX()));
+  }
+  std::mt19937 rng(7);
+  std::normal_distribution<float> noise(0.0f, 0.05f);
+  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  return start;
+}
+
 // Tolerances from measurement (printed). From the truth, the adjustment moves keyframes 2-3 by 1-5% of
 // the keyframe spacing and changes the scale by up to 1.2%: the normalised grey level still changes
 // with the co-moving lights between keyframes, so the photometric minimum is near, not at, the truth.
@@ -130,20 +142,8 @@ TEST_P(KeyframeBaPresetTest, StaysNearTheTruthAndLowersTheErrorFromAPerturbedSta
   EXPECT_NEAR(ScaleRatio(from_truth, w.truth), 1.0, kMaxScaleErrorFromTruth);
   EXPECT_LT(s0->final_rms, s0->initial_rms);
 
-  // Keyframes 2 and 3 moved 3% towards keyframe 0 (scale drift) and 5% of the spacing sideways, rotated
-  // by 0.2 deg; every inverse depth 5% off at random.
-  DirectBaProblem start = w.truth;
+  DirectBaProblem start = PerturbedStart(w);
   const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
-  const Eigen::Vector3d side =
-      (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
-  for (int k = 2; k < 4; ++k) {
-    Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
-    p.translation = c0 + 0.97 * (p.translation - c0) + side;
-    p.rotation = p.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.2 * M_PI / 180, Eigen::Vector3d::UnitX()));
-  }
-  std::mt19937 rng(7);
-  std::normal_distribution<float> noise(0.0f, 0.05f);
-  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
   const double start_error = CentreError(start, w.truth);
   StatusOr<DirectBaSummary> s1 = AdjustKeyframeWindowDirect(DirectBaOptions(), &start);
   ASSERT_TRUE(s1.ok()) << s1.status();
@@ -223,18 +223,7 @@ constexpr double kRelitMaxCentreErrorFromPerturbed = 0.07;  // of the spacing
 TEST(RelitKeyframeBa, RecoversTheScaleOnTheUniformSphere) {
   const Window w = MakeWindow("sphere-uniform-sideways");
   ASSERT_TRUE(w.ok) << w.why;
-  DirectBaProblem start = w.truth;
-  const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
-  const Eigen::Vector3d side =
-      (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
-  for (int k = 2; k < 4; ++k) {
-    Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
-    p.translation = c0 + 0.97 * (p.translation - c0) + side;
-    p.rotation = p.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.2 * M_PI / 180, Eigen::Vector3d::UnitX()));
-  }
-  std::mt19937 rng(7);
-  std::normal_distribution<float> noise(0.0f, 0.05f);
-  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  const DirectBaProblem start = PerturbedStart(w);
   DirectBaOptions options;
   options.huber = 4.0;
   options.outlier = 20.0;
@@ -318,18 +307,7 @@ TEST_P(RelitKeyframeBaPresetTest, MixedStaysNearTheTruth) {
 TEST(RelitKeyframeBa, MixedRecoversTheScaleOnTheUniformSphere) {
   const Window w = MakeWindow("sphere-uniform-sideways");
   ASSERT_TRUE(w.ok) << w.why;
-  DirectBaProblem start = w.truth;
-  const Eigen::Vector3d c0 = w.truth.world_from_keyframe[0].translation;
-  const Eigen::Vector3d side =
-      (w.truth.world_from_keyframe[1].rotation * Eigen::Vector3d::UnitY()) * 0.05 * Spacing(w.truth);
-  for (int k = 2; k < 4; ++k) {
-    Sim3d& p = start.world_from_keyframe[static_cast<size_t>(k)];
-    p.translation = c0 + 0.97 * (p.translation - c0) + side;
-    p.rotation = p.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.2 * M_PI / 180, Eigen::Vector3d::UnitX()));
-  }
-  std::mt19937 rng(7);
-  std::normal_distribution<float> noise(0.0f, 0.05f);
-  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  const DirectBaProblem start = PerturbedStart(w);
   DirectBaProblem mixed = Mixed(w, start);
   ASSERT_TRUE(AdjustKeyframeWindowDirect(DirectBaOptions(), &mixed).ok());
   DirectBaProblem j = start;

@@ -7,6 +7,8 @@
 
 #include <Eigen/Dense>
 
+#include "core/slam/keyframe_ba.h"
+
 namespace prism {
 
 Status ShadingScaleOptions::Check() const {
@@ -87,23 +89,13 @@ float Bilinear(const cv::Mat& m, double x, double y) {
   return (1 - ay) * ((1 - ax) * r0[x0] + ax * r0[x0 + 1]) + ay * ((1 - ax) * r1[x0] + ax * r1[x0 + 1]);
 }
 
-cv::Mat GreyOf(const cv::Mat& rgb) {
-  cv::Mat grey(rgb.size(), CV_32F);
-  for (int y = 0; y < rgb.rows; ++y) {
-    const cv::Vec3b* in = rgb.ptr<cv::Vec3b>(y);
-    float* out = grey.ptr<float>(y);
-    for (int x = 0; x < rgb.cols; ++x) out[x] = (in[x][0] + in[x][1] + in[x][2]) / 3.0f;
-  }
-  return grey;
-}
-
 struct FrameImages {
   cv::Mat grey, grad_x, grad_y;  // CV_32F
 };
 
 FrameImages MakeFrameImages(const cv::Mat& rgb) {
   FrameImages f;
-  f.grey = GreyOf(rgb);
+  f.grey = MeanOfChannels(rgb);
   f.grad_x = cv::Mat::zeros(f.grey.size(), CV_32F);
   f.grad_y = cv::Mat::zeros(f.grey.size(), CV_32F);
   for (int y = 1; y + 1 < f.grey.rows; ++y) {
@@ -147,7 +139,7 @@ StatusOr<ShadingScaleResult> EstimateShadingScale(const RigCalibration& rig, con
 
   // Points: per cell the strongest grey gradient among pixels with a depth, unsaturated, bright enough,
   // lit by all three lights.
-  const cv::Mat kf_grey = GreyOf(keyframe_rgb);
+  const cv::Mat kf_grey = MeanOfChannels(keyframe_rgb);
   std::vector<ScalePoint> points;
   int candidates = 0, facing = 0;
   const double k0 = options.initial_metres_per_unit;

@@ -990,13 +990,7 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, bool mixed,
     // The raw grey level of every keyframe and the hosts' colours (the points stay those J selected).
     for (int k = first; k < n; ++k) {
       const cv::Mat& rgb = keyframes[static_cast<size_t>(k)].rgb;
-      cv::Mat raw(rgb.size(), CV_32F);
-      for (int y = 0; y < rgb.rows; ++y) {
-        const cv::Vec3b* in = rgb.ptr<cv::Vec3b>(y);
-        float* out = raw.ptr<float>(y);
-        for (int x = 0; x < rgb.cols; ++x) out[x] = (in[x][0] + in[x][1] + in[x][2]) / 3.0f;
-      }
-      problem->grey_j[static_cast<size_t>(k - first)] = raw;
+      problem->grey_j[static_cast<size_t>(k - first)] = MeanOfChannels(rgb);
       problem->relit.rgb.push_back(rgb);
     }
   }
