@@ -85,6 +85,26 @@ options:
   --no-eval        skip the evaluation against ground truth
 )";
 
+// SlamSystem::start_check() as a JSON object (null for a spread that is not a number).
+std::string StartCheckJson(const StartCheckReport& r) {
+  auto number = [](double v) {
+    std::ostringstream o;
+    if (std::isfinite(v)) {
+      o << v;
+    } else {
+      o << "null";
+    }
+    return o.str();
+  };
+  std::ostringstream j;
+  j << "{\"checked\": " << (r.checked ? "true" : "false") << ", \"first_spread\": " << number(r.first_spread)
+    << ", \"retried\": " << (r.retried ? "true" : "false")
+    << ", \"second_checked\": " << (r.second_checked ? "true" : "false")
+    << ", \"second_spread\": " << number(r.second_spread)
+    << ", \"second_kept\": " << (r.second_kept ? "true" : "false") << "}";
+  return j.str();
+}
+
 int Fail(const std::string& m) {
   std::cerr << "prism-slam: " << m << "\n";
   return 1;
@@ -392,6 +412,7 @@ int main(int argc, char** argv) {
        << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
        << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
        << ",\n  \"keyframe_adjustments\": " << (*slam)->num_keyframe_adjustments()
+       << ",\n  \"start_check\": " << StartCheckJson((*slam)->start_check())
        << ",\n  \"semidense_points\": " << cloud.size()
        << ",\n  \"undistorted\": " << (undistorter->identity() ? "false" : "true")
        << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n)

@@ -138,6 +138,10 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"final_adjustment_mixed_relit_scale", &o.final_adjustment_mixed_relit_scale});
   f.push_back({"metric_scale_min_band_fraction", &o.metric_scale_min_band_fraction});
   f.push_back({"metric_scale_max_pair_spread", &o.metric_scale_max_pair_spread});
+  f.push_back({"start_check_keyframes", &o.start_check_keyframes});
+  f.push_back({"start_check_max_pair_spread", &o.start_check_max_pair_spread});
+  f.push_back({"start_check_retry_parallax_fraction", &o.start_check_retry_parallax_fraction});
+  f.push_back({"start_check_max_frames", &o.start_check_max_frames});
   AddDirectBa("final_adjustment_relit_ba.", o.final_adjustment_relit_ba, &f);
   return f;
 }

@@ -108,6 +108,8 @@ TEST(SlamConfigTest, BadInputIsRefusedWithItsLineAndLeavesTheOptionsUnchanged) {
       {"init_rounds = 0\n", "init_rounds must be in [1, 10]"},
       {"final_refinement_neighbours = 6\n", "final_refinement_neighbours must be in [0, 5]"},
       {"final_refinement_rounds = 11\n", "final_refinement_rounds must be in [1, 10]"},
+      {"start_check_keyframes = 3\n", "start_check_keyframes must be 0 (off) or >= 4"},
+      {"start_check_max_frames = 0\n", "start_check_max_frames must be >= 1"},
   };
   for (const Case& c : cases) {
     SlamOptions o;

@@ -1,6 +1,7 @@
 #include "core/slam/slam_system.h"
 
 #include <algorithm>
+#include <limits>
 #include <chrono>
 #include <cmath>
 #include <deque>
@@ -64,6 +65,15 @@ cv::Mat KltImage(const cv::Mat& rgb, const SlamOptions& options, cv::Mat* local_
   return j8;
 }
 
+// The interquartile range of keyframe pairs' shading scales over their median (0 when empty).
+double PairSpread(std::vector<double> estimates) {
+  if (estimates.empty()) return 0;
+  std::sort(estimates.begin(), estimates.end());
+  const size_t n = estimates.size();
+  const double median = estimates[n / 2];
+  return (estimates[std::min((3 * n) / 4, n - 1)] - estimates[n / 4]) / median;
+}
+
 }  // namespace
 
 Status SlamOptions::Check() const {
@@ -121,6 +131,12 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
   if (!(metric_scale_max_pair_spread > 0))
     return InvalidArgumentError("SlamOptions: metric_scale_max_pair_spread must be > 0");
+  if (start_check_keyframes != 0 && start_check_keyframes < 4)
+    return InvalidArgumentError("SlamOptions: start_check_keyframes must be 0 (off) or >= 4");
+  if (!(start_check_max_pair_spread > 0) || !(start_check_retry_parallax_fraction > 0))
+    return InvalidArgumentError(
+        "SlamOptions: start_check_max_pair_spread and start_check_retry_parallax_fraction must be > 0");
+  if (start_check_max_frames < 1) return InvalidArgumentError("SlamOptions: start_check_max_frames must be >= 1");
   if (!(metric_scale_min_band_fraction >= 0 && metric_scale_min_band_fraction < 1))
     return InvalidArgumentError("SlamOptions: metric_scale_min_band_fraction must be in [0, 1)");
   if (!(final_adjustment_mixed_relit_scale > 0))
@@ -162,6 +178,12 @@ struct SlamSystem::Impl {
   std::vector<double> relit_pair_estimates;
   // Estimates relit_metres_per_world_unit once (median over consecutive finished keyframe pairs).
   double RelitMetresPerWorldUnit();
+  // The shading scale of each consecutive finished keyframe pair among the first num_keyframes
+  // (EstimateShadingScale at the current poses and depths; metres per world unit); empty without three
+  // point lights.
+  std::vector<double> PairShadingScales(size_t num_keyframes) const;
+  // SlamSystem::ProcessFrame on this state.
+  StatusOr<SlamFrameResult> Process(double timestamp, const cv::Mat& rgb);
   SlamTimings timings;
   // Tracks the initialisation frames on the first, rough depth: a looser residual limit.
   std::unique_ptr<Tracker> init_tracker;
@@ -267,12 +289,8 @@ struct SlamSystem::Impl {
   Rigid3d LastGoodWorldFromCamera() const;
 };
 
-StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& rig, const SlamOptions& options,
-                                                         ThreadPool* pool) {
-  PRISM_RETURN_IF_ERROR(options.Check());
-  PRISM_RETURN_IF_ERROR(rig.camera.Check());
-  if (rig.camera.HasDistortion())
-    return InvalidArgumentError("SlamSystem: undistort the images first (camera has distortion)");
+StatusOr<std::unique_ptr<SlamSystem::Impl>> SlamSystem::NewImpl(const RigCalibration& rig,
+                                                                 const SlamOptions& options, ThreadPool* pool) {
   auto impl = std::make_unique<Impl>();
   impl->rig = rig;
   impl->options = options;
@@ -292,7 +310,32 @@ StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& r
   init_options.max_residual_rms *= options.init_residual_factor;
   PRISM_ASSIGN_OR_RETURN(Tracker it, Tracker::Create(rig, init_options));
   impl->init_tracker = std::make_unique<Tracker>(std::move(it));
-  return std::unique_ptr<SlamSystem>(new SlamSystem(std::move(impl)));
+  return impl;
+}
+
+struct SlamSystem::StartCheck {
+  struct Frame {
+    double timestamp;
+    cv::Mat rgb;
+  };
+  std::vector<Frame> frames;    // every frame so far
+  std::unique_ptr<Impl> retry;  // the second start, once the first failed the check
+  double first_spread = 0;
+};
+
+StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& rig, const SlamOptions& options,
+                                                         ThreadPool* pool) {
+  PRISM_RETURN_IF_ERROR(options.Check());
+  PRISM_RETURN_IF_ERROR(rig.camera.Check());
+  if (rig.camera.HasDistortion())
+    return InvalidArgumentError("SlamSystem: undistort the images first (camera has distortion)");
+  PRISM_ASSIGN_OR_RETURN(std::unique_ptr<Impl> impl, NewImpl(rig, options, pool));
+  std::unique_ptr<SlamSystem> slam(new SlamSystem(std::move(impl)));
+  bool point_lights = rig.lights.size() == 3;
+  for (const Light& l : rig.lights)
+    if (l.type != LightType::kPoint || !(l.intensity > 0)) point_lights = false;
+  if (options.start_check_keyframes > 0 && point_lights) slam->start_check_ = std::make_unique<StartCheck>();
+  return slam;
 }
 
 SlamSystem::SlamSystem(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -306,12 +349,94 @@ StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::M
       << rgb.cols << "x" << rgb.rows << " type " << rgb.type();
     return InvalidArgumentError(m.str());
   }
-  const int64_t frame_id = static_cast<int64_t>(impl_->frames.size());
-  if (!impl_->initialized) {
-    const ScopedSeconds timer(&impl_->timings.initialisation);
-    return impl_->Initialise(frame_id, timestamp, rgb);
+  StatusOr<SlamFrameResult> r = impl_->Process(timestamp, rgb);
+  if (start_check_) StepStartCheck(timestamp, rgb, &r);
+  return r;
+}
+
+StatusOr<SlamFrameResult> SlamSystem::Impl::Process(double timestamp, const cv::Mat& rgb) {
+  const int64_t frame_id = static_cast<int64_t>(frames.size());
+  if (!initialized) {
+    const ScopedSeconds timer(&timings.initialisation);
+    return Initialise(frame_id, timestamp, rgb);
   }
-  return impl_->TrackFrame(frame_id, timestamp, rgb);
+  return TrackFrame(frame_id, timestamp, rgb);
+}
+
+void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<SlamFrameResult>* result) {
+  StartCheck& c = *start_check_;
+  const SlamOptions& o = impl_->options;
+  const size_t n = static_cast<size_t>(o.start_check_keyframes);
+  c.frames.push_back({timestamp, rgb.clone()});
+  if (!c.retry) {
+    if (impl_->keyframes.size() < n) {
+      if (static_cast<int>(c.frames.size()) >= o.start_check_max_frames) {
+        PRISM_LOG(INFO) << "slam: start check: fewer than " << n << " keyframes after " << c.frames.size()
+                        << " frames; not checked";
+        start_check_.reset();
+      }
+      return;
+    }
+    const std::vector<double> first = impl_->PairShadingScales(n);
+    if (first.size() < 3) {
+      PRISM_LOG(INFO) << "slam: start check: " << first.size() << " keyframe pairs gave a shading scale; not checked";
+      start_check_.reset();
+      return;
+    }
+    c.first_spread = PairSpread(first);
+    start_check_report_.checked = true;
+    start_check_report_.first_spread = c.first_spread;
+    if (c.first_spread <= o.start_check_max_pair_spread) {
+      PRISM_LOG(INFO) << "slam: start check passed: the first " << n << " keyframes' pair shading scales spread by "
+                      << c.first_spread;
+      start_check_.reset();
+      return;
+    }
+    PRISM_LOG(WARNING) << "slam: start check failed: the first " << n << " keyframes' pair shading scales spread by "
+                       << c.first_spread << " (limit " << o.start_check_max_pair_spread
+                       << "); starting again from frame 0 with a longer initialisation baseline ("
+                       << o.start_check_retry_parallax_fraction << " of the width) alongside";
+    SlamOptions retry_options = o;
+    retry_options.init_min_parallax_fraction = o.start_check_retry_parallax_fraction;
+    StatusOr<std::unique_ptr<Impl>> retry = NewImpl(impl_->rig, retry_options, impl_->pool);
+    if (!retry.ok()) {
+      PRISM_LOG(WARNING) << "slam: start check: " << retry.status();
+      start_check_.reset();
+      return;
+    }
+    c.retry = std::move(*retry);
+    start_check_report_.retried = true;
+    for (size_t i = 0; i + 1 < c.frames.size(); ++i) {
+      StatusOr<SlamFrameResult> r = c.retry->Process(c.frames[i].timestamp, c.frames[i].rgb);
+      if (!r.ok()) {
+        PRISM_LOG(WARNING) << "slam: start check: second start: " << r.status();
+      }
+    }
+  }
+  StatusOr<SlamFrameResult> second = c.retry->Process(timestamp, rgb);
+  if (c.retry->keyframes.size() < n) {
+    if (static_cast<int>(c.frames.size()) >= o.start_check_max_frames) {
+      PRISM_LOG(WARNING) << "slam: start check: the second start has fewer than " << n << " keyframes after "
+                         << c.frames.size() << " frames; the first start is kept";
+      start_check_.reset();
+    }
+    return;
+  }
+  const std::vector<double> again = c.retry->PairShadingScales(n);
+  const double spread = again.size() >= 3 ? PairSpread(again) : std::numeric_limits<double>::infinity();
+  start_check_report_.second_checked = true;
+  start_check_report_.second_spread = spread;
+  if (spread < c.first_spread && second.ok()) {
+    PRISM_LOG(WARNING) << "slam: start check: the second start is kept (pair spread " << spread << " against "
+                       << c.first_spread << ")";
+    impl_ = std::move(c.retry);
+    start_check_report_.second_kept = true;
+    *result = std::move(second);
+  } else {
+    PRISM_LOG(WARNING) << "slam: start check: the first start is kept (pair spread " << c.first_spread
+                       << " against " << spread << " for the second)";
+  }
+  start_check_.reset();
 }
 
 void SlamSystem::Impl::ResetInit(int64_t frame_id, double timestamp, const cv::Mat& rgb) {
@@ -904,14 +1029,12 @@ int SlamSystem::Impl::WindowStart(int first) const {
   return first;
 }
 
-double SlamSystem::Impl::RelitMetresPerWorldUnit() {
-  if (relit_metres_per_world_unit != 0) return relit_metres_per_world_unit;
-  relit_metres_per_world_unit = -1;
-  for (const Light& l : rig.lights)
-    if (l.type != LightType::kPoint || !(l.intensity > 0)) return -1;
+std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) const {
   std::vector<double> estimates;
+  for (const Light& l : rig.lights)
+    if (l.type != LightType::kPoint || !(l.intensity > 0)) return estimates;
   ShadingScaleOptions so;
-  for (size_t k = 0; k + 1 < keyframes.size(); ++k) {
+  for (size_t k = 0; k + 1 < std::min(num_keyframes, keyframes.size()); ++k) {
     const Keyframe& a = keyframes[k];
     const Keyframe& b = keyframes[k + 1];
     if (!a.finished || a.final_depth.inverse_depth.empty()) continue;
@@ -921,6 +1044,16 @@ double SlamSystem::Impl::RelitMetresPerWorldUnit() {
     if (!r.ok()) continue;
     estimates.push_back(r->metres_per_unit / a.world_from_keyframe.scale);
   }
+  return estimates;
+}
+
+
+double SlamSystem::Impl::RelitMetresPerWorldUnit() {
+  if (relit_metres_per_world_unit != 0) return relit_metres_per_world_unit;
+  relit_metres_per_world_unit = -1;
+  for (const Light& l : rig.lights)
+    if (l.type != LightType::kPoint || !(l.intensity > 0)) return -1;
+  std::vector<double> estimates = PairShadingScales(keyframes.size());
   if (estimates.size() < 3) {
     PRISM_LOG(INFO) << "slam: relit adjustment off: " << estimates.size() << " keyframe pairs gave a shading scale";
     return -1;
@@ -1131,6 +1264,7 @@ bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, in
 
 std::vector<SlamKeyframe> SlamSystem::TakeFinishedKeyframes() {
   std::vector<SlamKeyframe> out;
+  if (start_check_) return out;  // held until the start check is done
   for (Impl::Keyframe& k : impl_->keyframes) {
     if (!k.finished || k.handed_out) continue;
     SlamKeyframe s;
@@ -1147,6 +1281,11 @@ std::vector<SlamKeyframe> SlamSystem::TakeFinishedKeyframes() {
 }
 
 std::vector<SlamKeyframe> SlamSystem::Finish() {
+  if (start_check_) {
+    PRISM_LOG(INFO) << "slam: start check not done at Finish; the " << (start_check_->retry ? "first " : "")
+                    << "start is kept";
+    start_check_.reset();
+  }
   if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
     impl_->current_depth->Regularise();
     impl_->FinishCurrent();
@@ -1180,11 +1319,9 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   MetricScaleEstimate e;
   e.start_metres_per_world_unit = start;
   {
-    std::vector<double> sorted = m.relit_pair_estimates;
-    std::sort(sorted.begin(), sorted.end());
-    const size_t np = sorted.size();
+    const size_t np = m.relit_pair_estimates.size();
     e.pairs = static_cast<int>(np);
-    e.pair_spread = (sorted[(3 * np) / 4 < np ? (3 * np) / 4 : np - 1] - sorted[np / 4]) / start;
+    e.pair_spread = PairSpread(m.relit_pair_estimates);
     e.consistent = e.pair_spread <= m.options.metric_scale_max_pair_spread;
     if (!e.consistent) {
       PRISM_LOG(WARNING) << "slam: the reconstruction disagrees with the co-moving lights' shading: the " << np

@@ -287,6 +287,23 @@ struct SlamOptions {
   // albedo is not grey), the 8 above it by 0.123-0.346; 0.16 flags 5 of those 8 (ATE 2.0-4.3%, depth
   // 23-62%) and none of the 46 (README, twenty-second round).
   double metric_scale_max_pair_spread = 0.16;
+  // The start check, online: once start_check_keyframes keyframes exist (the newest one being tracked),
+  // the shading scales of their consecutive pairs (as in EstimateMetricScale's check) must spread by at most
+  // start_check_max_pair_spread. If not, the start is probably in the bas-relief valley of a sideways
+  // start, and a second SLAM starts again from frame 0 with init_min_parallax_fraction =
+  // start_check_retry_parallax_fraction (every frame is kept while the check is open). Both then run
+  // until the second one has as many keyframes, and the one whose pairs spread less is kept
+  // (frames, keyframes and poses as if it had run alone). Keyframes are handed out
+  // (TakeFinishedKeyframes) only once the check is done; it gives up (keeps the first start) after
+  // start_check_max_frames frames, at Finish, and without three point lights. 0 = off; else >= 4.
+  // Memory: up to start_check_max_frames images are kept (120 at 512x512: 94 MB) until the check is done.
+  // On the 54 standard runs (README, twenty-third round) the first 6 keyframes' pairs spread by
+  // 0.008-0.164 on the runs that pass the bars; 0.18 flags two: the uniform bunny's seed 1 (0.204;
+  // ATE 3.88 -> 0.21%, depth 62 -> 1.5%) and the torus's seed 6 (0.393; 1.26 -> 0.73%, 13 -> 6.2%).
+  int start_check_keyframes = 6;
+  double start_check_max_pair_spread = 0.18;          // > 0
+  double start_check_retry_parallax_fraction = 0.05;  // > 0
+  int start_check_max_frames = 120;                   // >= 1
   DirectBaOptions final_adjustment_relit_ba = [] {
     DirectBaOptions b;
     b.max_iterations = 6;
@@ -362,6 +379,16 @@ struct SlamTimings {
   int64_t depth_pixels_searched = 0;  // over those updates: epipolar searches
 };
 
+// What the start check (SlamOptions::start_check_*) found.
+struct StartCheckReport {
+  bool checked = false;        // the first start reached start_check_keyframes keyframes and was checked
+  double first_spread = 0;     // its keyframe pairs' shading-scale spread
+  bool retried = false;        // it failed; a second start ran alongside
+  bool second_checked = false; // the second start reached as many keyframes in time
+  double second_spread = 0;    // its spread (infinity when fewer than 3 of its pairs gave a scale)
+  bool second_kept = false;    // the second start replaced the first
+};
+
 class SlamSystem {
  public:
   // Fails on invalid options or rig (camera with distortion: undistort first).
@@ -419,11 +446,20 @@ class SlamSystem {
   int num_keyframe_adjustments() const;
   // Where ProcessFrame's time went so far.
   SlamTimings timings() const;
+  // The start check's outcome so far.
+  StartCheckReport start_check() const { return start_check_report_; }
 
  private:
   struct Impl;
+  struct StartCheck;
   explicit SlamSystem(std::unique_ptr<Impl> impl);
+  static StatusOr<std::unique_ptr<Impl>> NewImpl(const RigCalibration& rig, const SlamOptions& options,
+                                                 ThreadPool* pool);
+  // SlamOptions::start_check_*: keeps the frame, runs the second start, decides.
+  void StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<SlamFrameResult>* result);
   std::unique_ptr<Impl> impl_;
+  std::unique_ptr<StartCheck> start_check_;  // while the start check is open
+  StartCheckReport start_check_report_;
 };
 
 }  // namespace prism
