@@ -1,10 +1,10 @@
 #include "core/slam/slam_system.h"
 
 #include <algorithm>
-#include <limits>
 #include <chrono>
 #include <cmath>
 #include <deque>
+#include <limits>
 #include <sstream>
 
 #include <opencv2/calib3d.hpp>
@@ -289,8 +289,8 @@ struct SlamSystem::Impl {
   Rigid3d LastGoodWorldFromCamera() const;
 };
 
-StatusOr<std::unique_ptr<SlamSystem::Impl>> SlamSystem::NewImpl(const RigCalibration& rig,
-                                                                 const SlamOptions& options, ThreadPool* pool) {
+StatusOr<std::unique_ptr<SlamSystem::Impl>> SlamSystem::NewImpl(const RigCalibration& rig, const SlamOptions& options,
+                                                                ThreadPool* pool) {
   auto impl = std::make_unique<Impl>();
   impl->rig = rig;
   impl->options = options;
@@ -365,7 +365,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::Process(double timestamp, const cv::
 
 void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<SlamFrameResult>* result) {
   StartCheck& c = *start_check_;
-  const SlamOptions& o = impl_->options;
+  const SlamOptions o = impl_->options;  // a copy: impl_ may be replaced below
   const size_t n = static_cast<size_t>(o.start_check_keyframes);
   c.frames.push_back({timestamp, rgb.clone()});
   if (!c.retry) {
@@ -433,8 +433,8 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
     start_check_report_.second_kept = true;
     *result = std::move(second);
   } else {
-    PRISM_LOG(WARNING) << "slam: start check: the first start is kept (pair spread " << c.first_spread
-                       << " against " << spread << " for the second)";
+    PRISM_LOG(WARNING) << "slam: start check: the first start is kept (pair spread " << c.first_spread << " against "
+                       << spread << " for the second)";
   }
   start_check_.reset();
 }
@@ -1046,7 +1046,6 @@ std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) co
   }
   return estimates;
 }
-
 
 double SlamSystem::Impl::RelitMetresPerWorldUnit() {
   if (relit_metres_per_world_unit != 0) return relit_metres_per_world_unit;

@@ -381,12 +381,12 @@ struct SlamTimings {
 
 // What the start check (SlamOptions::start_check_*) found.
 struct StartCheckReport {
-  bool checked = false;        // the first start reached start_check_keyframes keyframes and was checked
-  double first_spread = 0;     // its keyframe pairs' shading-scale spread
-  bool retried = false;        // it failed; a second start ran alongside
-  bool second_checked = false; // the second start reached as many keyframes in time
-  double second_spread = 0;    // its spread (infinity when fewer than 3 of its pairs gave a scale)
-  bool second_kept = false;    // the second start replaced the first
+  bool checked = false;         // the first start reached start_check_keyframes keyframes and was checked
+  double first_spread = 0;      // its keyframe pairs' shading-scale spread
+  bool retried = false;         // it failed; a second start ran alongside
+  bool second_checked = false;  // the second start reached as many keyframes in time
+  double second_spread = 0;     // its spread (infinity when fewer than 3 of its pairs gave a scale)
+  bool second_kept = false;     // the second start replaced the first
 };
 
 class SlamSystem {
