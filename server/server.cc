@@ -851,6 +851,8 @@ struct Server::Impl {
     sum->set_metres_per_unit(st.metres_per_unit);
     sum->set_shading_check(static_cast<v1::ShadingCheck>(st.shading_check));
     sum->set_shading_pair_spread(st.shading_pair_spread);
+    sum->set_start_check(static_cast<v1::StartCheck>(st.start_check));
+    sum->set_start_pair_spread(st.start_pair_spread);
     sum->set_reason(s->reason);
     // Persist: the merged map and the summary.
     const std::string dir = store.Dir(s->id);

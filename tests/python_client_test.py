@@ -106,6 +106,9 @@ class PythonClientTest(unittest.TestCase):
         # The server's check against the co-moving lights' shading: this run is within the SLAM's bar
         # (measured pair spread 0.092, limit 0.16).
         self.assertEqual(summary["shading_check"], "consistent", summary["shading_pair_spread"])
+        # The SLAM's start check: this run's first start passes (measured pair spread 0.067, limit 0.18).
+        self.assertEqual(summary["start_check"], "passed", summary["start_pair_spread"])
+        self.assertGreater(summary["start_pair_spread"], 0)
         self.assertEqual(all_poses.shape, (self.frames, 8))
         self.assertEqual(poses.shape[1], 8)
         self.assertGreaterEqual(len(poses), self.frames // 2)

@@ -281,6 +281,7 @@ int main(int argc, char** argv) {
       "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
       "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
       "\"metres_per_unit\": %.6g, \"shading_check\": \"%s\", \"shading_pair_spread\": %.4g, "
+      "\"start_check\": \"%s\", \"start_pair_spread\": %.4g, "
       "\"reconnects\": %d, \"reason\": \"%s\"}\n",
       session->session_id().c_str(), n - skipped, skipped, poses.size(), refined_poses, chunks, chunk_bytes, map.size(),
       remapped ? "true" : "false", frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
@@ -291,7 +292,8 @@ int main(int argc, char** argv) {
       summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
       : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
                                                                        : "not_run",
-      summary.shading_pair_spread, session->reconnects(), summary.reason.c_str());
+      summary.shading_pair_spread, pc::StartCheckName(summary.start_check), summary.start_pair_spread,
+      session->reconnects(), summary.reason.c_str());
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
   if (session->reconnects() > 0)

@@ -98,7 +98,7 @@ std::string StartCheckJson(const StartCheckReport& r) {
   };
   std::ostringstream j;
   j << "{\"checked\": " << (r.checked ? "true" : "false") << ", \"first_spread\": " << number(r.first_spread)
-    << ", \"retried\": " << (r.retried ? "true" : "false")
+    << ", \"passed\": " << (r.passed ? "true" : "false") << ", \"retried\": " << (r.retried ? "true" : "false")
     << ", \"second_checked\": " << (r.second_checked ? "true" : "false")
     << ", \"second_spread\": " << number(r.second_spread) << ", \"second_kept\": " << (r.second_kept ? "true" : "false")
     << "}";

@@ -107,6 +107,8 @@ py::dict SummaryToDict(const pc::Summary& s) {
                        : s.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
                                                                                   : "not_run";
   d["shading_pair_spread"] = s.shading_pair_spread;
+  d["start_check"] = pc::StartCheckName(s.start_check);
+  d["start_pair_spread"] = s.start_pair_spread;
   return d;
 }
 

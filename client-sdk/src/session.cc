@@ -84,6 +84,20 @@ std::vector<Point> ToPoints(const PointCloud& cloud) {
 
 }  // namespace
 
+const char* StartCheckName(Summary::StartCheck check) {
+  switch (check) {
+    case Summary::StartCheck::kPassed:
+      return "passed";
+    case Summary::StartCheck::kSecondStart:
+      return "second_start";
+    case Summary::StartCheck::kFirstKept:
+      return "first_kept";
+    case Summary::StartCheck::kNotRun:
+      break;
+  }
+  return "not_run";
+}
+
 const char* CodeName(Code code) {
   switch (code) {
     case Code::kOk:
@@ -473,6 +487,11 @@ struct Session::Impl {
                                 : s.shading_check() == v1::SHADING_CHECK_DISTORTED ? Summary::ShadingCheck::kDistorted
                                                                                    : Summary::ShadingCheck::kNotRun;
         summary.shading_pair_spread = s.shading_pair_spread();
+        summary.start_check = s.start_check() == v1::START_CHECK_PASSED         ? Summary::StartCheck::kPassed
+                              : s.start_check() == v1::START_CHECK_SECOND_START ? Summary::StartCheck::kSecondStart
+                              : s.start_check() == v1::START_CHECK_FIRST_KEPT   ? Summary::StartCheck::kFirstKept
+                                                                                : Summary::StartCheck::kNotRun;
+        summary.start_pair_spread = s.start_pair_spread();
         summary_received = true;
         closed = true;
         Event e;

@@ -210,6 +210,7 @@ void SessionPipeline::SlamLoop() {
                                                        r->world_from_camera};
       }
       sink_(std::move(e));
+      UpdateStartCheck();
       for (SlamKeyframe& kf : slam_->TakeFinishedKeyframes()) QueueKeyframe(std::move(kf));
     } catch (const std::exception& ex) {
       Fail(InternalError(std::string("SLAM failed: ") + ex.what()));
@@ -219,6 +220,7 @@ void SessionPipeline::SlamLoop() {
   if (!aborted_ && !failed_) {
     try {
       for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
+      UpdateStartCheck();
       if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
       if (options_.remap_at_end && options_.metric_scale_at_end) {
         const auto t0 = std::chrono::steady_clock::now();
@@ -293,14 +295,16 @@ void SessionPipeline::SlamLoop() {
   });
 }
 
-void SessionPipeline::EmitRefinedPoses() {
+void SessionPipeline::EmitRefinedPoses(bool untracked_too) {
   const std::vector<SlamFrameResult> final_poses = slam_->Trajectory();
   size_t refined = 0;
   for (size_t i = 0; i < final_poses.size() && i < reported_.size(); ++i) {
     const SlamFrameResult& f = final_poses[i];
     const ReportedPose& sent = reported_[i];
-    if (!sent.valid || f.state != SlamState::kTracking) continue;  // provisional or lost: nothing better
-    const bool moved = sent.state != SlamState::kTracking ||
+    if (!sent.valid) continue;
+    // Provisional or lost: nothing better, unless the frame was sent as tracked by a start since replaced.
+    if (f.state != SlamState::kTracking && !(untracked_too && sent.state == SlamState::kTracking)) continue;
+    const bool moved = sent.state != f.state ||
                        (f.world_from_camera.translation - sent.world_from_camera.translation).norm() > 1e-6 ||
                        f.world_from_camera.rotation.angularDistance(sent.world_from_camera.rotation) > 1e-6;
     if (!moved) continue;
@@ -312,9 +316,30 @@ void SessionPipeline::EmitRefinedPoses() {
     e.metres_per_unit = metres_per_unit_;
     e.refined = true;
     sink_(std::move(e));
+    reported_[i].state = f.state;
+    reported_[i].world_from_camera = f.world_from_camera;
     ++refined;
   }
-  PRISM_LOG(INFO) << "pipeline: " << refined << " of " << reported_.size() << " poses refined at the end";
+  PRISM_LOG(INFO) << "pipeline: " << refined << " of " << reported_.size() << " poses refined";
+}
+
+void SessionPipeline::UpdateStartCheck() {
+  if (start_check_done_) return;
+  const StartCheckReport r = slam_->start_check();
+  if (!r.done) return;
+  start_check_done_ = true;
+  const int state = !r.checked ? 0 : r.passed ? 1 : r.second_kept ? 2 : 3;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stats_.start_check = state;
+    stats_.start_pair_spread = r.first_spread;
+  }
+  // The second start replaced the first: every pose sent so far was of the first.
+  if (state == 2) {
+    PRISM_LOG(WARNING) << "pipeline: the SLAM's first start disagreed with the shading (pair spread " << r.first_spread
+                       << "); the second start replaced it, every pose is sent again";
+    EmitRefinedPoses(/*untracked_too=*/true);
+  }
 }
 
 void SessionPipeline::QueueKeyframe(SlamKeyframe keyframe) {

@@ -92,6 +92,12 @@ struct PipelineStats {
   // with metric_scale_at_end): 0 not run, 1 consistent, 2 distorted; and its pair spread.
   int shading_check = 0;
   double shading_pair_spread = 0;
+  // The SLAM's start check (SlamSystem::start_check): 0 not run (or not decided yet), 1 passed, 2 the
+  // second start replaced the first (every pose so far is sent again, refined), 3 the first start failed
+  // and was kept (the second start was no better, too slow, or would have been the same); and the first
+  // start's pair spread.
+  int start_check = 0;
+  double start_pair_spread = 0;
 };
 
 struct PipelineEvent {
@@ -184,7 +190,13 @@ class SessionPipeline {
     Rigid3d world_from_camera;
   };
   std::vector<ReportedPose> reported_;
-  void EmitRefinedPoses();
+  // Sends every pose that moved since it was sent (refined); with untracked_too also those sent as
+  // tracked that are no longer (with their new state).
+  void EmitRefinedPoses(bool untracked_too = false);
+  // After each frame: the SLAM's start check into the stats, once it is done; the poses sent again when
+  // the second start replaced the first.
+  void UpdateStartCheck();
+  bool start_check_done_ = false;
   std::unique_ptr<DenseStage> dense_;  // strand jobs only (one at a time)
   BoundedQueue<EncodedFrame> frames_;
   std::atomic<bool> accepting_{true};

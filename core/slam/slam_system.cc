@@ -221,6 +221,7 @@ struct SlamSystem::Impl {
   };
   std::vector<FrameRecord> frames;
   bool initialized = false;
+  double init_parallax_px = 0;  // the median feature motion the initialisation ran with
   int lost_count = 0;
   // Motion model: the last two good frame_from_keyframe (same keyframe) poses.
   bool has_last = false, has_prev = false;
@@ -387,8 +388,17 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
     start_check_report_.checked = true;
     start_check_report_.first_spread = c.first_spread;
     if (c.first_spread <= o.start_check_max_pair_spread) {
+      start_check_report_.passed = true;
       PRISM_LOG(INFO) << "slam: start check passed: the first " << n << " keyframes' pair shading scales spread by "
                       << c.first_spread;
+      start_check_.reset();
+      return;
+    }
+    if (impl_->init_parallax_px >= o.start_check_retry_parallax_fraction * impl_->rig.camera.width) {
+      PRISM_LOG(WARNING) << "slam: start check failed: the first " << n << " keyframes' pair shading scales spread by "
+                         << c.first_spread << " (limit " << o.start_check_max_pair_spread
+                         << "), but its initialisation already had the second "
+                         << "start's baseline (" << impl_->init_parallax_px << " px); the first start is kept";
       start_check_.reset();
       return;
     }
@@ -696,6 +706,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   last_frame_from_kf = poses.back();
   has_prev = init_frames.size() >= 2;
   prev_frame_from_kf = poses[poses.size() - 2];
+  init_parallax_px = parallax;
   PRISM_LOG(INFO) << "slam: initialised on frames " << first.frame_id << ".." << init_frames.back().frame_id
                   << ", parallax " << parallax << " px, " << points.size() << " points, converged " << 100 * converged
                   << "%";

@@ -381,12 +381,16 @@ struct SlamTimings {
 
 // What the start check (SlamOptions::start_check_*) found.
 struct StartCheckReport {
-  bool checked = false;         // the first start reached start_check_keyframes keyframes and was checked
-  double first_spread = 0;      // its keyframe pairs' shading-scale spread
-  bool retried = false;         // it failed; a second start ran alongside
+  bool checked = false;     // the first start reached start_check_keyframes keyframes and was checked
+  double first_spread = 0;  // its keyframe pairs' shading-scale spread
+  bool passed = false;      // within start_check_max_pair_spread
+  // It failed and a second start ran alongside (not when the first start's initialisation already had
+  // start_check_retry_parallax_fraction: the second would be the same).
+  bool retried = false;
   bool second_checked = false;  // the second start reached as many keyframes in time
   double second_spread = 0;     // its spread (infinity when fewer than 3 of its pairs gave a scale)
   bool second_kept = false;     // the second start replaced the first
+  bool done = false;            // the check is closed (also when it is off or could not run)
 };
 
 class SlamSystem {
@@ -447,7 +451,11 @@ class SlamSystem {
   // Where ProcessFrame's time went so far.
   SlamTimings timings() const;
   // The start check's outcome so far.
-  StartCheckReport start_check() const { return start_check_report_; }
+  StartCheckReport start_check() const {
+    StartCheckReport r = start_check_report_;
+    r.done = start_check_ == nullptr;
+    return r;
+  }
 
  private:
   struct Impl;

@@ -359,6 +359,8 @@ TEST(SlamSystem, TheStartCheckReplacesADistortedStart) {
   std::printf("start check: first spread %.4f, second %.4f, second kept %d; keyframes handed out from frame %d\n",
               check.first_spread, check.second_spread, check.second_kept ? 1 : 0, first_handed_out);
   EXPECT_TRUE(check.checked);
+  EXPECT_TRUE(check.done);
+  EXPECT_FALSE(check.passed);
   EXPECT_GT(check.first_spread, options.start_check_max_pair_spread);
   EXPECT_TRUE(check.retried);
   ASSERT_TRUE(check.second_checked);

@@ -148,7 +148,15 @@ struct Summary {
   enum class ShadingCheck { kNotRun, kConsistent, kDistorted };
   ShadingCheck shading_check = ShadingCheck::kNotRun;
   double shading_pair_spread = 0;
+  // The server's SLAM start check (SessionSummary.start_check): kSecondStart says the first start
+  // disagreed with the shading and a second start replaced it (every pose was sent again, refined).
+  enum class StartCheck { kNotRun, kPassed, kSecondStart, kFirstKept };
+  StartCheck start_check = StartCheck::kNotRun;
+  double start_pair_spread = 0;  // the first start's pair spread
 };
+
+// "not_run", "passed", "second_start", "first_kept".
+const char* StartCheckName(Summary::StartCheck check);
 
 struct Event {
   enum class Kind { kPose, kChunk, kError, kSummary };
