@@ -101,7 +101,7 @@ std::string StartCheckJson(const StartCheckReport& r) {
     << ", \"passed\": " << (r.passed ? "true" : "false") << ", \"retried\": " << (r.retried ? "true" : "false")
     << ", \"second_checked\": " << (r.second_checked ? "true" : "false")
     << ", \"second_spread\": " << number(r.second_spread) << ", \"second_kept\": " << (r.second_kept ? "true" : "false")
-    << "}";
+    << ", \"ms\": " << 1000 * r.seconds << "}";
   return j.str();
 }
 

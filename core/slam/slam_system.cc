@@ -365,6 +365,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::Process(double timestamp, const cv::
 }
 
 void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<SlamFrameResult>* result) {
+  const ScopedSeconds timer(&start_check_report_.seconds);
   StartCheck& c = *start_check_;
   const SlamOptions o = impl_->options;  // a copy: impl_ may be replaced below
   const size_t n = static_cast<size_t>(o.start_check_keyframes);
@@ -378,6 +379,7 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
       }
       return;
     }
+    const auto check_start = std::chrono::steady_clock::now();
     const std::vector<double> first = impl_->PairShadingScales(n);
     if (first.size() < 3) {
       PRISM_LOG(INFO) << "slam: start check: " << first.size() << " keyframe pairs gave a shading scale; not checked";
@@ -390,7 +392,7 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
     if (c.first_spread <= o.start_check_max_pair_spread) {
       start_check_report_.passed = true;
       PRISM_LOG(INFO) << "slam: start check passed: the first " << n << " keyframes' pair shading scales spread by "
-                      << c.first_spread;
+                      << c.first_spread << " (" << 1000 * SecondsSince(check_start) << " ms)";
       start_check_.reset();
       return;
     }

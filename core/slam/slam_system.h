@@ -297,6 +297,8 @@ struct SlamOptions {
   // (TakeFinishedKeyframes) only once the check is done; it gives up (keeps the first start) after
   // start_check_max_frames frames, at Finish, and without three point lights. 0 = off; else >= 4.
   // Memory: up to start_check_max_frames images are kept (120 at 512x512: 94 MB) until the check is done.
+  // Time: the pair scales pause the frame that brings the last checked keyframe once (111-509 ms at
+  // 512x512, median 288 ms; StartCheckReport::seconds); a second start adds 2.4-3.8 s over its frames.
   // On the 54 standard runs (README, twenty-third round) the first 6 keyframes' pairs spread by
   // 0.008-0.164 on the runs that pass the bars; 0.18 flags two: the uniform bunny's seed 1 (0.204;
   // ATE 3.88 -> 0.21%, depth 62 -> 1.5%) and the torus's seed 6 (0.393; 1.26 -> 0.73%, 13 -> 6.2%).
@@ -391,6 +393,9 @@ struct StartCheckReport {
   double second_spread = 0;     // its spread (infinity when fewer than 3 of its pairs gave a scale)
   bool second_kept = false;     // the second start replaced the first
   bool done = false;            // the check is closed (also when it is off or could not run)
+  // Wall time of the check inside ProcessFrame: the pair shading scales (a one-time pause of the frame
+  // that reaches start_check_keyframes) and, when a second start runs, its replay and its frames.
+  double seconds = 0;
 };
 
 class SlamSystem {
