@@ -65,6 +65,13 @@ cv::Mat KltImage(const cv::Mat& rgb, const SlamOptions& options, cv::Mat* local_
   return j8;
 }
 
+// Every light of the rig is a point light with an intensity (what the shading scale models).
+bool AllPointLights(const RigCalibration& rig) {
+  for (const Light& l : rig.lights)
+    if (l.type != LightType::kPoint || !(l.intensity > 0)) return false;
+  return true;
+}
+
 // The interquartile range of keyframe pairs' shading scales over their median (0 when empty).
 double PairSpread(std::vector<double> estimates) {
   if (estimates.empty()) return 0;
@@ -321,7 +328,6 @@ struct SlamSystem::StartCheck {
   };
   std::vector<Frame> frames;    // every frame so far
   std::unique_ptr<Impl> retry;  // the second start, once the first failed the check
-  double first_spread = 0;
 };
 
 StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& rig, const SlamOptions& options,
@@ -332,10 +338,8 @@ StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& r
     return InvalidArgumentError("SlamSystem: undistort the images first (camera has distortion)");
   PRISM_ASSIGN_OR_RETURN(std::unique_ptr<Impl> impl, NewImpl(rig, options, pool));
   std::unique_ptr<SlamSystem> slam(new SlamSystem(std::move(impl)));
-  bool point_lights = rig.lights.size() == 3;
-  for (const Light& l : rig.lights)
-    if (l.type != LightType::kPoint || !(l.intensity > 0)) point_lights = false;
-  if (options.start_check_keyframes > 0 && point_lights) slam->start_check_ = std::make_unique<StartCheck>();
+  if (options.start_check_keyframes > 0 && rig.lights.size() == 3 && AllPointLights(rig))
+    slam->start_check_ = std::make_unique<StartCheck>();
   return slam;
 }
 
@@ -386,26 +390,25 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
       start_check_.reset();
       return;
     }
-    c.first_spread = PairSpread(first);
     start_check_report_.checked = true;
-    start_check_report_.first_spread = c.first_spread;
-    if (c.first_spread <= o.start_check_max_pair_spread) {
+    start_check_report_.first_spread = PairSpread(first);
+    if (start_check_report_.first_spread <= o.start_check_max_pair_spread) {
       start_check_report_.passed = true;
       PRISM_LOG(INFO) << "slam: start check passed: the first " << n << " keyframes' pair shading scales spread by "
-                      << c.first_spread << " (" << 1000 * SecondsSince(check_start) << " ms)";
+                      << start_check_report_.first_spread << " (" << 1000 * SecondsSince(check_start) << " ms)";
       start_check_.reset();
       return;
     }
     if (impl_->init_parallax_px >= o.start_check_retry_parallax_fraction * impl_->rig.camera.width) {
       PRISM_LOG(WARNING) << "slam: start check failed: the first " << n << " keyframes' pair shading scales spread by "
-                         << c.first_spread << " (limit " << o.start_check_max_pair_spread
+                         << start_check_report_.first_spread << " (limit " << o.start_check_max_pair_spread
                          << "), but its initialisation already had the second "
                          << "start's baseline (" << impl_->init_parallax_px << " px); the first start is kept";
       start_check_.reset();
       return;
     }
     PRISM_LOG(WARNING) << "slam: start check failed: the first " << n << " keyframes' pair shading scales spread by "
-                       << c.first_spread << " (limit " << o.start_check_max_pair_spread
+                       << start_check_report_.first_spread << " (limit " << o.start_check_max_pair_spread
                        << "); starting again from frame 0 with a longer initialisation baseline ("
                        << o.start_check_retry_parallax_fraction << " of the width) alongside";
     SlamOptions retry_options = o;
@@ -438,15 +441,15 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
   const double spread = again.size() >= 3 ? PairSpread(again) : std::numeric_limits<double>::infinity();
   start_check_report_.second_checked = true;
   start_check_report_.second_spread = spread;
-  if (spread < c.first_spread && second.ok()) {
+  if (spread < start_check_report_.first_spread && second.ok()) {
     PRISM_LOG(WARNING) << "slam: start check: the second start is kept (pair spread " << spread << " against "
-                       << c.first_spread << ")";
+                       << start_check_report_.first_spread << ")";
     impl_ = std::move(c.retry);
     start_check_report_.second_kept = true;
     *result = std::move(second);
   } else {
-    PRISM_LOG(WARNING) << "slam: start check: the first start is kept (pair spread " << c.first_spread << " against "
-                       << spread << " for the second)";
+    PRISM_LOG(WARNING) << "slam: start check: the first start is kept (pair spread " << start_check_report_.first_spread
+                       << " against " << spread << " for the second)";
   }
   start_check_.reset();
 }
@@ -1044,8 +1047,7 @@ int SlamSystem::Impl::WindowStart(int first) const {
 
 std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) const {
   std::vector<double> estimates;
-  for (const Light& l : rig.lights)
-    if (l.type != LightType::kPoint || !(l.intensity > 0)) return estimates;
+  if (!AllPointLights(rig)) return estimates;
   ShadingScaleOptions so;
   for (size_t k = 0; k + 1 < std::min(num_keyframes, keyframes.size()); ++k) {
     const Keyframe& a = keyframes[k];
@@ -1063,8 +1065,7 @@ std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) co
 double SlamSystem::Impl::RelitMetresPerWorldUnit() {
   if (relit_metres_per_world_unit != 0) return relit_metres_per_world_unit;
   relit_metres_per_world_unit = -1;
-  for (const Light& l : rig.lights)
-    if (l.type != LightType::kPoint || !(l.intensity > 0)) return -1;
+  if (!AllPointLights(rig)) return -1;
   std::vector<double> estimates = PairShadingScales(keyframes.size());
   if (estimates.size() < 3) {
     PRISM_LOG(INFO) << "slam: relit adjustment off: " << estimates.size() << " keyframe pairs gave a shading scale";
@@ -1321,9 +1322,8 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   const int n = static_cast<int>(m.keyframes.size());
   if (n < 3 || !m.current_depth || !m.keyframes.back().finished)
     return FailedPreconditionError("EstimateMetricScale: needs at least 3 finished keyframes (call Finish first)");
-  for (const Light& l : m.rig.lights)
-    if (l.type != LightType::kPoint || !(l.intensity > 0))
-      return FailedPreconditionError("EstimateMetricScale: needs three point lights on the rig");
+  if (!AllPointLights(m.rig))
+    return FailedPreconditionError("EstimateMetricScale: needs three point lights on the rig");
   const double start = m.RelitMetresPerWorldUnit();
   if (!(start > 0)) return FailedPreconditionError("EstimateMetricScale: no keyframe pair gave a shading scale");
   // At most final_adjustment_max_keyframes, the newest.

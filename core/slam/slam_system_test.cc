@@ -47,6 +47,22 @@ bool Render(const std::string& preset, int frames, int supersampling, Rendered* 
   return true;
 }
 
+// The tracked frames' poses of a SLAM trajectory.
+Trajectory TrackedPoses(const std::vector<SlamFrameResult>& frames) {
+  Trajectory t;
+  for (const SlamFrameResult& f : frames)
+    if (f.state == SlamState::kTracking) t.push_back({f.timestamp, f.world_from_camera});
+  return t;
+}
+
+// The ATE after Sim(3) alignment to the truth, and its RMSE as % of the path.
+StatusOr<AteResult> Sim3Ate(const Trajectory& truth, const Trajectory& estimate) {
+  TrajectoryEvalOptions eo;
+  eo.alignment = AlignmentModel::kSim3;
+  return ComputeAte(truth, estimate, eo);
+}
+double PercentOfPath(const AteResult& ate) { return 100 * ate.error_m.rmse / ate.trajectory_length_m; }
+
 struct SlamCase {
   std::string preset;
   int frames;
@@ -114,11 +130,9 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
     EXPECT_EQ(f.state, SlamState::kTracking) << "frame " << f.frame_id << ": " << f.message;
     if (f.state == SlamState::kTracking) estimate.push_back({f.timestamp, f.world_from_camera});
   }
-  TrajectoryEvalOptions eo;
-  eo.alignment = AlignmentModel::kSim3;
-  StatusOr<AteResult> ate = ComputeAte(r.trajectory, estimate, eo);
+  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, estimate);
   ASSERT_TRUE(ate.ok()) << ate.status();
-  const double ate_percent = 100 * ate->error_m.rmse / ate->trajectory_length_m;
+  const double ate_percent = PercentOfPath(*ate);
 
   // Keyframe depth in metres through the trajectory's scale and the keyframe's (pose-graph) scale.
   const std::vector<Sim3d> keyframe_poses = (*slam)->KeyframePoses();
@@ -165,12 +179,10 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
                                 defaults.final_refinement_rounds, &rounds);
   EXPECT_EQ((*slam)->num_keyframe_adjustments(),
             adjustments_before_finish + (final_adjustment ? defaults.final_refinement_rounds : 0));
-  Trajectory estimate_after_rounds;
-  for (const SlamFrameResult& f : (*slam)->Trajectory())
-    if (f.state == SlamState::kTracking) estimate_after_rounds.push_back({f.timestamp, f.world_from_camera});
-  StatusOr<AteResult> ate_rounds = ComputeAte(r.trajectory, estimate_after_rounds, eo);
+  const Trajectory estimate_after_rounds = TrackedPoses((*slam)->Trajectory());
+  StatusOr<AteResult> ate_rounds = Sim3Ate(r.trajectory, estimate_after_rounds);
   ASSERT_TRUE(ate_rounds.ok()) << ate_rounds.status();
-  const double ate_rounds_percent = 100 * ate_rounds->error_m.rmse / ate_rounds->trajectory_length_m;
+  const double ate_rounds_percent = PercentOfPath(*ate_rounds);
   const std::vector<double> rel_rounds =
       relative_errors(rounds, (*slam)->KeyframePoses(), ate_rounds->gt_from_est.scale);
   ASSERT_GT(rel_rounds.size(), rel.size() / 2);
@@ -308,14 +320,9 @@ TEST(SlamSystem, TheShadingCheckReportsADistortedReconstruction) {
   for (SlamKeyframe& k : (*slam)->Finish()) keyframes.push_back(std::move(k));
   (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
                                 options.final_refinement_rounds, &keyframes);
-  Trajectory estimate;
-  for (const SlamFrameResult& f : (*slam)->Trajectory())
-    if (f.state == SlamState::kTracking) estimate.push_back({f.timestamp, f.world_from_camera});
-  TrajectoryEvalOptions eo;
-  eo.alignment = AlignmentModel::kSim3;
-  StatusOr<AteResult> ate = ComputeAte(r.trajectory, estimate, eo);
+  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
   ASSERT_TRUE(ate.ok()) << ate.status();
-  const double ate_percent = 100 * ate->error_m.rmse / ate->trajectory_length_m;
+  const double ate_percent = PercentOfPath(*ate);
   StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
   ASSERT_TRUE(metric.ok()) << metric.status();
   std::printf("uniform bunny, seed 1: ATE %.3f%% of path; keyframe pairs' shading scales spread by %.4f (%d pairs)\n",
@@ -379,11 +386,9 @@ TEST(SlamSystem, TheStartCheckReplacesADistortedStart) {
     if (trajectory[i].state == SlamState::kTracking)
       estimate.push_back({trajectory[i].timestamp, trajectory[i].world_from_camera});
   }
-  TrajectoryEvalOptions eo;
-  eo.alignment = AlignmentModel::kSim3;
-  StatusOr<AteResult> ate = ComputeAte(r.trajectory, estimate, eo);
+  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, estimate);
   ASSERT_TRUE(ate.ok()) << ate.status();
-  const double ate_percent = 100 * ate->error_m.rmse / ate->trajectory_length_m;
+  const double ate_percent = PercentOfPath(*ate);
   std::printf("uniform bunny, seed 1, start check on: ATE %.3f%% of path after the final adjustment\n", ate_percent);
   EXPECT_LE(ate_percent, kStartCheckAtePercent);
 }
