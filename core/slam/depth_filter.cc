@@ -75,6 +75,12 @@ Status DepthFilterOptions::Check() const {
   if (!(max_relative_sigma > 0)) return InvalidArgumentError("DepthFilterOptions: max_relative_sigma must be > 0");
   if (!(search_sigmas >= 1 && search_sigmas <= 10))
     return InvalidArgumentError("DepthFilterOptions: search_sigmas must be in [1, 10]");
+  if (camera_attached_min_votes < 0)
+    return InvalidArgumentError("DepthFilterOptions: camera_attached_min_votes must be >= 0");
+  if (!(camera_attached_min_flow_px > 0))
+    return InvalidArgumentError("DepthFilterOptions: camera_attached_min_flow_px must be > 0");
+  if (!(camera_attached_error_ratio > 0 && camera_attached_error_ratio <= 1))
+    return InvalidArgumentError("DepthFilterOptions: camera_attached_error_ratio must be in (0, 1]");
   if (light_edge_radius_px < 0 || light_edge_radius_px > 16)
     return InvalidArgumentError("DepthFilterOptions: light_edge_radius_px must be in [0, 16]");
   if (!(light_edge_low_share >= 0 && light_edge_low_share < light_edge_high_share && light_edge_high_share <= 1))
@@ -338,6 +344,9 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const float search_sigmas = static_cast<float>(options_.search_sigmas);
   const float seed_max_rel_var =
       static_cast<float>(options_.seed_max_relative_sigma * options_.seed_max_relative_sigma);
+  const int attached_votes = options_.camera_attached_min_votes;
+  const float attached_flow = static_cast<float>(options_.camera_attached_min_flow_px);
+  const float attached_ratio = static_cast<float>(options_.camera_attached_error_ratio);
 
   const LineSamplerImage keyframe_image = ViewOf(grey_j_), frame_image = ViewOf(frame);
   std::vector<float> errors, samples;
@@ -518,6 +527,27 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       float best_err = std::numeric_limits<float>::infinity();
       for (int s = 1; s <= n; ++s)
         if (errors[static_cast<size_t>(s)] < best_err) best_err = errors[static_cast<size_t>(s)], best = s;
+      if (attached_votes > 0 && best >= 0) {
+        // The camera-attached hypothesis: the keyframe patch where it was, in the frame.
+        const Eigen::Vector2f matched = start + ((best - 1.0f) * step) * e;
+        const float fx0 = x - kPatchHalf * std::abs(dk.x()) - 1, fy0 = y - kPatchHalf * std::abs(dk.y()) - 1;
+        const float fx1 = x + kPatchHalf * std::abs(dk.x()) + 1, fy1 = y + kPatchHalf * std::abs(dk.y()) + 1;
+        if ((matched - Eigen::Vector2f(x, y)).norm() >= attached_flow && InsideForBilinear(frame_image, fx0, fy0) &&
+            InsideForBilinear(frame_image, fx1, fy1)) {
+          float err = 0;
+          for (int i = -kPatchHalf; i <= kPatchHalf; ++i) {
+            const float d = SampleBilinear(frame_image, x + i * dk.x(), y + i * dk.y()) - kp[i + kPatchHalf];
+            err += d * d;
+          }
+          if (err < attached_ratio * best_err && ++px.attached >= attached_votes) {
+            px.var = 0;
+            px.observations = 0;
+            px.outliers = 0;
+            ++stats->dropped;
+            continue;
+          }
+        }
+      }
       if (best < 0 || best_err > max_err) {
         ++stats->no_match;
         continue;

@@ -84,6 +84,15 @@ struct DepthFilterOptions {
   int light_edge_radius_px = 0;
   double light_edge_low_share = 0.05;
   double light_edge_high_share = 0.12;
+  // Points that move with the camera (cast-shadow edges, the shading of the co-moving lights): a search
+  // votes "attached" when the frame at the pixel's own keyframe position (the patch along the keyframe's
+  // line, unmoved) matches it better than camera_attached_error_ratio times the best match on the
+  // segment, that match being at least camera_attached_min_flow_px away. An estimate with
+  // camera_attached_min_votes such votes is dropped for the rest of the keyframe. 0 = off, >= 0;
+  // flow > 0; ratio in (0, 1].
+  int camera_attached_min_votes = 0;
+  double camera_attached_min_flow_px = 2.0;
+  double camera_attached_error_ratio = 0.5;
   // Output (ToInverseDepthMap): estimates with at least this many fused observations ...
   int min_observations = 2;
   // ... and relative standard deviation sigma / rho at most this, > 0.
@@ -159,6 +168,7 @@ class KeyframeDepth {
     float var = 0;  // 0 = no estimate
     uint16_t observations = 0;
     uint16_t outliers = 0;
+    uint16_t attached = 0;  // camera-attached votes (DepthFilterOptions::camera_attached_min_votes)
   };
   KeyframeDepth() = default;
   void UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid3d& frame_from_keyframe, double mean_idepth,

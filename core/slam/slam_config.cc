@@ -46,6 +46,9 @@ void AddTracker(const std::string& p, TrackerOptions& t, std::vector<Field>* f) 
   f->push_back({p + "min_inlier_fraction", &t.min_inlier_fraction});
   f->push_back({p + "max_affine_gain", &t.max_affine_gain});
   f->push_back({p + "max_residual_rms", &t.max_residual_rms});
+  f->push_back({p + "camera_attached_min_votes", &t.camera_attached_min_votes});
+  f->push_back({p + "camera_attached_min_flow_px", &t.camera_attached_min_flow_px});
+  f->push_back({p + "camera_attached_residual_ratio", &t.camera_attached_residual_ratio});
 }
 
 void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Field>* f) {
@@ -70,6 +73,9 @@ void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Fie
   f->push_back({p + "light_edge_radius_px", &d.light_edge_radius_px});
   f->push_back({p + "light_edge_low_share", &d.light_edge_low_share});
   f->push_back({p + "light_edge_high_share", &d.light_edge_high_share});
+  f->push_back({p + "camera_attached_min_votes", &d.camera_attached_min_votes});
+  f->push_back({p + "camera_attached_min_flow_px", &d.camera_attached_min_flow_px});
+  f->push_back({p + "camera_attached_error_ratio", &d.camera_attached_error_ratio});
 }
 
 void AddDirectBa(const std::string& p, DirectBaOptions& b, std::vector<Field>* f) {

@@ -228,6 +228,7 @@ struct Evaluation {
   Vector8d gradient = Vector8d::Zero();
   double energy = 0;  // robust cost, out-of-image points at the Huber cost of the inlier threshold
   int visible = 0;
+  int left_out = 0;  // visible points left out of the cost (camera-attached)
   int inliers = 0;
   double inlier_sq_sum = 0;  // raw residuals, grey levels^2
 };
@@ -356,7 +357,7 @@ Evaluation Evaluate(const TrackingKeyframe::Level& level, const internal::Tracke
     const float* rho_var = pts.inverse_depth_var.data();
     const float *ys_x = sc.ys_x.data(), *ys_y = sc.ys_y.data(), *ys_z = sc.ys_z.data();
     const float *inside = sc.inside.data(), *sample = sc.intensity.data(), *sample_gu = sc.grad_u.data(),
-                *sample_gv = sc.grad_v.data(), *predicted = sc.predicted.data();
+                *sample_gv = sc.grad_v.data(), *predicted = sc.predicted.data(), *keep = pts.keep.data();
     float *weight = sc.weight.data(), *residual = sc.residual.data();
     float *j0 = sc.jacobian[0].data(), *j1 = sc.jacobian[1].data(), *j2 = sc.jacobian[2].data(),
           *j3 = sc.jacobian[3].data(), *j4 = sc.jacobian[4].data(), *j5 = sc.jacobian[5].data(),
@@ -364,7 +365,7 @@ Evaluation Evaluate(const TrackingKeyframe::Level& level, const internal::Tracke
     float *point_energy = sc.point_energy.data(), *inlier_sq = sc.inlier_sq.data();
 #pragma omp simd
     for (int i = 0; i < n; ++i) {
-      const bool in = inside[i] != 0.0f;
+      const bool in = (inside[i] != 0.0f) & (keep[i] != 0.0f);
       const float r = sample[i] - (scale * predicted[i] + offset);
       const float inv_zs = 1.0f / ys_z[i];
       // d(u,v)/dY at the true point Y = Y' / rho (z = Y'z / rho).
@@ -400,6 +401,10 @@ Evaluation Evaluate(const TrackingKeyframe::Level& level, const internal::Tracke
   e.energy = (n - e.visible) * outside_cost;
   for (int i = 0; i < n; ++i) {
     if (sc.inside[i] == 0.0f) continue;
+    if (pts.keep[i] == 0.0f) {
+      ++e.left_out;
+      continue;
+    }
     e.energy += sc.point_energy[i];
     if (sc.inlier_sq[i] >= 0) {
       ++e.inliers;
@@ -478,6 +483,13 @@ Status TrackerOptions::Check() const {
     e << "TrackerOptions.min_inlier_fraction = " << min_inlier_fraction << "; violated: in [0, 1]";
   else if (!(max_affine_gain > 1)) e << "TrackerOptions.max_affine_gain = " << max_affine_gain << "; violated: > 1";
   else if (!(max_residual_rms > 0)) e << "TrackerOptions.max_residual_rms = " << max_residual_rms << "; violated: > 0";
+  else if (camera_attached_min_votes < 0)
+    e << "TrackerOptions.camera_attached_min_votes = " << camera_attached_min_votes << "; violated: >= 0";
+  else if (!(camera_attached_min_flow_px > 0))
+    e << "TrackerOptions.camera_attached_min_flow_px = " << camera_attached_min_flow_px << "; violated: > 0";
+  else if (!(camera_attached_residual_ratio > 0 && camera_attached_residual_ratio <= 1))
+    e << "TrackerOptions.camera_attached_residual_ratio = " << camera_attached_residual_ratio
+      << "; violated: in (0, 1]";
   if (!e.str().empty()) return InvalidArgumentError(e.str());
   return Status::Ok();
 }
@@ -542,6 +554,8 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
   // The image's own pyramid (it depends on nothing else: the options and the rig are fixed): kept
   // from the previous call when the image is the same, byte for byte (a refresh with new depth).
   if (!SameImageBytes(keyframe_image_, rgb)) {
+    attached_votes_.clear();
+    moving_votes_.clear();
     keyframe_image_ = rgb.clone();
     keyframe_image_levels_.assign(static_cast<size_t>(options_.pyramid_levels), KeyframeImageLevel());
     const int k = 2 * options_.local_mean_radius_px + 1;
@@ -663,10 +677,70 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
       a.inverse_depth_var.push_back(p.inverse_depth_var);
       a.intensity.push_back(p.intensity);
     }
+    a.keep.assign(a.ray_x.size(), 1.0f);
   }
   keyframe_ = std::move(kf);
   has_keyframe_ = true;
+  if (options_.camera_attached_min_votes > 0) {
+    if (attached_votes_.size() != keyframe_.levels.size()) {
+      attached_votes_.assign(keyframe_.levels.size(), cv::Mat());
+      moving_votes_.assign(keyframe_.levels.size(), cv::Mat());
+      for (size_t l = 0; l < keyframe_.levels.size(); ++l) {
+        const cv::Size size(keyframe_.levels[l].camera.width, keyframe_.levels[l].camera.height);
+        attached_votes_[l] = cv::Mat::zeros(size, CV_8U);
+        moving_votes_[l] = cv::Mat::zeros(size, CV_8U);
+      }
+    }
+    UpdateKeep();
+  }
   return Status::Ok();
+}
+
+void Tracker::UpdateKeep() {
+  const int min_votes = options_.camera_attached_min_votes;
+  for (size_t l = 0; l < keyframe_.levels.size(); ++l) {
+    const std::vector<TrackingKeyframe::Point>& points = keyframe_.levels[l].points;
+    std::vector<float>& keep = point_arrays_[l].keep;
+    for (size_t i = 0; i < points.size(); ++i) {
+      const int x = static_cast<int>(points[i].u), y = static_cast<int>(points[i].v);
+      const int attached = attached_votes_[l].at<uint8_t>(y, x), moving = moving_votes_[l].at<uint8_t>(y, x);
+      keep[i] = attached >= min_votes && attached > moving ? 0.0f : 1.0f;
+    }
+  }
+}
+
+void Tracker::VoteCameraAttached(const Rigid3d& frame_from_keyframe, double a, double b) {
+  const Eigen::Matrix3f rotation = frame_from_keyframe.RotationMatrix().cast<float>();
+  const Eigen::Vector3f translation = frame_from_keyframe.translation.cast<float>();
+  const float scale = std::exp(static_cast<float>(a)), offset = static_cast<float>(b);
+  const float min_residual = 2.0f * std::sqrt(2.0f) * static_cast<float>(options_.image_noise_sigma);
+  const float ratio = static_cast<float>(options_.camera_attached_residual_ratio);
+  for (size_t l = 0; l < keyframe_.levels.size(); ++l) {
+    const TrackingKeyframe::Level& level = keyframe_.levels[l];
+    const cv::Mat& frame = frame_pyramid_[l];
+    const float min_flow = static_cast<float>(options_.camera_attached_min_flow_px) / static_cast<float>(1 << l);
+    const float max_u = level.camera.width - 1.001f, max_v = level.camera.height - 1.001f;
+    for (const TrackingKeyframe::Point& p : level.points) {
+      const Eigen::Vector3f y = rotation * p.ray + p.inverse_depth * translation;
+      if (!(y.z() > 1e-6f)) continue;
+      const float u = level.camera.fx * y.x() / y.z() + level.camera.cx;
+      const float v = level.camera.fy * y.y() / y.z() + level.camera.cy;
+      if (!(u >= 0 && v >= 0 && u < max_u && v < max_v)) continue;
+      if (std::hypot(u - p.u, v - p.v) < min_flow) continue;
+      const float expected = scale * p.intensity + offset;
+      const float r_moving = std::abs(Sample(frame, u, v).i - expected);
+      const float r_attached = std::abs(Sample(frame, p.u, p.v).i - expected);
+      const int x = static_cast<int>(p.u), yy = static_cast<int>(p.v);
+      uint8_t& attached = attached_votes_[l].at<uint8_t>(yy, x);
+      uint8_t& moving = moving_votes_[l].at<uint8_t>(yy, x);
+      if (r_moving > min_residual && r_attached < ratio * r_moving) {
+        if (attached < 255) ++attached;
+      } else if (moving < 255) {
+        ++moving;
+      }
+    }
+  }
+  UpdateKeep();
 }
 
 StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame_from_keyframe_guess) {
@@ -753,7 +827,8 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
   result.affine_b = state.b;
   const int n = static_cast<int>(keyframe_.levels[0].points.size());
   result.visible_fraction = n > 0 ? double(current.visible) / n : 0.0;
-  result.inlier_fraction = current.visible > 0 ? double(current.inliers) / current.visible : 0.0;
+  const int counted = current.visible - current.left_out;
+  result.inlier_fraction = counted > 0 ? double(current.inliers) / counted : 0.0;
   result.residual_rms = current.inliers > 0 ? std::sqrt(current.inlier_sq_sum / current.inliers) : 0.0;
   std::ostringstream reason;
   if (!state.frame_from_keyframe.translation.allFinite() || !state.frame_from_keyframe.rotation.coeffs().allFinite())
@@ -771,6 +846,8 @@ StatusOr<TrackingResult> Tracker::Track(const cv::Mat& rgb, const Rigid3d& frame
     reason << "inlier residual RMS " << result.residual_rms << " grey levels (max " << options_.max_residual_rms << ")";
   result.lost_reason = reason.str();
   result.ok = result.lost_reason.empty();
+  if (result.ok && options_.camera_attached_min_votes > 0)
+    VoteCameraAttached(state.frame_from_keyframe, state.a, state.b);
   return result;
 }
 

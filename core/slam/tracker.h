@@ -104,6 +104,16 @@ struct TrackerOptions {
   double max_affine_gain = 2.0;
   // ... or the RMS of the inlier residuals exceeds this, grey levels, > 0.
   double max_residual_rms = 25.0;
+  // Points that move with the camera (cast-shadow edges and shading of the co-moving lights): after
+  // each tracked frame, every keyframe point whose predicted motion is at least
+  // camera_attached_min_flow_px (full-resolution pixels) votes: "attached" when the frame at the
+  // point's own keyframe pixel matches it clearly better than the frame at its projection (residual
+  // below camera_attached_residual_ratio of it, and the projection's residual above 2 noise sigmas),
+  // else "moving". A point with at least camera_attached_min_votes attached votes, and more attached
+  // than moving ones, is left out of the cost until the keyframe image changes. 0 = off, >= 0.
+  int camera_attached_min_votes = 0;
+  double camera_attached_min_flow_px = 2.0;     // > 0
+  double camera_attached_residual_ratio = 0.5;  // in (0, 1]
 
   Status Check() const;
 };
@@ -157,6 +167,7 @@ namespace internal {
 // by Tracker::SetKeyframe; the ray's z is 1).
 struct TrackerPointArrays {
   std::vector<float> ray_x, ray_y, inverse_depth, inverse_depth_var, intensity;
+  std::vector<float> keep;  // 1 = in the cost, 0 = left out (a camera-attached point)
 };
 
 // Per point, what one evaluation computes in its passes (resized to the level's points).
@@ -217,6 +228,10 @@ class Tracker {
   std::vector<KeyframeImageLevel> keyframe_image_levels_;
   cv::Mat local_mean_;                                      // scratch for the shading normalisation
   std::vector<internal::TrackerPointArrays> point_arrays_;  // per level
+  // Per level, votes of the keyframe's pixels (camera_attached_min_votes): attached / moving, CV_8U.
+  std::vector<cv::Mat> attached_votes_, moving_votes_;
+  void VoteCameraAttached(const Rigid3d& frame_from_keyframe, double a, double b);
+  void UpdateKeep();
   internal::TrackerScratch scratch_;
 };
 

@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 #include <opencv2/imgproc.hpp>
 
+#include "core/slam/slam_system.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
 #include "core/synth/trajectory.h"
@@ -268,6 +269,80 @@ TEST(TrackerTest, HugeMotionIsReportedLost) {
   EXPECT_FALSE(r->ok) << "residual RMS " << r->residual_rms << ", inliers " << r->inlier_fraction << ", a "
                       << r->affine_a;
   std::printf("turned away: %s\n", r->lost_reason.c_str());
+}
+
+}  // namespace
+}  // namespace prism
+
+namespace prism {
+namespace {
+
+// On the uniform sphere the sphere's three cast shadows on the ground move with the lights, and so with
+// the camera: with them in the cost the tracker, on true depth, finds about 0.7 of the true rotation
+// and almost none of the translation over 10 frames. Left out after their votes (the SLAM's tracker
+// options), it finds nearly all of both. Keyframes at frames 30 and 60, frames tracked in sequence from
+// the true velocity.
+TEST(TrackerTest, CameraAttachedPointsLeaveTheCost) {
+  synth::PresetOptions o;
+  o.width = 512;
+  o.height = 512;
+  o.frames = 150;
+  o.seed = 1;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset("sphere-uniform-sideways", o);
+  ASSERT_TRUE(setup.ok()) << setup.status();
+  SynthSequence seq;
+  seq.setup = std::move(setup).value();
+  seq.trajectory = synth::MakeTrajectory(seq.setup.trajectory);
+  // Measured: off 0.709 / 0.720 of the rotation, 0.061 / 0.260 of the translation; on 0.988 / 0.993 and
+  // 0.972 / 0.968.
+  constexpr double kMaxRotationFractionOff = 0.8;
+  constexpr double kMinRotationFractionOn = 0.97;
+  constexpr double kMinTranslationFractionOn = 0.93;
+  for (bool on : {false, true}) {
+    for (int key : {30, 60}) {
+      TrackerOptions options = SlamOptions().tracker;
+      ASSERT_EQ(options.camera_attached_min_votes, 2);
+      if (!on) options.camera_attached_min_votes = 0;
+      StatusOr<Tracker> tracker = Tracker::Create(seq.setup.rig, options);
+      ASSERT_TRUE(tracker.ok()) << tracker.status();
+      const synth::RenderedFrame k = seq.Render(key);
+      ASSERT_TRUE(tracker->SetKeyframe(k.rgb, GroundTruthInverseDepth(k.depth)).ok());
+      Rigid3d previous, before_previous = seq.FrameFromKeyframe(key - 1, key);
+      for (int frame = key + 1; frame <= key + 10; ++frame) {
+        StatusOr<TrackingResult> r =
+            tracker->Track(seq.Render(frame).rgb, (previous * before_previous.Inverse()) * previous);
+        ASSERT_TRUE(r.ok()) << r.status();
+        EXPECT_TRUE(r->ok) << r->lost_reason;
+        before_previous = previous;
+        previous = r->frame_from_keyframe;
+      }
+      const Rigid3d truth = seq.FrameFromKeyframe(key + 10, key);
+      const double rotation = RotationAngle(previous.rotation) / RotationAngle(truth.rotation);
+      const double translation = previous.translation.dot(truth.translation) / truth.translation.squaredNorm();
+      std::printf("camera-attached test %s, keyframe %d: %.3f of the rotation, %.3f of the translation\n",
+                  on ? "on" : "off", key, rotation, translation);
+      if (on) {
+        EXPECT_GT(rotation, kMinRotationFractionOn);
+        EXPECT_GT(translation, kMinTranslationFractionOn);
+      } else {
+        EXPECT_LT(rotation, kMaxRotationFractionOff);
+      }
+    }
+  }
+}
+
+TEST(TrackerOptions, RejectsInvalidCameraAttachedValues) {
+  TrackerOptions o;
+  o.camera_attached_min_votes = -1;
+  EXPECT_FALSE(o.Check().ok());
+  o = TrackerOptions();
+  o.camera_attached_min_flow_px = 0;
+  EXPECT_FALSE(o.Check().ok());
+  o = TrackerOptions();
+  o.camera_attached_residual_ratio = 0;
+  EXPECT_FALSE(o.Check().ok());
+  o.camera_attached_residual_ratio = 1.5;
+  EXPECT_FALSE(o.Check().ok());
 }
 
 }  // namespace
