@@ -143,6 +143,9 @@ StatusOr<Sequence> LoadKitti(const std::string& dir) {
   seq.calibration.camera.cx = p[2];
   seq.calibration.camera.fy = p[5];
   seq.calibration.camera.cy = p[6];
+  // No light moves with a KITTI camera (daylight): intensity 0 marks the rig's lights absent, so the
+  // start check, the metric scale from the lights and the camera-attached tests stay off.
+  for (Light& l : seq.calibration.lights) l.intensity = 0;
   PRISM_RETURN_IF_ERROR(seq.calibration.Check());
   seq.has_calibration = true;
   if (std::filesystem::exists(dir + "/poses.txt")) {
