@@ -41,6 +41,15 @@ bool MakeSequence(const std::string& preset, int frames, SynthSequence* out, std
   return true;
 }
 
+// The true inverse depth times `factor` (0 where there is no depth).
+cv::Mat TrueInverseDepthTimes(const cv::Mat& depth, float factor) {
+  cv::Mat seed = cv::Mat::zeros(depth.size(), CV_32F);
+  for (int y = 0; y < depth.rows; ++y)
+    for (int x = 0; x < depth.cols; ++x)
+      if (depth.at<float>(y, x) > 0) seed.at<float>(y, x) = factor / depth.at<float>(y, x);
+  return seed;
+}
+
 struct DepthError {
   int count = 0;
   double median_rel = 0;
@@ -277,10 +286,7 @@ TEST(KeyframeDepth, OutliersNeedASearchWiderThanTheGate) {
   std::string why;
   if (!MakeSequence("sphere-multicolor-sideways", 40, &seq, &why)) GTEST_SKIP() << "preset unavailable: " << why;
   const synth::RenderedFrame key = seq.Render(0);
-  cv::Mat seed = cv::Mat::zeros(key.depth.size(), CV_32F);
-  for (int y = 0; y < key.depth.rows; ++y)
-    for (int x = 0; x < key.depth.cols; ++x)
-      if (key.depth.at<float>(y, x) > 0) seed.at<float>(y, x) = 1.4f / key.depth.at<float>(y, x);
+  const cv::Mat seed = TrueInverseDepthTimes(key.depth, 1.4f);
   struct Result {
     DepthUpdateStats total;
     int output = 0;
@@ -323,10 +329,7 @@ TEST(KeyframeDepth, CameraAttachedEstimatesAreDropped) {
   std::string why;
   if (!MakeSequence("sphere-multicolor-sideways", 40, &seq, &why)) GTEST_SKIP() << "preset unavailable: " << why;
   const synth::RenderedFrame key = seq.Render(0);
-  cv::Mat seed = cv::Mat::zeros(key.depth.size(), CV_32F);
-  for (int y = 0; y < key.depth.rows; ++y)
-    for (int x = 0; x < key.depth.cols; ++x)
-      if (key.depth.at<float>(y, x) > 0) seed.at<float>(y, x) = 1.0f / key.depth.at<float>(y, x);
+  const cv::Mat seed = TrueInverseDepthTimes(key.depth, 1.0f);
   // The estimates left after frames 1..8 (any estimate: 1 observation, any sigma).
   auto run = [&](int votes, bool attached) {
     DepthFilterOptions options;
