@@ -107,6 +107,21 @@ TEST_F(CliTest, TrajectoryAgainstItselfIsZeroAndAgainstAPerturbedCopyIsThePertur
   ASSERT_EQ(r.exit_code, 0) << r.out;
   EXPECT_NEAR(JsonNumber(r.out, "ate_rmse_m"), 0.0, 1e-5);
   EXPECT_NEAR(JsonNumber(r.out, "scale"), 1 / 2.5, 1e-6);
+  EXPECT_NEAR(JsonNumber(r.out, "orientation_rmse_deg"), 0.0, /*file rounding=*/1e-3);
+  EXPECT_NEAR(JsonNumber(r.out, "net_rotation_est_deg"), JsonNumber(r.out, "net_rotation_gt_deg"), 1e-3);
+
+  // Every camera turned by 3 degrees about its own axis: the positions and the ATE stay, the orientation
+  // error is the turn.
+  traj = ReadTumTrajectory(gt).value();
+  for (TimedPose& p : traj)
+    p.world_from_camera.rotation = p.world_from_camera.rotation *
+                                   Eigen::Quaterniond(Eigen::AngleAxisd(3.0 * M_PI / 180, Eigen::Vector3d::UnitY()));
+  ASSERT_TRUE(WriteTumTrajectory(P("turned.txt"), traj).ok());
+  r = Execute(Bin("prism-eval") + " traj --gt " + gt + " --est " + P("turned.txt") + " --align se3");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NEAR(JsonNumber(r.out, "ate_rmse_m"), 0.0, 1e-5);
+  EXPECT_NEAR(JsonNumber(r.out, "orientation_rmse_deg"), 3.0, 1e-3);
+  EXPECT_NEAR(JsonNumber(r.out, "orientation_max_deg"), 3.0, 1e-3);
 }
 
 TEST_F(CliTest, NormalsAgainstItselfIsZeroAndRotatedByFiveDegreesIsFive) {

@@ -274,6 +274,11 @@ int RunTraj(const std::vector<std::string>& args) {
   json.Integer("pairs", static_cast<long long>(ate->pairs));
   json.String("align", AlignmentModelName(options.alignment));
   json.Number("scale", ate->gt_from_est.scale);
+  // Not in the TUM scripts: the orientations after the alignment, and the net rotation (first to last).
+  json.Number("orientation_rmse_deg", ate->orientation_error_deg.rmse);
+  json.Number("orientation_max_deg", ate->orientation_error_deg.max);
+  json.Number("net_rotation_gt_deg", ate->net_rotation_deg_gt);
+  json.Number("net_rotation_est_deg", ate->net_rotation_deg_est);
   if (rpe.ok()) {
     json.Number("rpe_trans_rmse_m", rpe->trans_error_m.rmse);
     json.Number("rpe_trans_mean_m", rpe->trans_error_m.mean);

@@ -47,7 +47,9 @@ Writes to DIR:
                    and poses refer to it; see core/slam/undistort.h)
   slam_config.txt  every SLAM option as used (core/slam/slam_config.h; re-readable by --slam-config)
   summary.json     frames, keyframes, states, timing; with ground truth in the sequence also the ATE
-                   (Sim(3)-aligned, also as % of the path) and the keyframe depth error (printed too)
+                   (Sim(3)-aligned, also as % of the path), the orientation error after that alignment
+                   and the net rotation (first to last frame, estimate and truth), and the keyframe
+                   depth error (printed too)
 
 --camera FILE takes the camera intrinsics and lens distortion from FILE instead of the sequence's
 camera.yaml: an OpenCV calibration YAML, a ROS camera_info YAML, a DSO / LSD-SLAM camera.txt or a
@@ -464,7 +466,11 @@ int main(int argc, char** argv) {
     if (ate.ok()) {
       json << ",\n  \"ate_rmse_m\": " << ate->error_m.rmse << ",\n  \"path_length_m\": " << ate->trajectory_length_m
            << ",\n  \"ate_percent_of_path\": " << 100.0 * ate->error_m.rmse / std::max(1e-12, ate->trajectory_length_m)
-           << ",\n  \"sim3_scale\": " << ate->gt_from_est.scale;
+           << ",\n  \"sim3_scale\": " << ate->gt_from_est.scale
+           << ",\n  \"orientation_rmse_deg\": " << ate->orientation_error_deg.rmse
+           << ",\n  \"orientation_max_deg\": " << ate->orientation_error_deg.max
+           << ",\n  \"net_rotation_gt_deg\": " << ate->net_rotation_deg_gt
+           << ",\n  \"net_rotation_est_deg\": " << ate->net_rotation_deg_est;
       if (shading_scale)
         json << ",\n  \"shading_metres_per_unit_rel_error\": "
              << shading_scale->metres_per_world_unit / ate->gt_from_est.scale - 1.0;

@@ -205,6 +205,21 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
   result.error_m = ComputeErrorStatistics(errors);
   for (size_t k = 1; k < gt_positions.size(); ++k)
     result.trajectory_length_m += (gt_positions[k] - gt_positions[k - 1]).norm();
+  std::vector<double> angles(matches.size());
+  for (size_t k = 0; k < matches.size(); ++k) {
+    const Eigen::Quaterniond& q_gt = gt[matches[k].first].world_from_camera.rotation;
+    const Eigen::Quaterniond& q_est = est[matches[k].second].world_from_camera.rotation;
+    angles[k] = RotationAngle(q_gt.conjugate() * (result.gt_from_est.rotation * q_est)) * kRadToDeg;
+  }
+  result.orientation_error_deg = ComputeErrorStatistics(angles);
+  const TimestampPair& first = matches.front();
+  const TimestampPair& last = matches.back();
+  result.net_rotation_deg_gt = RotationAngle(gt[first.first].world_from_camera.rotation.conjugate() *
+                                             gt[last.first].world_from_camera.rotation) *
+                               kRadToDeg;
+  result.net_rotation_deg_est = RotationAngle(est[first.second].world_from_camera.rotation.conjugate() *
+                                              est[last.second].world_from_camera.rotation) *
+                                kRadToDeg;
   return result;
 }
 

@@ -61,6 +61,14 @@ struct AteResult {
   ErrorStatistics error_m;           // |gt position - aligned estimate position| per pair, metres
   Sim3d gt_from_est;                 // alignment applied to the estimate (identity for kNone)
   double trajectory_length_m = 0.0;  // ground-truth path length over the associated poses
+  // Not in the TUM scripts (the ATE above sees positions only). Per pair, the angle between the
+  // ground-truth orientation and the estimate's turned by the alignment's rotation (gt_from_est, found
+  // from the positions), degrees: a trajectory can sit on the right path and still look the wrong way.
+  ErrorStatistics orientation_error_deg;
+  // The angle between the orientations of the first and the last associated pose, degrees, in the
+  // ground truth and in the estimate: an orbit rotated too little shows as estimate < ground truth.
+  double net_rotation_deg_gt = 0.0;
+  double net_rotation_deg_est = 0.0;
 };
 
 struct RpeResult {

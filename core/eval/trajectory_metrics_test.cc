@@ -165,6 +165,57 @@ TEST_F(TrajectoryMetricsTest, Sim3OfTrajectoryIsRecovered) {
   EXPECT_LT(result->rpe.rot_error_deg.max, /*max_rpe_deg=*/1e-9);
 }
 
+TEST_F(TrajectoryMetricsTest, OrientationErrorIsTheTurnLeftAfterTheAlignment) {
+  constexpr double kRoundingDeg = 1e-7;
+  const Trajectory gt = RandomTrajectory(200);
+  TrajectoryEvalOptions options;
+  options.alignment = AlignmentModel::kSim3;
+  // A similarity of the truth: nothing left.
+  const Sim3d est_from_gt(2.5, Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, -1).normalized())),
+                          Eigen::Vector3d(0.3, 1.0, -2.0));
+  Trajectory similar;
+  for (const TimedPose& p : gt) similar.push_back({p.timestamp_s, est_from_gt.TransformPose(p.world_from_camera)});
+  auto result = ComputeAte(gt, similar, options);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_LT(result->orientation_error_deg.max, kRoundingDeg);
+  EXPECT_GT(result->net_rotation_deg_gt, 1.0);
+  EXPECT_NEAR(result->net_rotation_deg_est, result->net_rotation_deg_gt, kRoundingDeg);
+  // The same positions, every camera turned by 2 degrees about its own axis: the ATE cannot see it.
+  constexpr double kTurnDeg = 2.0;
+  Trajectory turned = gt;
+  for (TimedPose& p : turned)
+    p.world_from_camera.rotation = p.world_from_camera.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(
+                                                                      kTurnDeg * M_PI / 180, Eigen::Vector3d::UnitZ()));
+  result = ComputeAte(gt, turned, options);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_LT(result->error_m.max, 1e-9);
+  EXPECT_NEAR(result->orientation_error_deg.min, kTurnDeg, kRoundingDeg);
+  EXPECT_NEAR(result->orientation_error_deg.max, kTurnDeg, kRoundingDeg);
+}
+
+TEST_F(TrajectoryMetricsTest, AnOrbitRotatedTooLittleShowsInTheNetRotation) {
+  // 120 degrees around a point, looking at it; the estimate has the positions but turns 0.9 as far.
+  constexpr double kArcDeg = 120.0, kRotationRatio = 0.9, kRoundingDeg = 1e-7;
+  const Eigen::Quaterniond look(Eigen::AngleAxisd(-M_PI / 2, Eigen::Vector3d::UnitX()));
+  Trajectory gt, est;
+  for (int i = 0; i <= 120; ++i) {
+    const double a = kArcDeg * M_PI / 180 * i / 120;
+    const Eigen::Vector3d centre(std::cos(a), std::sin(a), 0.3);
+    const Eigen::Quaterniond yaw(Eigen::AngleAxisd(a, Eigen::Vector3d::UnitZ()));
+    const Eigen::Quaterniond yaw_est(Eigen::AngleAxisd(kRotationRatio * a, Eigen::Vector3d::UnitZ()));
+    gt.push_back({10.0 + i / 30.0, Rigid3d(yaw * look, centre)});
+    est.push_back({10.0 + i / 30.0, Rigid3d(yaw_est * look, centre)});
+  }
+  TrajectoryEvalOptions options;
+  options.alignment = AlignmentModel::kSim3;
+  const auto result = ComputeAte(gt, est, options);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_LT(result->error_m.max, 1e-9);
+  EXPECT_NEAR(result->net_rotation_deg_gt, kArcDeg, kRoundingDeg);
+  EXPECT_NEAR(result->net_rotation_deg_est, kRotationRatio * kArcDeg, kRoundingDeg);
+  EXPECT_NEAR(result->orientation_error_deg.max, (1 - kRotationRatio) * kArcDeg, kRoundingDeg);
+}
+
 TEST_F(TrajectoryMetricsTest, ConstantOffsetShowsUpWithoutAlignmentOnly) {
   const Trajectory gt = RandomTrajectory(100);
   const Eigen::Vector3d offset(0.006, 0.0, 0.008);  // 1 cm
