@@ -366,14 +366,14 @@ constexpr double kSessionAtePercentTolerance = 1.0;  // the SLAM bar
 
 // The SLAM's start check in a session, when the first start is kept. With a limit no start passes
 // (1e-6) the first start always fails the check. With the default retry baseline a second start runs
-// alongside; here (the 256x256 multi-coloured bunny) the first one spreads less (measured: 0.0245
-// against 0.0311; ATE 0.70%) and stays. (The armadillo used before the camera-attached tests: 0.106
-// against 0.227; with them its second start spreads less and is kept, at 1.63% ATE.) With a retry
-// baseline shorter than the one the first start had (0.01 of the width against 0.03), no second start
-// runs: it would be the same. Either way the session summary says 3 (first start kept).
+// alongside; here (the 256x256 dragon, 90 frames) the first one spreads less (measured: 0.0203 against
+// 0.0506; ATE 0.16%) and stays. (The multi-coloured bunny used before the keyframe adjustments' Huber
+// threshold 4: 0.0245 against 0.0311; with it, 0.069 against 0.037, so its second start is kept.) With
+// a retry baseline shorter than the one the first start had (0.01 of the width against 0.03), no second
+// start runs: it would be the same. Either way the session summary says 3 (first start kept).
 TEST(SessionPipelineTest, TheStartCheckIsReportedWhenTheFirstStartIsKept) {
-  const RenderedSequence seq = RenderSequence("bunny-multicolor-forward", 90);
-  ASSERT_FALSE(seq.frames.empty());
+  const RenderedSequence seq = RenderSequence("dragon-multicolor-sideways", 90);
+  if (seq.frames.empty()) GTEST_SKIP() << "dragon mesh unavailable (Debian's libcgal-demo)";
   for (const double retry_parallax : {0.05, 0.01}) {
     SCOPED_TRACE(retry_parallax);
     SessionPipelineOptions options;
