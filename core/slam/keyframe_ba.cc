@@ -63,6 +63,30 @@ double HuberCost(double e, double delta) { return e <= delta ? 0.5 * e * e : del
   return true;
 }
 
+// Prefetches the cache lines SampleWithGradient (and SampleValue) read at (x, y): rows y0 - 1 .. y0 + 2,
+// columns x0 - 1 .. x0 + 2. The adjustment reads one pixel per 16x16 cell of each host in each target, so
+// hardly any two samples share a line, and without this the linearisation waits on memory for about a
+// third of its time (perf, armadillo preset). Reading ahead changes no arithmetic.
+[[gnu::always_inline]] inline void PrefetchSample(const cv::Mat& img, double x, double y) {
+  const int x0 = std::clamp(static_cast<int>(x), 1, img.cols - 3),
+            y0 = std::clamp(static_cast<int>(y), 1, img.rows - 3);
+  for (int r = -1; r <= 2; ++r) {
+    const float* row = img.ptr<float>(y0 + r);
+    __builtin_prefetch(row + x0 - 1);
+    __builtin_prefetch(row + x0 + 2);
+  }
+}
+
+// A residual's projection into its target, computed ahead of its image reads.
+struct Projected {
+  int point;
+  Eigen::Vector3d pt;  // in the target camera
+  Eigen::Vector2d px;
+};
+
+// How many residuals ahead the image rows are prefetched.
+constexpr size_t kPrefetchAhead = 8;
+
 // Sums of one (host, target) pair's residuals in the target pose's parameters: h (lower triangle) of
 // w j^T j and b of w j^T r.
 struct PairSums {
@@ -313,6 +337,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
 
   // The cost, target by target (each target's image read in about raster order).
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
+  std::vector<Projected> eval_visible;                                       // scratch: one target's
   auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq) {
     double cost = 0;
     *count = 0;
@@ -326,6 +351,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     for (int t = 0; t < num_kf; ++t) {
       const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
       const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
+      // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
+      eval_visible.clear();
       for (int i = 0; i < num_points; ++i) {
         const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
         if (!(rs[static_cast<size_t>(i)] > 0) || std::isnan(lint[static_cast<size_t>(i)])) continue;
@@ -334,6 +361,16 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         if (!(pt.z() > 1e-9)) continue;
         const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
         if (!lcam.InImage(px, border)) continue;
+        eval_visible.push_back({i, pt, px});
+      }
+      for (size_t k = 0; k < eval_visible.size(); ++k) {
+        if (k + kPrefetchAhead < eval_visible.size()) {
+          const Projected& ahead = eval_visible[k + kPrefetchAhead];
+          PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
+        }
+        const int i = eval_visible[k].point;
+        const Eigen::Vector3d& pt = eval_visible[k].pt;
+        const Eigen::Vector2d& px = eval_visible[k].px;
         double value;
         if (!SampleValue(image_of(*limg, i, t), px.x(), px.y(), &value)) continue;
         double expected = lint[static_cast<size_t>(i)];
@@ -367,6 +404,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   std::vector<PairSums> pairs(static_cast<size_t>(num_kf * num_kf));    // [host * num_kf + target]
   std::vector<Eigen::Vector3d> world(static_cast<size_t>(num_points));  // scratch: the points in the world
   std::vector<uint8_t> point_ok(static_cast<size_t>(num_points));
+  std::vector<Projected> visible;  // scratch: one target's residuals
   std::vector<Eigen::Matrix3d> target_from_host(static_cast<size_t>(num_kf));
   std::vector<double> hinv0(static_cast<size_t>(num_points)), hinv(static_cast<size_t>(num_points));
   std::vector<double> h_pk(static_cast<size_t>(num_points), 0.0);  // relit, K estimated
@@ -435,6 +473,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           for (int k = 0; k < num_kf; ++k)
             target_from_host[static_cast<size_t>(k)] =
                 rt_t * (poses[static_cast<size_t>(k)].scale * poses[static_cast<size_t>(k)].rotation);
+          // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
+          visible.clear();
           for (int i = 0; i < num_points; ++i) {
             const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
             if (!point_ok[static_cast<size_t>(i)] || t == p.host || !active[static_cast<size_t>(i) * num_kf + t])
@@ -443,6 +483,17 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             if (!(pt.z() > 1e-9)) continue;
             const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
             if (!lcam.InImage(px, border)) continue;
+            visible.push_back({i, pt, px});
+          }
+          for (size_t k = 0; k < visible.size(); ++k) {
+            if (k + kPrefetchAhead < visible.size()) {
+              const Projected& ahead = visible[k + kPrefetchAhead];
+              PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
+            }
+            const int i = visible[k].point;
+            const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+            const Eigen::Vector3d& pt = visible[k].pt;
+            const Eigen::Vector2d& px = visible[k].px;
             double value;
             Eigen::Vector2d g;
             if (!SampleWithGradient(image_of(*limg, i, t), px.x(), px.y(), &value, &g)) continue;
