@@ -335,6 +335,29 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       lint[static_cast<size_t>(i)] =
           bands[static_cast<size_t>(i)].allFinite() ? 0.0f : std::numeric_limits<float>::quiet_NaN();
 
+  // Target t's residuals that project into its image at the current level: the points `usable` accepts,
+  // hosted elsewhere and active in t, in point order (xw: the points in the world). The image reads come
+  // after, prefetched kPrefetchAhead residuals ahead.
+  auto collect_visible = [&](int t, const Eigen::Matrix3d& rt_t, const Eigen::Vector3d& c_t,
+                             const std::vector<Eigen::Vector3d>& xw, const auto& usable, std::vector<Projected>* out) {
+    out->clear();
+    for (int i = 0; i < num_points; ++i) {
+      if (!usable(i) || t == problem->points[static_cast<size_t>(i)].host ||
+          !active[static_cast<size_t>(i) * num_kf + t])
+        continue;
+      const Eigen::Vector3d pt = rt_t * (xw[static_cast<size_t>(i)] - c_t);
+      if (!(pt.z() > 1e-9)) continue;
+      const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
+      if (!lcam.InImage(px, border)) continue;
+      out->push_back({i, pt, px});
+    }
+  };
+  auto prefetch_ahead = [&](const std::vector<Projected>& visible, size_t k, int t) {
+    if (k + kPrefetchAhead >= visible.size()) return;
+    const Projected& ahead = visible[k + kPrefetchAhead];
+    PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
+  };
+
   // The cost, target by target (each target's image read in about raster order).
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
   std::vector<Projected> eval_visible;                                       // scratch: one target's
@@ -352,22 +375,12 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
       const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
       // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
-      eval_visible.clear();
-      for (int i = 0; i < num_points; ++i) {
-        const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-        if (!(rs[static_cast<size_t>(i)] > 0) || std::isnan(lint[static_cast<size_t>(i)])) continue;
-        if (t == p.host || !active[static_cast<size_t>(i) * num_kf + t]) continue;
-        const Eigen::Vector3d pt = rt_t * (eval_world[static_cast<size_t>(i)] - c_t);
-        if (!(pt.z() > 1e-9)) continue;
-        const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
-        if (!lcam.InImage(px, border)) continue;
-        eval_visible.push_back({i, pt, px});
-      }
+      collect_visible(
+          t, rt_t, c_t, eval_world,
+          [&](int i) { return rs[static_cast<size_t>(i)] > 0 && !std::isnan(lint[static_cast<size_t>(i)]); },
+          &eval_visible);
       for (size_t k = 0; k < eval_visible.size(); ++k) {
-        if (k + kPrefetchAhead < eval_visible.size()) {
-          const Projected& ahead = eval_visible[k + kPrefetchAhead];
-          PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
-        }
+        prefetch_ahead(eval_visible, k, t);
         const int i = eval_visible[k].point;
         const Eigen::Vector3d& pt = eval_visible[k].pt;
         const Eigen::Vector2d& px = eval_visible[k].px;
@@ -474,22 +487,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             target_from_host[static_cast<size_t>(k)] =
                 rt_t * (poses[static_cast<size_t>(k)].scale * poses[static_cast<size_t>(k)].rotation);
           // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
-          visible.clear();
-          for (int i = 0; i < num_points; ++i) {
-            const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-            if (!point_ok[static_cast<size_t>(i)] || t == p.host || !active[static_cast<size_t>(i) * num_kf + t])
-              continue;
-            const Eigen::Vector3d pt = rt_t * (world[static_cast<size_t>(i)] - tp.centre);
-            if (!(pt.z() > 1e-9)) continue;
-            const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
-            if (!lcam.InImage(px, border)) continue;
-            visible.push_back({i, pt, px});
-          }
+          collect_visible(
+              t, rt_t, tp.centre, world, [&](int i) { return point_ok[static_cast<size_t>(i)] != 0; }, &visible);
           for (size_t k = 0; k < visible.size(); ++k) {
-            if (k + kPrefetchAhead < visible.size()) {
-              const Projected& ahead = visible[k + kPrefetchAhead];
-              PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
-            }
+            prefetch_ahead(visible, k, t);
             const int i = visible[k].point;
             const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
             const Eigen::Vector3d& pt = visible[k].pt;
