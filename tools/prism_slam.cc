@@ -76,6 +76,10 @@ options:
   --no-metric-scale  skip the metres per world unit from the co-moving lights (SlamSystem::
                    EstimateMetricScale, 2-7 s after the last frame), which trajectory_metres.txt and
                    map.ply use when it succeeds (else the dense stage's scale, with --dense)
+  --set scale_drift_correction=true  after the refinement rounds, re-measure each keyframe's depth unit
+                   from the co-moving lights (SlamSystem::CorrectScaleDrift; off by default: it helps
+                   grey scenes that drift and hurts multi-coloured ones; summary.json then has
+                   scale_drift_correction)
   --no-remap       with --dense-online: write map.ply as the keyframe clouds were merged (at their
                    poses when handed over) instead of rebuilt at the final keyframe poses
   --remap-icp      with --dense-online: register each keyframe cloud again with ICP as map.ply is
@@ -319,6 +323,17 @@ int main(int argc, char** argv) {
   (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
                                 options.final_refinement_rounds, &keyframes);
   const double refine_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
+  // The scale drift between keyframes corrected with the co-moving lights (SlamSystem::CorrectScaleDrift).
+  std::optional<ScaleDriftCorrection> drift;
+  std::string drift_error;
+  double drift_seconds = 0;
+  if (options.scale_drift_correction) {
+    const auto start = std::chrono::steady_clock::now();
+    StatusOr<ScaleDriftCorrection> c = (*slam)->CorrectScaleDrift();
+    drift_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (c.ok()) drift = *c;
+    else drift_error = std::string(c.status().message());
+  }
   // The metres per world unit from the co-moving lights (SlamSystem::EstimateMetricScale).
   std::optional<MetricScaleEstimate> shading_scale;
   std::string shading_scale_error;
@@ -438,6 +453,13 @@ int main(int argc, char** argv) {
   if (metres_per_unit > 0)
     json << ",\n  \"metres_per_unit\": " << metres_per_unit << ",\n  \"metres_per_unit_source\": \""
          << (shading_scale ? "shading" : "dense_stage") << "\"";
+  if (drift) {
+    json << ",\n  \"scale_drift_correction\": {\"pairs\": " << drift->pairs << ", \"min_factor\": " << drift->min_factor
+         << ", \"max_factor\": " << drift->max_factor << ", \"loop_edges\": " << drift->loop_edges
+         << ", \"ms\": " << 1000.0 * drift_seconds << "}";
+  } else if (options.scale_drift_correction) {
+    json << ",\n  \"scale_drift_correction_error\": \"" << drift_error << "\"";
+  }
   if (shading_scale) {
     json << ",\n  \"shading_metres_per_unit\": " << shading_scale->metres_per_world_unit
          << ",\n  \"shading_metres_per_unit_start\": " << shading_scale->start_metres_per_world_unit

@@ -222,6 +222,12 @@ void SessionPipeline::SlamLoop() {
       for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
       UpdateStartCheck();
       if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
+      if (options_.slam.scale_drift_correction) {
+        StatusOr<ScaleDriftCorrection> drift = slam_->CorrectScaleDrift();
+        if (!drift.ok()) {
+          PRISM_LOG(INFO) << "pipeline: no scale drift correction: " << drift.status();
+        }
+      }
       if (options_.remap_at_end && options_.metric_scale_at_end) {
         const auto t0 = std::chrono::steady_clock::now();
         StatusOr<MetricScaleEstimate> metric = slam_->EstimateMetricScale();

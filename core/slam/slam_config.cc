@@ -144,6 +144,8 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"final_adjustment_mixed_relit_scale", &o.final_adjustment_mixed_relit_scale});
   f.push_back({"metric_scale_min_band_fraction", &o.metric_scale_min_band_fraction});
   f.push_back({"metric_scale_max_pair_spread", &o.metric_scale_max_pair_spread});
+  f.push_back({"scale_drift_correction", &o.scale_drift_correction});
+  f.push_back({"scale_drift_window", &o.scale_drift_window});
   f.push_back({"start_check_keyframes", &o.start_check_keyframes});
   f.push_back({"start_check_max_pair_spread", &o.start_check_max_pair_spread});
   f.push_back({"start_check_retry_parallax_fraction", &o.start_check_retry_parallax_fraction});

@@ -145,6 +145,7 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
   if (!(metric_scale_max_pair_spread > 0))
     return InvalidArgumentError("SlamOptions: metric_scale_max_pair_spread must be > 0");
+  if (scale_drift_window < 0) return InvalidArgumentError("SlamOptions: scale_drift_window must be >= 0");
   if (start_check_keyframes != 0 && start_check_keyframes < 4)
     return InvalidArgumentError("SlamOptions: start_check_keyframes must be 0 (off) or >= 4");
   if (!(start_check_max_pair_spread > 0) || !(start_check_retry_parallax_fraction > 0))
@@ -182,6 +183,7 @@ struct SlamSystem::Impl {
   std::unique_ptr<Tracker> reloc_tracker;
   std::unique_ptr<Tracker> loop_tracker;
   std::vector<PoseGraphEdge> graph_edges;
+  std::vector<uint8_t> graph_edge_is_loop;  // per graph_edges entry
   int loop_closures = 0;
   int keyframe_adjustments = 0;
   bool final_adjustment_done = false;  // SlamSystem::AdjustAllKeyframes ran
@@ -196,6 +198,8 @@ struct SlamSystem::Impl {
   // (EstimateShadingScale at the current poses and depths; metres per world unit); empty without three
   // point lights.
   std::vector<double> PairShadingScales(size_t num_keyframes) const;
+  // The same with each pair's older keyframe index.
+  std::vector<std::pair<int, double>> IndexedPairShadingScales(size_t num_keyframes) const;
   // SlamSystem::ProcessFrame on this state.
   StatusOr<SlamFrameResult> Process(double timestamp, const cv::Mat& rgb);
   SlamTimings timings;
@@ -905,6 +909,7 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   edge.translation_sigma = options.odometry_translation_sigma;
   edge.log_scale_sigma = options.odometry_log_scale_sigma;
   graph_edges.push_back(edge);
+  graph_edge_is_loop.push_back(0);
   keyframes.push_back(std::move(k));
   previous_depth.reset();
   previous_depth_kf = -1;
@@ -1024,6 +1029,7 @@ void SlamSystem::Impl::CloseLoops(int index) {
     edge.translation_sigma = options.loop_translation_sigma;
     edge.log_scale_sigma = options.loop_log_scale_sigma;
     graph_edges.push_back(edge);
+    graph_edge_is_loop.push_back(1);
     ++loop_closures;
     added = true;
     PRISM_LOG(INFO) << "slam: loop edge keyframe " << j << " - " << index << ", unit ratio " << 1.0 / j_from_k.scale;
@@ -1060,8 +1066,8 @@ int SlamSystem::Impl::WindowStart(int first) const {
   return first;
 }
 
-std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) const {
-  std::vector<double> estimates;
+std::vector<std::pair<int, double>> SlamSystem::Impl::IndexedPairShadingScales(size_t num_keyframes) const {
+  std::vector<std::pair<int, double>> estimates;
   if (!AllPointLights(rig)) return estimates;
   ShadingScaleOptions so;
   for (size_t k = 0; k + 1 < std::min(num_keyframes, keyframes.size()); ++k) {
@@ -1072,8 +1078,14 @@ std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) co
         {b.rgb, BFromAInUnitsOfA(a.world_from_keyframe, b.world_from_keyframe)}};
     StatusOr<ShadingScaleResult> r = EstimateShadingScale(rig, a.rgb, a.final_depth.inverse_depth, frames, so);
     if (!r.ok()) continue;
-    estimates.push_back(r->metres_per_unit / a.world_from_keyframe.scale);
+    estimates.emplace_back(static_cast<int>(k), r->metres_per_unit / a.world_from_keyframe.scale);
   }
+  return estimates;
+}
+
+std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) const {
+  std::vector<double> estimates;
+  for (const auto& [k, scale] : IndexedPairShadingScales(num_keyframes)) estimates.push_back(scale);
   return estimates;
 }
 
@@ -1086,7 +1098,8 @@ double SlamSystem::Impl::RelitMetresPerWorldUnit() {
     PRISM_LOG(INFO) << "slam: relit adjustment off: " << estimates.size() << " keyframe pairs gave a shading scale";
     return -1;
   }
-  relit_pair_estimates = estimates;
+  // After CorrectScaleDrift the pairs agree by construction: the check keeps the scales from before it.
+  if (relit_pair_estimates.empty()) relit_pair_estimates = estimates;
   std::nth_element(estimates.begin(), estimates.begin() + estimates.size() / 2, estimates.end());
   relit_metres_per_world_unit = estimates[estimates.size() / 2];
   PRISM_LOG(INFO) << "slam: relit adjustment at " << relit_metres_per_world_unit << " metres per world unit ("
@@ -1378,6 +1391,76 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   e.metres_per_world_unit = k;
   e.keyframes = n - first;
   return e;
+}
+
+StatusOr<ScaleDriftCorrection> SlamSystem::CorrectScaleDrift() {
+  Impl& m = *impl_;
+  const int n = static_cast<int>(m.keyframes.size());
+  if (n < 3 || !m.keyframes.back().finished)
+    return FailedPreconditionError("CorrectScaleDrift: needs at least 3 finished keyframes (call Finish first)");
+  if (!AllPointLights(m.rig)) return FailedPreconditionError("CorrectScaleDrift: needs three point lights on the rig");
+  const std::vector<std::pair<int, double>> pairs = m.IndexedPairShadingScales(static_cast<size_t>(n));
+  if (pairs.size() < 3)
+    return FailedPreconditionError("CorrectScaleDrift: " + std::to_string(pairs.size()) +
+                                   " keyframe pairs gave a shading scale (3 needed)");
+  // The consistency check (EstimateMetricScale) sees the scales from before the correction.
+  m.relit_pair_estimates.clear();
+  for (const auto& [k, scale] : pairs) m.relit_pair_estimates.push_back(scale);
+  m.relit_metres_per_world_unit = 0;  // estimated again at the corrected poses
+  // Keyframe k's depth unit in metres: its pair's scale times its own Sim(3) scale (the pair's scale is
+  // metres per world unit through k's unit). Pairs without a scale, and the last keyframe, take the
+  // nearest pair's.
+  std::vector<double> by_pair(static_cast<size_t>(n - 1), std::numeric_limits<double>::quiet_NaN());
+  for (const auto& [k, scale] : pairs) by_pair[static_cast<size_t>(k)] = scale;
+  const int w = m.options.scale_drift_window;
+  std::vector<double> metres_per_world_unit(static_cast<size_t>(n));
+  for (int k = 0; k < n; ++k) {
+    const int centre = std::min(k, n - 2);
+    std::vector<double> near;
+    for (int reach = w; near.empty(); ++reach) {
+      for (int j = std::max(0, centre - reach); j <= std::min(n - 2, centre + reach); ++j)
+        if (std::isfinite(by_pair[static_cast<size_t>(j)])) near.push_back(by_pair[static_cast<size_t>(j)]);
+    }
+    std::sort(near.begin(), near.end());
+    const size_t h = near.size() / 2;
+    metres_per_world_unit[static_cast<size_t>(k)] = near.size() % 2 ? near[h] : 0.5 * (near[h - 1] + near[h]);
+  }
+  ScaleDriftCorrection c;
+  c.pairs = static_cast<int>(pairs.size());
+  c.min_factor = c.max_factor = 1;
+  std::vector<double> factor(static_cast<size_t>(n));
+  for (int k = 0; k < n; ++k) {
+    factor[static_cast<size_t>(k)] = metres_per_world_unit[static_cast<size_t>(k)] / metres_per_world_unit[0];
+    c.min_factor = std::min(c.min_factor, factor[static_cast<size_t>(k)]);
+    c.max_factor = std::max(c.max_factor, factor[static_cast<size_t>(k)]);
+  }
+  // Odometry edges: the same rotation and translation (in the older keyframe's units), the corrected
+  // ratio of depth units. Loop edges as measured.
+  std::vector<PoseGraphEdge> edges = m.graph_edges;
+  for (size_t e = 0; e < edges.size(); ++e) {
+    if (m.graph_edge_is_loop[e]) {
+      ++c.loop_edges;
+      continue;
+    }
+    PoseGraphEdge& edge = edges[e];
+    edge.from_from_to = m.keyframes[static_cast<size_t>(edge.from)].world_from_keyframe.Inverse() *
+                        m.keyframes[static_cast<size_t>(edge.to)].world_from_keyframe;
+    edge.from_from_to.scale *= factor[static_cast<size_t>(edge.to)] / factor[static_cast<size_t>(edge.from)];
+  }
+  std::vector<Sim3d> nodes;
+  for (const Impl::Keyframe& k : m.keyframes) nodes.push_back(k.world_from_keyframe);
+  PoseGraphOptions go;
+  go.max_iterations = 100;
+  PRISM_ASSIGN_OR_RETURN(PoseGraphSummary summary, OptimisePoseGraph(edges, go, &nodes));
+  for (int k = 0; k < n; ++k) m.keyframes[static_cast<size_t>(k)].world_from_keyframe = nodes[static_cast<size_t>(k)];
+  m.graph_edges = std::move(edges);
+  for (Impl::FrameRecord& f : m.frames)
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= 0)
+      f.result.world_from_camera = m.WorldFromFrame(f);
+  PRISM_LOG(INFO) << "slam: scale drift corrected from " << c.pairs << " keyframe pairs' shading scales: depth units x"
+                  << c.min_factor << " .. x" << c.max_factor << " (pose graph cost " << summary.initial_cost << " -> "
+                  << summary.final_cost << ", " << c.loop_edges << " loop edges)";
+  return c;
 }
 
 std::vector<SlamFrameResult> SlamSystem::Trajectory() const {

@@ -304,6 +304,18 @@ struct SlamOptions {
   // albedo is not grey), the 8 above it by 0.123-0.346; 0.16 flags 5 of those 8 (ATE 2.0-4.3%, depth
   // 23-62%) and none of the 46 (README, twenty-second round).
   double metric_scale_max_pair_spread = 0.16;
+  // CorrectScaleDrift (prism-slam and the server's session pipeline run it at the end, before
+  // EstimateMetricScale, when this is on): the keyframes' depth units re-measured from the co-moving
+  // lights. scale_drift_window: half-width of the running median over consecutive keyframe pairs'
+  // shading scales, >= 0. Off by default: on the 54 standard runs (seeds 1-6; twenty-seventh round)
+  // with window 2 it takes the uniform sphere from 0.80-1.83% to 0.56-1.21% of path (better on all 6
+  // seeds, 3 still above 1%) and the torus from 0.37-0.58% to 0.31-0.49% (5 of 6), but the multi-coloured
+  // presets' pair scales drift along the arc with the albedo, which the grey model does not explain,
+  // and every pair's noise (a few %) lands in its keyframe's depth unit: 49 within 1% ATE against 51,
+  // geometric mean 0.460% against 0.307%, within the 3% depth bar 22 against 43 (median 3.69% against
+  // 1.21%).
+  bool scale_drift_correction = false;
+  int scale_drift_window = 2;
   // The start check, online: once start_check_keyframes keyframes exist (the newest one being tracked),
   // the shading scales of their consecutive pairs (as in EstimateMetricScale's check) must spread by at most
   // start_check_max_pair_spread. If not, the start is probably in the bas-relief valley of a sideways
@@ -348,6 +360,15 @@ struct MetricScaleEstimate {
   int pairs = 0;
   double pair_spread = 0;
   bool consistent = true;  // pair_spread <= SlamOptions::metric_scale_max_pair_spread
+};
+
+// What SlamSystem::CorrectScaleDrift did.
+struct ScaleDriftCorrection {
+  int pairs = 0;  // consecutive keyframe pairs with a shading scale
+  // The factors the keyframes' depth units were multiplied by, relative to keyframe 0's (which holds
+  // the gauge): their extremes.
+  double min_factor = 1, max_factor = 1;
+  int loop_edges = 0;  // loop edges kept as measured in the re-optimised pose graph
 };
 
 enum class SlamState {
@@ -446,6 +467,20 @@ class SlamSystem {
   // albedo; coloured albedo biases it (see the README for the figures). FAILED_PRECONDITION before
   // Finish, with fewer than 3 keyframes, without three point lights, or without usable points.
   StatusOr<MetricScaleEstimate> EstimateMetricScale();
+  // After Finish (and after the final adjustment and RefineKeyframeDepths, which would move the depth
+  // units again): corrects the monocular scale drift between keyframes with the co-moving lights. Each
+  // consecutive keyframe pair's shading scale (EstimateShadingScale at the current poses and depths, as
+  // EstimateMetricScale's check) measures the older keyframe's depth unit in metres; on a drift-free
+  // reconstruction every keyframe's unit is the same number of metres. Each keyframe's depth unit
+  // (its Sim(3) scale) is multiplied by its pair's scale over keyframe 0's (a running median over
+  // SlamOptions::scale_drift_window pairs on either side; the last keyframe takes its predecessor's),
+  // every odometry edge of the pose graph keeps its rotation and its translation in its own keyframe's
+  // units and takes the corrected ratio of depth units, and the graph is re-optimised with the loop
+  // edges as measured (with none it is a chain and the result is exact). KeyframePoses and Trajectory
+  // move; each keyframe's depth map (in its own units) does not. EstimateMetricScale's consistency check
+  // keeps the pairs' scales from before the correction. FAILED_PRECONDITION before Finish, without three
+  // point lights, or with fewer than 3 pairs with a shading scale.
+  StatusOr<ScaleDriftCorrection> CorrectScaleDrift();
   // After Finish: re-estimates the depth of each of `keyframes` (as handed out; matched by id) at the
   // keyframes' final poses (KeyframePoses): its own depth as the prior (relative sigma
   // `relative_sigma`, counted as 2 observations), one stereo update with each of up to `neighbours`
