@@ -3,17 +3,20 @@
 # runs: ATE (% of path), keyframe depth error (median relative, through the trajectory's Sim(3) scale),
 # keyframes, lost frames, and the time after the last frame.
 #
-#   scripts/slam_presets.sh OUT [--seeds "1 2 3"] [--presets "p1 p2"] [--jobs N] [--frames N] [-- prism-slam args]
+#   scripts/slam_presets.sh OUT [--seeds "1 2 3"] [--presets "p1 p2"] [--jobs N] [--frames N] [--keep-outputs]
+#                           [-- prism-slam args]
 #
 # Sequences are rendered once into $SEQ_CACHE (default /tmp/prism-presets) and reused. Each run writes
 # OUT/<preset>-<seed>/ (prism-slam's outputs) and OUT/results.tsv; the table is printed at the end.
+# The keyframe depth maps and semidense.ply (about 50 MB per run at 512x512) are deleted once a run is
+# scored unless --keep-outputs is given; summary.json, trajectory.txt and the rest stay.
 # Needs a build (BUILD_DIR, default build).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BUILD_DIR=${BUILD_DIR:-build}
 SEQ_CACHE=${SEQ_CACHE:-/tmp/prism-presets}
 if [ $# -lt 1 ]; then
-  sed -n '2,10p' "$0"
+  sed -n '2,12p' "$0"
   exit 2
 fi
 OUT=$1
@@ -23,12 +26,14 @@ PRESETS="bunny-multicolor-forward sphere-multicolor-sideways dragon-multicolor-s
 relief-uniform-sideways boxes-multicolor-forward bunny-uniform-sideways armadillo-textured-forward torus-textured-forward"
 JOBS=2
 FRAMES=150
+KEEP_OUTPUTS=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --seeds) SEEDS=$2; shift 2 ;;
     --presets) PRESETS=$2; shift 2 ;;
     --jobs) JOBS=$2; shift 2 ;;
     --frames) FRAMES=$2; shift 2 ;;
+    --keep-outputs) KEEP_OUTPUTS=1; shift ;;
     --) shift; break ;;
     *) echo "slam_presets.sh: unknown argument $1" >&2; exit 2 ;;
   esac
@@ -47,6 +52,9 @@ run_one() {
   local out="$OUT/$preset-$seed"
   "$BIN/prism-slam" --sequence "$seq" --out "$out" --threads 1 "${SLAM_ARGS[@]}" >"$out.log" 2>&1 ||
     echo "slam_presets.sh: prism-slam failed on $preset seed $seed (see $out.log)" >&2
+  if [ "$KEEP_OUTPUTS" = 0 ]; then
+    rm -f "$out"/keyframes/*.tiff "$out/semidense.ply"
+  fi
 }
 
 jobs_running=0
