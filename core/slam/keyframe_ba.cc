@@ -544,13 +544,15 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             }
             // Target pose: right rotation perturbation and centre.
             Eigen::Matrix<double, 1, 6> j_target;
-            j_target.head<3>() = j_pt * Skew(pt) + j_n * Skew(n_t);
+            // j Skew(v) is the cross product j x v (the same products and sums; Skew's zeros skipped).
+            j_target.head<3>() = j_pt.cross(pt.transpose());
+            if (relit_i) j_target.head<3>() += j_n * Skew(n_t);
             j_target.tail<3>() = -j_pt * rt_t;
             // Host pose: x = c_h + s_h R_h exp(w) q with q = ray / rho; and rho.
             const Eigen::RowVector3d j_q = j_pt * target_from_host[static_cast<size_t>(p.host)];
             const Eigen::Vector3d& ray_i = ray[static_cast<size_t>(i)];
             Eigen::Matrix<double, 1, 6> j_host;
-            j_host.head<3>() = -j_q * Skew(ray_i / r);
+            j_host.head<3>() = -j_q.cross((ray_i / r).transpose());
             j_host.tail<3>() = -j_target.tail<3>();
             double j_rho = -j_q.dot(ray_i) / (r * r);
             if (relit_i) {

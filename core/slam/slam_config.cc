@@ -127,6 +127,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"keyframe_window", &o.keyframe_window});
   f.push_back({"keyframe_window_cell_px", &o.keyframe_window_cell_px});
   f.push_back({"keyframe_window_min_points", &o.keyframe_window_min_points});
+  f.push_back({"keyframe_adjustment_interval", &o.keyframe_adjustment_interval});
   f.push_back({"keyframe_window_min_overlap", &o.keyframe_window_min_overlap});
   f.push_back({"repropagate_after_adjustment", &o.repropagate_after_adjustment});
   f.push_back({"final_adjustment", &o.final_adjustment});

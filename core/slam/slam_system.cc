@@ -132,6 +132,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: keyframe_window_min_overlap must be in [0, 1]");
   if (keyframe_window_min_points < 10)
     return InvalidArgumentError("SlamOptions: keyframe_window_min_points must be >= 10");
+  if (keyframe_adjustment_interval < 1)
+    return InvalidArgumentError("SlamOptions: keyframe_adjustment_interval must be >= 1");
   PRISM_RETURN_IF_ERROR(keyframe_window_ba.Check());
   if (final_adjustment_max_keyframes < 3)
     return InvalidArgumentError("SlamOptions: final_adjustment_max_keyframes must be >= 3");
@@ -874,7 +876,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     if (made.ok()) {
       frames.back().result.new_keyframe = true;
       const ScopedSeconds adjustment_timer(&timings.keyframe_adjustment);
-      if (options.keyframe_adjustment)
+      if (options.keyframe_adjustment && (keyframes.size() - 1) % options.keyframe_adjustment_interval == 0)
         AdjustKeyframes(WindowStart(std::max(0, static_cast<int>(keyframes.size()) - options.keyframe_window)),
                         options.keyframe_window_ba, /*at_finish=*/false);
     } else {

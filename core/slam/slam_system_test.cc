@@ -576,6 +576,36 @@ TEST(SlamSystem, UpdatesTheDepthOnEveryNthFrame) {
   EXPECT_FALSE(SlamSystem::Create(r.setup.rig, options).ok());
 }
 
+// SlamOptions::keyframe_adjustment_interval: the window adjustment runs after every second new keyframe
+// only (at most (keyframes - 1) / 2 of them; with the default after more than half of them: the first
+// keyframe has none, and a window with too few points is not adjusted).
+TEST(SlamSystem, AdjustsTheWindowAfterEveryNthKeyframe) {
+  Rendered r;
+  std::string why;
+  if (!Render("bunny-multicolor-forward", 40, /*supersampling=*/1, &r, &why))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  for (const int interval : {1, 2}) {
+    SlamOptions options;
+    options.keyframe_adjustment_interval = interval;
+    options.start_check_keyframes = 0;
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
+    ASSERT_TRUE(slam.ok()) << slam.status();
+    for (int i = 0; i < 40; ++i) ASSERT_TRUE((*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb).ok());
+    const int keyframes = (*slam)->num_keyframes(), adjustments = (*slam)->num_keyframe_adjustments();
+    std::printf("interval %d: %d keyframes, %d window adjustments\n", interval, keyframes, adjustments);
+    ASSERT_GE(keyframes, 5);
+    if (interval == 1) {
+      EXPECT_GT(adjustments, (keyframes - 1) / 2);
+    } else {
+      EXPECT_LE(adjustments, (keyframes - 1) / interval);
+      EXPECT_GE(adjustments, 1);
+    }
+  }
+  SlamOptions options;
+  options.keyframe_adjustment_interval = 0;
+  EXPECT_FALSE(SlamSystem::Create(r.setup.rig, options).ok());
+}
+
 // The first keyframe's depth against the truth: the tilt c of log(estimated / true inverse depth) =
 // a + b x + c y over the image (normalised coordinates, pixels within 20%), least squares.
 double FirstDepthTilt(const SlamKeyframe& k, const cv::Mat& true_depth, const PinholeCamera& camera) {
