@@ -5,6 +5,10 @@
 //                       line, random lines over a 512x512 image: the version this CPU runs (AVX2 when
 //                       present) against the portable one; the time per sample is the "ns_per_sample"
 //                       counter.
+//   BM_KeyframeWindowAdjustment: one window adjustment (keyframe_ba.h) with SlamSystem's window settings:
+//                    8 keyframes 6 frames apart at their true poses, then perturbed (2% of the spacing
+//                    sideways, 0.1 degrees, inverse depths 3% off), one point per 16x16 cell; the time
+//                    per residual linearised or evaluated is the "ns_per_residual" counter.
 //   BM_SlamSequence: the whole SlamSystem (initialisation, tracking, depth filter, keyframes, keyframe
 //                    adjustment) over 150 frames of a preset; the per-frame time is the "ms_per_frame"
 //                    counter (with and without the keyframe adjustment on the bunny).
@@ -20,6 +24,7 @@
 #include <benchmark/benchmark.h>
 
 #include "core/slam/depth_filter.h"
+#include "core/slam/keyframe_ba.h"
 #include "core/slam/line_sampler.h"
 #include "core/slam/slam_system.h"
 #include "core/synth/presets.h"
@@ -125,6 +130,74 @@ void BM_SampleAlongLine(benchmark::State& state, bool portable) {
 }
 BENCHMARK_CAPTURE(BM_SampleAlongLine, dispatched, false)->Repetitions(5)->ReportAggregatesOnly(true);
 BENCHMARK_CAPTURE(BM_SampleAlongLine, portable, true)->Repetitions(5)->ReportAggregatesOnly(true);
+
+void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& preset) {
+  const Frames* f = GetFrames(preset);
+  if (!f) {
+    state.SkipWithError("preset unavailable");
+    return;
+  }
+  const SlamOptions slam_options;
+  const int num_kf = slam_options.keyframe_window, spacing = 6, first = 40;
+  DirectBaProblem start;
+  start.camera = f->setup.rig.camera;
+  std::mt19937 rng(11);
+  std::normal_distribution<float> noise(0.0f, 0.03f);
+  for (int k = 0; k < num_kf; ++k) {
+    const synth::RenderedFrame& frame = f->frames[static_cast<size_t>(first + spacing * k)];
+    const Rigid3d& pose = f->trajectory[static_cast<size_t>(first + spacing * k)].world_from_camera;
+    Sim3d world_from_keyframe(1.0, pose.rotation, pose.translation);
+    if (k >= 2) {
+      const Rigid3d& previous = f->trajectory[static_cast<size_t>(first + spacing * (k - 1))].world_from_camera;
+      const double step = (pose.translation - previous.translation).norm();
+      world_from_keyframe.translation += pose.rotation * Eigen::Vector3d(0, 0.02 * step, 0);
+      world_from_keyframe.rotation = world_from_keyframe.rotation *
+                                     Eigen::Quaterniond(Eigen::AngleAxisd(0.1 * M_PI / 180, Eigen::Vector3d::UnitX()));
+    }
+    start.world_from_keyframe.push_back(world_from_keyframe);
+    cv::Mat j, mean;
+    KeyframeDepth::NormalisedGrey(frame.rgb, slam_options.depth, &j, &mean);
+    start.grey_j.push_back(j);
+    cv::Mat inverse_depth = cv::Mat::zeros(frame.depth.size(), CV_32F);
+    for (int y = 0; y < frame.depth.rows; ++y)
+      for (int x = 0; x < frame.depth.cols; ++x)
+        if (frame.depth.at<float>(y, x) > 0) inverse_depth.at<float>(y, x) = 1.0f / frame.depth.at<float>(y, x);
+    SelectCellPoints(
+        j, inverse_depth, k, slam_options.keyframe_window_cell_px, 0.0f, [](int, int) { return true; }, &start.points);
+  }
+  for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  DirectBaSummary summary;
+  double seconds = 0;
+  for (auto _ : state) {
+    state.PauseTiming();
+    DirectBaProblem problem = start;
+    state.ResumeTiming();
+    const auto t0 = std::chrono::steady_clock::now();
+    StatusOr<DirectBaSummary> s = AdjustKeyframeWindowDirect(slam_options.keyframe_window_ba, &problem);
+    seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (!s.ok()) {
+      state.SkipWithError(s.status().ToString().c_str());
+      return;
+    }
+    summary = *s;
+  }
+  state.counters["points"] = static_cast<double>(start.points.size());
+  state.counters["residuals"] = summary.residuals;
+  state.counters["iterations"] = summary.iterations;
+  // Each iteration linearises once and evaluates at least once: per residual of the final solve.
+  state.counters["ns_per_residual"] =
+      1e9 * seconds / (static_cast<double>(state.iterations()) * summary.residuals * 2 * summary.iterations);
+}
+BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, torus, std::string("torus-textured-forward"))
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime()
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
+BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo-textured-forward"))
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime()
+    ->Repetitions(5)
+    ->ReportAggregatesOnly(true);
 
 void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment) {
   const Frames* f = GetFrames(preset);
