@@ -154,7 +154,6 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
   const int w = rgb.cols, h = rgb.rows;
   kd.grad_x_ = cv::Mat::zeros(h, w, CV_32F);
   kd.grad_y_ = cv::Mat::zeros(h, w, CV_32F);
-  kd.candidate_ = cv::Mat::zeros(h, w, CV_8U);
   const float min_g2 = static_cast<float>(options.min_gradient * options.min_gradient);
   const float min_mean = static_cast<float>(options.min_local_mean);
   const int border = kPatchHalf + 2;
@@ -172,7 +171,6 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
     const float* m = local_mean.ptr<float>(y);
     float* gx = kd.grad_x_.ptr<float>(y);
     float* gy = kd.grad_y_.ptr<float>(y);
-    uint8_t* c = kd.candidate_.ptr<uint8_t>(y);
     const uint8_t* le = light_edge.empty() ? nullptr : light_edge.ptr<uint8_t>(y);
     for (int x = 1; x < w - 1; ++x) {
       gx[x] = 0.5f * (row[x + 1] - row[x - 1]);
@@ -181,7 +179,6 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
       if (m[x] < min_mean) continue;
       if (gx[x] * gx[x] + gy[x] * gy[x] < min_g2) continue;
       if (le && le[x]) continue;
-      c[x] = 1;
       ++kd.num_candidates_;
       candidates->index.push_back(static_cast<uint32_t>(y * w + x));
     }
@@ -189,8 +186,11 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
   // Rows 0 and h - 1 hold none.
   candidates->row_begin[static_cast<size_t>(h) - 1] = static_cast<uint32_t>(candidates->index.size());
   candidates->row_begin[static_cast<size_t>(h)] = static_cast<uint32_t>(candidates->index.size());
+  candidates->slot.assign(static_cast<size_t>(w) * h, -1);
+  for (size_t k = 0; k < candidates->index.size(); ++k)
+    candidates->slot[candidates->index[k]] = static_cast<int32_t>(k);
+  kd.pixels_.assign(candidates->index.size(), Pixel{});
   kd.candidates_ = std::move(candidates);
-  kd.pixels_.assign(static_cast<size_t>(w) * h, Pixel{});
   return kd;
 }
 
@@ -202,7 +202,6 @@ KeyframeDepth KeyframeDepth::Blank() const {
   kd.grey_j_ = grey_j_;
   kd.grad_x_ = grad_x_;
   kd.grad_y_ = grad_y_;
-  kd.candidate_ = candidate_;
   kd.num_candidates_ = num_candidates_;
   kd.candidates_ = candidates_;
   kd.pixels_.assign(pixels_.size(), Pixel{});
@@ -212,14 +211,14 @@ KeyframeDepth KeyframeDepth::Blank() const {
 bool KeyframeDepth::HasImage(const cv::Mat& rgb) const { return SameImageBytes(rgb, rgb_); }
 
 void KeyframeDepth::Seed(const cv::Mat& dense_inverse_depth, double relative_sigma, int observations) {
-  const int w = candidate_.cols;
-  for (int y = 0; y < candidate_.rows; ++y) {
+  const int w = camera_.width;
+  for (int y = 0; y < camera_.height; ++y) {
     const float* d = dense_inverse_depth.ptr<float>(y);
     for (uint32_t k = candidates_->row_begin[y]; k < candidates_->row_begin[y + 1]; ++k) {
       const uint32_t i = candidates_->index[k];
       const float di = d[i - static_cast<uint32_t>(y * w)];
       if (!(di > 0)) continue;
-      Pixel& p = pixels_[i];
+      Pixel& p = pixels_[k];
       p.idepth = di;
       const float s = static_cast<float>(relative_sigma) * di;
       p.var = s * s;
@@ -245,7 +244,7 @@ void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& 
     for (uint32_t k = previous.candidates_->row_begin[y]; k < previous.candidates_->row_begin[y + 1]; ++k) {
       const uint32_t i = previous.candidates_->index[k];
       const int x = static_cast<int>(i) - y * pw;
-      const Pixel& src = previous.pixels_[i];
+      const Pixel& src = previous.pixels_[k];
       if (!(src.var > 0) || src.observations == 0) continue;
       const Eigen::Vector3f ray((x - pcx) / pfx, (y - pcy) / pfy, 1.0f);
       const Eigen::Vector3f p = R * (ray / src.idepth) + t;
@@ -253,11 +252,12 @@ void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& 
       const float u = fx * p.x() / p.z() + cx, v = fy * p.y() / p.z() + cy;
       const int iu = static_cast<int>(std::lround(u)), iv = static_cast<int>(std::lround(v));
       if (iu < 0 || iv < 0 || iu >= w || iv >= h) continue;
-      if (!candidate_.at<uint8_t>(iv, iu)) continue;
+      const int32_t slot = candidates_->slot[static_cast<size_t>(iv) * w + iu];
+      if (slot < 0) continue;
       const float rho = 1.0f / p.z();
       const float ratio = rho / src.idepth;
       const float var = src.var * ratio * ratio * ratio * ratio + (noise * rho) * (noise * rho);
-      Pixel& dst = pixels_[static_cast<size_t>(iv) * w + iu];
+      Pixel& dst = pixels_[static_cast<size_t>(slot)];
       const uint16_t obs = static_cast<uint16_t>(std::min<int>(src.observations, 20));
       if (!(dst.var > 0)) {
         dst = Pixel{rho, var, obs, 0};
@@ -278,10 +278,8 @@ void KeyframeDepth::PropagateFrom(const KeyframeDepth& previous, const Rigid3d& 
   const double mean = mean_idepth_;
   if (mean > 0 && fill_relative_sigma > 0) {
     const float s = static_cast<float>(fill_relative_sigma * mean);
-    for (const uint32_t i : candidates_->index) {
-      Pixel& p = pixels_[i];
+    for (Pixel& p : pixels_)
       if (!(p.var > 0)) p = Pixel{static_cast<float>(mean), s * s, 0, 0};
-    }
   }
 }
 
@@ -295,8 +293,8 @@ DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3
     // Only seeds: their mean.
     double s = 0;
     int n = 0;
-    for (const uint32_t i : candidates_->index)
-      if (pixels_[i].var > 0) s += pixels_[i].idepth, ++n;
+    for (const Pixel& p : pixels_)
+      if (p.var > 0) s += p.idepth, ++n;
     mean = n ? s / n : 0;
   }
   if (!(mean > 0)) return total;
@@ -385,7 +383,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
     }
     SearchGeometry* geo = geo_values.data();
     const uint32_t* row_index = candidates.data() + k0;
-    const Pixel* pix = pixels_.data();
+    const Pixel* pix = pixels_.data() + k0;  // the row's estimates
     const float ray_y = (y - cy) / fy;
     const float dk_y_unscaled = fy * (c.y() - ray_y * c.z());
     const int row_offset = y * w;
@@ -403,7 +401,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       row_dk_x[j] = ux;
       row_dk_y[j] = uy;
       row_gcos[j] = gcos;
-      row_pass[j] = (pix[row_index[j]].var > 0) & (dk_norm > min_dk_norm) & !(gcos < min_cos);
+      row_pass[j] = (pix[j].var > 0) & (dk_norm > min_dk_norm) & !(gcos < min_cos);
     }
     // Those that pass, then for all of them at once (vectorised as above) the search interval's ends and
     // centre projected into the frame (pa, pb, pm) and the keyframe step dk mapped into the frame (m),
@@ -421,7 +419,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       const float ax = r00 * ray_x + (r01 * ray_y + r02 * 1.0f);
       const float ay = r10 * ray_x + (r11 * ray_y + r12 * 1.0f);
       const float az = r20 * ray_x + (r21 * ray_y + r22 * 1.0f);
-      const Pixel& pxl = pix[row_index[j]];
+      const Pixel& pxl = pix[j];
       const float rho = pxl.idepth;
       const float sigma = std::sqrt(pxl.var);
       const float lo = std::max(rho - search_sigmas * sigma, 0.05f * rho);
@@ -461,7 +459,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       if (!geo_ok[l]) continue;
       const int j = list[l];
       const int x = static_cast<int>(row_index[j]) - row_offset;
-      Pixel& px = pixels_[row_index[j]];
+      Pixel& px = pixels_[k0 + static_cast<uint32_t>(j)];
       const Eigen::Vector2f dk(row_dk_x[j], row_dk_y[j]);
       const float gcos = row_gcos[j];
       // Keyframe patch along the line.
@@ -620,45 +618,46 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
 
 void KeyframeDepth::Regularise() {
   const int w = camera_.width, h = camera_.height;
-  const std::vector<uint32_t>& candidates = candidates_->index;
-  // Scratch kept per thread (two weights per pixel and the new estimate per candidate): no fresh pages
-  // per call. Only candidates hold estimates, so only they are read and written.
+  const std::vector<int32_t>& slot = candidates_->slot;
+  const size_t num = pixels_.size();
+  // Scratch kept per thread (two weights and the new estimate per candidate): no fresh pages per call.
   thread_local std::vector<Pixel> out;
   thread_local std::vector<float> inverse_var, weighted_idepth;
-  out.resize(candidates.size());
-  // Each estimate's weight 1 / var and weighted inverse depth idepth / var, once per pixel instead of
-  // once per neighbour (the same quotients). Entries of pixels without an estimate are never read.
-  inverse_var.resize(pixels_.size());
-  weighted_idepth.resize(pixels_.size());
-  for (const uint32_t i : candidates) {
-    const Pixel& q = pixels_[i];
+  out.resize(num);
+  // Each estimate's weight 1 / var and weighted inverse depth idepth / var, once per candidate instead of
+  // once per neighbour (the same quotients). Entries of candidates without an estimate are never read.
+  inverse_var.resize(num);
+  weighted_idepth.resize(num);
+  for (size_t k = 0; k < num; ++k) {
+    const Pixel& q = pixels_[k];
     if (!(q.var > 0) || q.observations == 0) continue;
-    inverse_var[i] = 1.0f / q.var;
-    weighted_idepth[i] = q.idepth / q.var;
+    inverse_var[k] = 1.0f / q.var;
+    weighted_idepth[k] = q.idepth / q.var;
   }
   const float k2 = static_cast<float>(options_.regularise_sigmas * options_.regularise_sigmas);
   for (int y = 0; y < h; ++y) {
     for (uint32_t k = candidates_->row_begin[y]; k < candidates_->row_begin[y + 1]; ++k) {
-      const size_t i = candidates[k];
+      const size_t i = candidates_->index[k];
       const int x = static_cast<int>(i) - y * w;
-      const Pixel& p = pixels_[i];
+      const Pixel& p = pixels_[k];
       Pixel& o = out[k];
       o = p;
       if (y < 1 || y >= h - 1 || x < 1 || x >= w - 1) continue;  // the image's border is kept as it is
       if (!(p.var > 0) || p.observations == 0) continue;
-      float sw = inverse_var[i], swd = weighted_idepth[i];
+      float sw = inverse_var[k], swd = weighted_idepth[k];
       int agree = 0;
       for (int dy = -1; dy <= 1; ++dy) {
         for (int dx = -1; dx <= 1; ++dx) {
           if (!dx && !dy) continue;
-          const size_t j = static_cast<size_t>(y + dy) * w + x + dx;
-          const Pixel& q = pixels_[j];
+          const int32_t j = slot[static_cast<size_t>(y + dy) * w + x + dx];
+          if (j < 0) continue;  // not a candidate: never an estimate
+          const Pixel& q = pixels_[static_cast<size_t>(j)];
           if (!(q.var > 0) || q.observations == 0) continue;
           const float d = q.idepth - p.idepth;
           if (d * d > k2 * (p.var + q.var)) continue;
           ++agree;
-          sw += inverse_var[j];
-          swd += weighted_idepth[j];
+          sw += inverse_var[static_cast<size_t>(j)];
+          swd += weighted_idepth[static_cast<size_t>(j)];
         }
       }
       if (agree < options_.min_neighbours) {
@@ -668,7 +667,7 @@ void KeyframeDepth::Regularise() {
       o.idepth = swd / sw;  // the variance is kept (the neighbours are not independent observations)
     }
   }
-  for (size_t k = 0; k < candidates.size(); ++k) pixels_[candidates[k]] = out[k];
+  pixels_.swap(out);
   mean_idepth_ = ComputeMeanInverseDepth();
 }
 
@@ -683,8 +682,10 @@ InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double ma
   const float r2 = static_cast<float>(max_relative_sigma * max_relative_sigma);
   float* d = m.inverse_depth.ptr<float>(0);  // both continuous (just created)
   float* v = m.variance.ptr<float>(0);
-  for (const uint32_t i : candidates_->index) {
-    const Pixel& p = pixels_[i];
+  const std::vector<uint32_t>& index = candidates_->index;
+  for (size_t k = 0; k < pixels_.size(); ++k) {
+    const Pixel& p = pixels_[k];
+    const uint32_t i = index[k];
     if (!(p.var > 0) || p.observations < std::max(min_observations, 1)) continue;
     if (p.var > r2 * p.idepth * p.idepth) continue;
     d[i] = p.idepth;
@@ -696,8 +697,7 @@ InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double ma
 double KeyframeDepth::ComputeMeanInverseDepth() const {
   double s = 0;
   int n = 0;
-  for (const uint32_t i : candidates_->index) {  // in image order, as a pass over every pixel
-    const Pixel& p = pixels_[i];
+  for (const Pixel& p : pixels_) {  // in image order, as a pass over every pixel
     if (p.var > 0 && p.observations > 0) s += p.idepth, ++n;
   }
   return n ? s / n : 0.0;
@@ -706,8 +706,7 @@ double KeyframeDepth::ComputeMeanInverseDepth() const {
 int KeyframeDepth::NumValid() const {
   const float r2 = static_cast<float>(options_.max_relative_sigma * options_.max_relative_sigma);
   int n = 0;
-  for (const uint32_t i : candidates_->index) {
-    const Pixel& p = pixels_[i];
+  for (const Pixel& p : pixels_) {
     if (p.var > 0 && p.observations >= std::max(options_.min_observations, 1) && p.var <= r2 * p.idepth * p.idepth) ++n;
   }
   return n;

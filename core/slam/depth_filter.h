@@ -180,18 +180,19 @@ class KeyframeDepth {
   cv::Mat rgb_;
   cv::Mat grey_j_;  // CV_32F
   cv::Mat grad_x_, grad_y_;
-  cv::Mat candidate_;  // CV_8U, 1 = high-gradient bright pixel
   int num_candidates_ = 0;
-  // The candidate pixels' indices (y * width + x), ascending, and where each row's begin (height + 1
-  // entries); shared by Blank() copies. Only candidates ever hold an estimate, so the passes over the
-  // estimates visit these alone, in image order.
+  // The candidate pixels (high gradient, bright enough): their indices (y * width + x), ascending; where
+  // each row's begin (height + 1 entries); and per image pixel its candidate number, -1 for none.
+  // Shared by Blank() copies. Only candidates ever hold an estimate, so the estimates are stored per
+  // candidate, in image order: the passes over them read one contiguous array.
   struct Candidates {
     std::vector<uint32_t> index;
     std::vector<uint32_t> row_begin;
+    std::vector<int32_t> slot;
   };
   std::shared_ptr<const Candidates> candidates_;
-  std::vector<Pixel> pixels_;
-  double mean_idepth_ = 0;  // MeanInverseDepth()
+  std::vector<Pixel> pixels_;  // per candidate (Candidates::index)
+  double mean_idepth_ = 0;     // MeanInverseDepth()
 };
 
 }  // namespace prism

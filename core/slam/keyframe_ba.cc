@@ -84,6 +84,21 @@ struct Projected {
   Eigen::Vector2d px;
 };
 
+// One target's projections: at most one per point, so room for all is made once and an append never
+// reallocates (std::vector's push_back, with its growth path, was a call per residual).
+class ProjectedList {
+ public:
+  explicit ProjectedList(size_t capacity) : items_(capacity) {}
+  void clear() { size_ = 0; }
+  void push_back(const Projected& p) { items_[size_++] = p; }
+  size_t size() const { return size_; }
+  const Projected& operator[](size_t k) const { return items_[k]; }
+
+ private:
+  std::vector<Projected> items_;
+  size_t size_ = 0;
+};
+
 // A residual's image value and gradient (false ok: too near the border, no residual).
 struct Sampled {
   double value;
@@ -346,7 +361,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // hosted elsewhere and active in t, in point order (xw: the points in the world). The image reads come
   // after, prefetched kPrefetchAhead residuals ahead.
   auto collect_visible = [&](int t, const Eigen::Matrix3d& rt_t, const Eigen::Vector3d& c_t,
-                             const std::vector<Eigen::Vector3d>& xw, const auto& usable, std::vector<Projected>* out) {
+                             const std::vector<Eigen::Vector3d>& xw, const auto& usable, ProjectedList* out) {
     out->clear();
     for (int i = 0; i < num_points; ++i) {
       if (!usable(i) || t == problem->points[static_cast<size_t>(i)].host ||
@@ -359,7 +374,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       out->push_back({i, pt, px});
     }
   };
-  auto prefetch_ahead = [&](const std::vector<Projected>& visible, size_t k, int t) {
+  auto prefetch_ahead = [&](const ProjectedList& visible, size_t k, int t) {
     if (k + kPrefetchAhead >= visible.size()) return;
     const Projected& ahead = visible[k + kPrefetchAhead];
     PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
@@ -367,7 +382,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
 
   // The cost, target by target (each target's image read in about raster order).
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
-  std::vector<Projected> eval_visible;                                       // scratch: one target's
+  ProjectedList eval_visible(static_cast<size_t>(num_points));               // scratch: one target's
   std::vector<Sampled> eval_values;  // scratch: their image values (the gradients unused)
   auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq) {
     double cost = 0;
@@ -431,8 +446,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   std::vector<PairSums> pairs(static_cast<size_t>(num_kf * num_kf));    // [host * num_kf + target]
   std::vector<Eigen::Vector3d> world(static_cast<size_t>(num_points));  // scratch: the points in the world
   std::vector<uint8_t> point_ok(static_cast<size_t>(num_points));
-  std::vector<Projected> visible;  // scratch: one target's residuals
-  std::vector<Sampled> sampled;    // scratch: their image values and gradients
+  ProjectedList visible(static_cast<size_t>(num_points));  // scratch: one target's residuals
+  std::vector<Sampled> sampled;                            // scratch: their image values and gradients
   std::vector<Eigen::Matrix3d> target_from_host(static_cast<size_t>(num_kf));
   std::vector<double> hinv0(static_cast<size_t>(num_points)), hinv(static_cast<size_t>(num_points));
   std::vector<double> h_pk(static_cast<size_t>(num_points), 0.0);  // relit, K estimated
@@ -737,6 +752,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             poses.swap(np);
             rho.swap(nr);
             cost = ncost;
+            count = nc;  // count and sq: always the current state's
+            sq = nsq;
             lambda = std::max(1e-7, lambda / 3);
             accepted = true;
             if (decrease < options.function_tolerance) it = options.max_iterations;
@@ -770,7 +787,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       }
     }
   }
-  evaluate(poses, rho, &count, &sq);
+  // count and sq are the final state's already (from its evaluation at the start of the last round or
+  // when its step was accepted; nothing it depends on has changed since): no evaluation of its own.
   summary.final_rms = count > 0 ? std::sqrt(sq / count) : 0;
   summary.residuals = count;
   for (int k = 1; k < num_kf; ++k) {
