@@ -179,7 +179,6 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
       if (m[x] < min_mean) continue;
       if (gx[x] * gx[x] + gy[x] * gy[x] < min_g2) continue;
       if (le && le[x]) continue;
-      ++kd.num_candidates_;
       candidates->index.push_back(static_cast<uint32_t>(y * w + x));
     }
   }
@@ -202,7 +201,6 @@ KeyframeDepth KeyframeDepth::Blank() const {
   kd.grey_j_ = grey_j_;
   kd.grad_x_ = grad_x_;
   kd.grad_y_ = grad_y_;
-  kd.num_candidates_ = num_candidates_;
   kd.candidates_ = candidates_;
   kd.pixels_.assign(pixels_.size(), Pixel{});
   return kd;

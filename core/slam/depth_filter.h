@@ -147,7 +147,7 @@ class KeyframeDepth {
   double MeanInverseDepth() const { return mean_idepth_; }
   // Number of output estimates, and of estimates with >= 1 observation.
   int NumValid() const;
-  int NumCandidates() const { return num_candidates_; }
+  int NumCandidates() const { return static_cast<int>(pixels_.size()); }
 
   // The keyframe's local-mean normalised grey image J (CV_32F).
   const cv::Mat& grey_j() const { return grey_j_; }
@@ -180,7 +180,6 @@ class KeyframeDepth {
   cv::Mat rgb_;
   cv::Mat grey_j_;  // CV_32F
   cv::Mat grad_x_, grad_y_;
-  int num_candidates_ = 0;
   // The candidate pixels (high gradient, bright enough): their indices (y * width + x), ascending; where
   // each row's begin (height + 1 entries); and per image pixel its candidate number, -1 for none.
   // Shared by Blank() copies. Only candidates ever hold an estimate, so the estimates are stored per
