@@ -23,6 +23,7 @@
 #include "core/slam/slam_config.h"
 #include "core/slam/slam_system.h"
 #include "core/slam/undistort.h"
+#include "core/util/logging.h"
 #include "core/util/thread_pool.h"
 
 namespace {
@@ -88,6 +89,8 @@ options:
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
   --threads N      threads for the depth filter (default: all cores)
+  --log-level L    debug, info, warning or error (default: info); debug prints each keyframe
+                   adjustment's points, residuals, RMS and iterations
   --no-eval        skip the evaluation against ground truth
 )";
 
@@ -221,6 +224,13 @@ int main(int argc, char** argv) {
       if (Status st = SetSlamOption(v.substr(0, eq), v.substr(eq + 1), &options); !st.ok()) return Fail(st.ToString());
     } else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
+    else if (a == "--log-level") {
+      if (v == "debug") SetMinLogLevel(LogLevel::kDebug);
+      else if (v == "info") SetMinLogLevel(LogLevel::kInfo);
+      else if (v == "warning") SetMinLogLevel(LogLevel::kWarning);
+      else if (v == "error") SetMinLogLevel(LogLevel::kError);
+      else return Fail("--log-level expects debug, info, warning or error, got '" + v + "'");
+    }
     else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
   }
   if (sequence_dir.empty() == kitti_dir.empty() || out_dir.empty())

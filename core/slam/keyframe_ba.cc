@@ -328,14 +328,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // active[point * num_kf + target]
   std::vector<uint8_t> active(static_cast<size_t>(num_points) * num_kf, 1);
 
-  // Point i in the world (once per point), then in target t's camera.
+  // Point i in the world (once per point; collect_visible takes it into each target's camera).
   auto world_point = [&](const std::vector<Pose>& ps, int i, double r) -> Eigen::Vector3d {
     const Pose& h = ps[static_cast<size_t>(problem->points[static_cast<size_t>(i)].host)];
     return h.centre + h.scale * (h.rotation * (ray[static_cast<size_t>(i)] / r));
-  };
-  auto project = [&](const std::vector<Pose>& ps, const Eigen::Vector3d& x, int t, Eigen::Vector3d* pt) {
-    *pt = ps[static_cast<size_t>(t)].rotation.transpose() * (x - ps[static_cast<size_t>(t)].centre);
-    return pt->z() > 1e-9;
   };
   // Image pyramid (2x2 box averages) for a wider convergence basin: coarse to fine.
   const int levels = options.pyramid_levels;
@@ -384,10 +380,15 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
   ProjectedList eval_visible(static_cast<size_t>(num_points));               // scratch: one target's
   std::vector<Sampled> eval_values;  // scratch: their image values (the gradients unused)
-  auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq) {
+  // The residuals above options.outlier are listed in *over (point * num_kf + target) as they are summed:
+  // the outlier test after the first solve then reads the current state's list instead of projecting and
+  // sampling every residual again (the same residuals, values and test).
+  auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq,
+                      std::vector<int>* over) {
     double cost = 0;
     *count = 0;
     *sq = 0;
+    over->clear();
     for (int i = 0; i < num_points; ++i)
       if (rs[static_cast<size_t>(i)] > 0) {
         eval_world[static_cast<size_t>(i)] = world_point(ps, i, rs[static_cast<size_t>(i)]);
@@ -424,6 +425,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         cost += HuberCost(e, options.huber);
         *sq += e * e;
         ++*count;
+        if (e > options.outlier) over->push_back(i * num_kf + t);
       }
     }
     const double along = baseline.dot(ps[1].centre - centre1_initial);
@@ -433,7 +435,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   DirectBaSummary summary;
   int count = 0;
   double sq = 0;
-  const double initial_cost = evaluate(poses, rho, &count, &sq);
+  std::vector<int> over, trial_over;  // the current state's residuals above the outlier threshold; a trial's
+  const double initial_cost = evaluate(poses, rho, &count, &sq, &over);
   summary.initial_rms = count > 0 ? std::sqrt(sq / count) : 0;
 
   // Per point: the Hessian of its inverse depth, its gradient, and its coupling with the poses.
@@ -474,10 +477,19 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     for (int round = 0; round < rounds; ++round) {
       double lambda = 1e-3;
       // The first solve at full resolution without coarser levels starts where initial_cost was taken
-      // (the same poses, depths, intensities and residuals).
-      double cost = levels == 1 && round == 0 ? initial_cost : evaluate(poses, rho, &count, &sq);
+      // (the same poses, depths, intensities and residuals). A solve after which no outlier test follows
+      // takes its starting cost from its first linearisation, which reads the same residuals in the same
+      // order (not with the relit residual, whose linearisation leaves out more points).
+      const bool cost_from_linearisation = !use_relit && (round > 0 || level > 0);
+      double cost = levels == 1 && round == 0 ? initial_cost
+                    : cost_from_linearisation ? 0.0
+                                              : evaluate(poses, rho, &count, &sq, &over);
       for (int it = 0; it < options.max_iterations; ++it) {
         ++summary.iterations;
+        // The cost at this linearisation, summed with it (cost_from_linearisation, first iteration).
+        const bool sum_cost = cost_from_linearisation && it == 0;
+        double lin_cost = 0, lin_sq = 0;
+        int lin_count = 0;
         Eigen::MatrixXd hcc = Eigen::MatrixXd::Zero(dim, dim);
         Eigen::VectorXd bc = Eigen::VectorXd::Zero(dim);
         // Relit with K estimated: log K's Hessian, gradient and couplings with the poses and the points.
@@ -544,6 +556,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             const double s_i = residual_scale[static_cast<size_t>(i)];
             const double e = s_i * std::abs(res);
             const double w = (e <= options.huber ? 1.0 : options.huber / e) * s_i * s_i;
+            if (sum_cost) {
+              lin_cost += HuberCost(e, options.huber);
+              lin_sq += e * e;
+              ++lin_count;
+            }
             const double iz = 1.0 / pt.z();
             Eigen::Matrix<double, 2, 3> du_dp;
             du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
@@ -658,6 +675,12 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             }
             pair = PairSums();
           }
+        if (sum_cost) {
+          const double along = baseline.dot(poses[1].centre - centre1_initial);
+          cost = lin_cost + 0.5 * gauge_weight * along * along;
+          count = lin_count;
+          sq = lin_sq;
+        }
         hcc.block<3, 3>(3, 3) += gauge_weight * baseline * baseline.transpose();
         bc.segment<3>(3) += gauge_weight * baseline * baseline.dot(poses[1].centre - centre1_initial);
 
@@ -745,15 +768,16 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           double nsq = 0;
           const double k_before = metres;
           metres = k_before * std::exp(d_log_k);  // evaluate at the trial K (restored if rejected)
-          const double ncost = evaluate(np, nr, &nc, &nsq);
+          const double ncost = evaluate(np, nr, &nc, &nsq, &trial_over);
           if (!(ncost < cost)) metres = k_before;
           if (ncost < cost) {
             const double decrease = (cost - ncost) / std::max(1e-300, cost);
             poses.swap(np);
             rho.swap(nr);
             cost = ncost;
-            count = nc;  // count and sq: always the current state's
+            count = nc;  // count, sq and over: always the current state's
             sq = nsq;
+            over.swap(trial_over);
             lambda = std::max(1e-7, lambda / 3);
             accepted = true;
             if (decrease < options.function_tolerance) it = options.max_iterations;
@@ -764,27 +788,9 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         if (!accepted) break;
       }
       if (round + 1 == rounds) break;
-      // Drop residuals above the outlier threshold, then solve again.
-      for (int i = 0; i < num_points; ++i) {
-        const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-        const Eigen::Vector3d x = world_point(poses, i, rho[static_cast<size_t>(i)]);
-        for (int t = 0; t < num_kf; ++t) {
-          if (t == p.host) continue;
-          Eigen::Vector3d pt;
-          if (!project(poses, x, t, &pt)) continue;
-          const Eigen::Vector2d px = ProjectUndistorted(lcam, pt);
-          double value;
-          if (!lcam.InImage(px, border) || !SampleValue(image_of(*limg, i, t), px.x(), px.y(), &value)) continue;
-          double expected = lint[static_cast<size_t>(i)];
-          if (relit_point[static_cast<size_t>(i)]) {
-            const Eigen::Vector3d m = implied_normal(poses, i, rho[static_cast<size_t>(i)], metres);
-            if (!m.allFinite()) continue;
-            expected = relit_prediction(poses, i, t, pt, m, metres);
-          }
-          if (residual_scale[static_cast<size_t>(i)] * std::abs(value - expected) > options.outlier)
-            active[static_cast<size_t>(i) * num_kf + t] = 0;
-        }
-      }
+      // Drop the residuals above the outlier threshold (listed by the current state's evaluation), then
+      // solve again.
+      for (int idx : over) active[static_cast<size_t>(idx)] = 0;
     }
   }
   // count and sq are the final state's already (from its evaluation at the start of the last round or
