@@ -230,8 +230,7 @@ int main(int argc, char** argv) {
       else if (v == "warning") SetMinLogLevel(LogLevel::kWarning);
       else if (v == "error") SetMinLogLevel(LogLevel::kError);
       else return Fail("--log-level expects debug, info, warning or error, got '" + v + "'");
-    }
-    else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
+    } else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
   }
   if (sequence_dir.empty() == kitti_dir.empty() || out_dir.empty())
     return Fail("--out and one of --sequence or --kitti are required (see --help)");
