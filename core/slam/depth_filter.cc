@@ -521,8 +521,14 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       ScorePositions(samples.data(), outside_before.data(), kq, n + 2, errors.data());
       int best = -1;
       float best_err = std::numeric_limits<float>::infinity();
-      for (int s = 1; s <= n; ++s)
-        if (errors[static_cast<size_t>(s)] < best_err) best_err = errors[static_cast<size_t>(s)], best = s;
+      // The first smallest error, selected without a branch (which mispredicted often: 8% of this
+      // function's time in perf).
+      for (int s = 1; s <= n; ++s) {
+        const float err = errors[static_cast<size_t>(s)];
+        const bool smaller = err < best_err;
+        best = smaller ? s : best;
+        best_err = smaller ? err : best_err;
+      }
       if (attached_votes > 0 && best >= 0) {
         // The camera-attached hypothesis: the keyframe patch where it was, in the frame.
         const Eigen::Vector2f matched = start + ((best - 1.0f) * step) * e;

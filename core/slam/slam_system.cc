@@ -862,8 +862,16 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     const ScopedSeconds timer(&timings.depth_update);
     ++timings.depth_updates;
     frames.back().result.depth_updated = true;
+    // The tracker's J of this frame when its normalisation is the depth filter's (the defaults: the
+    // same image, not computed twice).
+    const TrackerOptions& to = tracker->options();
     cv::Mat j, mean;
-    KeyframeDepth::NormalisedGrey(rgb, options.depth, &j, &mean);
+    if (to.shading_model != ShadingModel::kNone && to.local_mean_radius_px == options.depth.local_mean_radius_px &&
+        to.local_mean_floor == options.depth.local_mean_floor && !tracker->last_frame_grey().empty()) {
+      j = tracker->last_frame_grey();
+    } else {
+      KeyframeDepth::NormalisedGrey(rgb, options.depth, &j, &mean);
+    }
     const DepthUpdateStats stats = current_depth->Update(j, tr.frame_from_keyframe, pool);
     timings.depth_pixels_searched += stats.searched;
   }

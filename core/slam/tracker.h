@@ -205,6 +205,15 @@ class Tracker {
   const TrackingKeyframe& keyframe() const { return keyframe_; }
   const TrackerOptions& options() const { return options_; }
 
+  // The image the last Track call tracked at full resolution (CV_32F; empty before the first call): with
+  // a shading model other than kNone the normalised grey level J, computed as KeyframeDepth::NormalisedGrey
+  // computes it (the same operations), so with the same local_mean_radius_px and local_mean_floor it is
+  // the depth filter's input for that frame. Valid until the next Track call.
+  const cv::Mat& last_frame_grey() const {
+    static const cv::Mat kEmpty;
+    return grey_pyramid_.empty() ? kEmpty : grey_pyramid_[0];
+  }
+
  private:
   Tracker(const PinholeCamera& camera, const TrackerOptions& options);
 
