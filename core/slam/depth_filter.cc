@@ -558,9 +558,13 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       // d * step > 2 (the test is monotone in d).
       int d_min = 1;
       while (!(static_cast<float>(d_min) * step > 2.0f)) ++d_min;
+      // One pass over all positions with the near ones masked (a fixed trip count: the two loops on
+      // either side of the best, of varying lengths, mispredicted their exits; the minimum is the same).
       float second = std::numeric_limits<float>::infinity();
-      for (int s = 1; s <= best - d_min; ++s) second = std::min(second, errors[static_cast<size_t>(s)]);
-      for (int s = std::max(1, best + d_min); s <= n; ++s) second = std::min(second, errors[static_cast<size_t>(s)]);
+      for (int s = 1; s <= n; ++s) {
+        const bool far = s <= best - d_min || s >= best + d_min;
+        second = far ? std::min(second, errors[static_cast<size_t>(s)]) : second;
+      }
       if (second < ratio * best_err) {
         ++stats->no_match;
         continue;
