@@ -654,18 +654,20 @@ void KeyframeDepth::Regularise() {
       if (!(p.var > 0) || p.observations == 0) continue;
       float sw = inverse_var[k], swd = weighted_idepth[k];
       int agree = 0;
+      // The neighbours without a branch (which mispredicted): one that is not a candidate, has no
+      // estimate or disagrees adds 0 to the sums (which leaves them as they are: the same sums in the same
+      // order); a non-candidate reads the pixel's own entries in its place.
       for (int dy = -1; dy <= 1; ++dy) {
         for (int dx = -1; dx <= 1; ++dx) {
           if (!dx && !dy) continue;
           const int32_t j = slot[static_cast<size_t>(y + dy) * w + x + dx];
-          if (j < 0) continue;  // not a candidate: never an estimate
-          const Pixel& q = pixels_[static_cast<size_t>(j)];
-          if (!(q.var > 0) || q.observations == 0) continue;
+          const size_t jj = j < 0 ? k : static_cast<size_t>(j);
+          const Pixel& q = pixels_[jj];
           const float d = q.idepth - p.idepth;
-          if (d * d > k2 * (p.var + q.var)) continue;
-          ++agree;
-          sw += inverse_var[static_cast<size_t>(j)];
-          swd += weighted_idepth[static_cast<size_t>(j)];
+          const bool ok = j >= 0 && q.var > 0 && q.observations != 0 && !(d * d > k2 * (p.var + q.var));
+          agree += ok;
+          sw += ok ? inverse_var[jj] : 0.0f;
+          swd += ok ? weighted_idepth[jj] : 0.0f;
         }
       }
       if (agree < options_.min_neighbours) {
@@ -705,8 +707,12 @@ InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double ma
 double KeyframeDepth::ComputeMeanInverseDepth() const {
   double s = 0;
   int n = 0;
-  for (const Pixel& p : pixels_) {  // in image order, as a pass over every pixel
-    if (p.var > 0 && p.observations > 0) s += p.idepth, ++n;
+  // In image order, as a pass over every pixel. Without a branch: adding 0 leaves the sum as it is, so
+  // this is the sum of the estimates alone, in the same order.
+  for (const Pixel& p : pixels_) {
+    const bool has = p.var > 0 && p.observations > 0;
+    s += has ? static_cast<double>(p.idepth) : 0.0;
+    n += has;
   }
   return n ? s / n : 0.0;
 }
