@@ -406,8 +406,10 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
     // the operations of the one-pixel form (a = R ray summed as Eigen's product of fixed size does,
     // R(i,0) x + (R(i,1) y + R(i,2) z) with z = 1; the projections as the `project` lambda was).
     int n_pass = 0;
-    for (int j = 0; j < n_row; ++j)
-      if (row_pass[j]) row_list[static_cast<size_t>(n_pass++)] = j;
+    for (int j = 0; j < n_row; ++j) {  // without a branch: each j written, kept when it passes
+      row_list[static_cast<size_t>(n_pass)] = j;
+      n_pass += row_pass[j];
+    }
     const int* list = row_list.data();
 #pragma omp simd
     for (int l = 0; l < n_pass; ++l) {
@@ -636,9 +638,8 @@ void KeyframeDepth::Regularise() {
   // once per neighbour (the same quotients). Entries of candidates without an estimate are never read.
   inverse_var.resize(num);
   weighted_idepth.resize(num);
-  for (size_t k = 0; k < num; ++k) {
+  for (size_t k = 0; k < num; ++k) {  // for every candidate (a loop that vectorises); used for estimates only
     const Pixel& q = pixels_[k];
-    if (!(q.var > 0) || q.observations == 0) continue;
     inverse_var[k] = 1.0f / q.var;
     weighted_idepth[k] = q.idepth / q.var;
   }
@@ -696,10 +697,11 @@ InverseDepthMap KeyframeDepth::ToInverseDepthMap(int min_observations, double ma
   for (size_t k = 0; k < pixels_.size(); ++k) {
     const Pixel& p = pixels_[k];
     const uint32_t i = index[k];
-    if (!(p.var > 0) || p.observations < std::max(min_observations, 1)) continue;
-    if (p.var > r2 * p.idepth * p.idepth) continue;
-    d[i] = p.idepth;
-    v[i] = p.var;
+    // Without a branch: a candidate left out writes the 0 its pixel already has.
+    const bool keep =
+        p.var > 0 && p.observations >= std::max(min_observations, 1) && !(p.var > r2 * p.idepth * p.idepth);
+    d[i] = keep ? p.idepth : 0.0f;
+    v[i] = keep ? p.var : 0.0f;
   }
   return m;
 }
@@ -720,9 +722,8 @@ double KeyframeDepth::ComputeMeanInverseDepth() const {
 int KeyframeDepth::NumValid() const {
   const float r2 = static_cast<float>(options_.max_relative_sigma * options_.max_relative_sigma);
   int n = 0;
-  for (const Pixel& p : pixels_) {
-    if (p.var > 0 && p.observations >= std::max(options_.min_observations, 1) && p.var <= r2 * p.idepth * p.idepth) ++n;
-  }
+  for (const Pixel& p : pixels_)
+    n += p.var > 0 && p.observations >= std::max(options_.min_observations, 1) && p.var <= r2 * p.idepth * p.idepth;
   return n;
 }
 
