@@ -163,8 +163,13 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
   const cv::Mat light_edge = options.light_edge_radius_px > 0 ? LightEdgeMask(rgb, crosstalk, options) : cv::Mat();
   auto candidates = std::make_shared<Candidates>();
   candidates->row_begin.assign(static_cast<size_t>(h) + 1, 0);
+  // Every pixel's index is written at the end of the list and kept (the count advanced) when it is a
+  // candidate: no branch per test (they mispredicted), no growth checks.
+  std::vector<uint32_t>& index = candidates->index;
+  index.resize(static_cast<size_t>(w) * h);
+  size_t count = 0;
   for (int y = 1; y < h - 1; ++y) {
-    candidates->row_begin[static_cast<size_t>(y)] = static_cast<uint32_t>(candidates->index.size());
+    candidates->row_begin[static_cast<size_t>(y)] = static_cast<uint32_t>(count);
     const float* up = kd.grey_j_.ptr<float>(y - 1);
     const float* row = kd.grey_j_.ptr<float>(y);
     const float* down = kd.grey_j_.ptr<float>(y + 1);
@@ -175,13 +180,14 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
     for (int x = 1; x < w - 1; ++x) {
       gx[x] = 0.5f * (row[x + 1] - row[x - 1]);
       gy[x] = 0.5f * (down[x] - up[x]);
-      if (x < border || y < border || x >= w - border || y >= h - border) continue;
-      if (m[x] < min_mean) continue;
-      if (gx[x] * gx[x] + gy[x] * gy[x] < min_g2) continue;
-      if (le && le[x]) continue;
-      candidates->index.push_back(static_cast<uint32_t>(y * w + x));
+      const bool inside = !(x < border || y < border || x >= w - border || y >= h - border);
+      const bool keep = inside && !(m[x] < min_mean) && !(gx[x] * gx[x] + gy[x] * gy[x] < min_g2) && !(le && le[x]);
+      index[count] = static_cast<uint32_t>(y * w + x);
+      count += keep;
     }
   }
+  index.resize(count);
+  index.shrink_to_fit();
   // Rows 0 and h - 1 hold none.
   candidates->row_begin[static_cast<size_t>(h) - 1] = static_cast<uint32_t>(candidates->index.size());
   candidates->row_begin[static_cast<size_t>(h)] = static_cast<uint32_t>(candidates->index.size());
