@@ -189,8 +189,9 @@ TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
   if (r.exit_code != 0 && r.out.find("mesh") != std::string::npos)
     GTEST_SKIP() << "bunny mesh not installed: " << r.out;
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  r = Execute(Bin("prism-slam") + " --sequence " + seq + " --out " + out + " --max-frames 60");
+  r = Execute(Bin("prism-slam") + " --sequence " + seq + " --out " + out + " --max-frames 60 --log-level debug");
   ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NE(r.out.find("keyframe adjustment"), std::string::npos) << "--log-level debug prints each adjustment";
   EXPECT_EQ(JsonNumber(r.out, "frames"), 60);
   EXPECT_EQ(JsonNumber(r.out, "lost_frames"), 0);
   EXPECT_GE(JsonNumber(r.out, "keyframes"), 2);
@@ -212,6 +213,7 @@ TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
   EXPECT_EQ(png->cols, 200);
   EXPECT_LT(cv::mean(*png)[0], 254.0) << "the picture shows points";
   for (const std::string& cmd : {Bin("prism-slam") + " --out " + out,
+                                 Bin("prism-slam") + " --sequence " + seq + " --out " + out + " --log-level loud",
                                  Bin("prism-slam") + " --sequence " + (dir / "none").string() + " --out " + out,
                                  Bin("prism-preview") + " --cloud " + (dir / "none.ply").string() + " --out x.png"}) {
     r = Execute(cmd);
