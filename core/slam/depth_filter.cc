@@ -641,7 +641,8 @@ void KeyframeDepth::Regularise() {
   thread_local std::vector<float> inverse_var, weighted_idepth;
   out.resize(num);
   // Each estimate's weight 1 / var and weighted inverse depth idepth / var, once per candidate instead of
-  // once per neighbour (the same quotients). Entries of candidates without an estimate are never read.
+  // once per neighbour (the same quotients). Entries of candidates without an estimate (1 / 0) are read
+  // below but never used.
   inverse_var.resize(num);
   weighted_idepth.resize(num);
   for (size_t k = 0; k < num; ++k) {  // for every candidate (a loop that vectorises); used for estimates only
