@@ -212,6 +212,27 @@ TEST(TrackerTest, ANewDepthForTheSameImageTracksAsAFreshTracker) {
   }
 }
 
+// SlamSystem hands the tracker's image of a frame to the depth filter in place of computing it again
+// (their normalisations agree in SlamOptions): it must be KeyframeDepth::NormalisedGrey's, bit for bit.
+TEST(TrackerTest, LastFrameGreyIsTheDepthFiltersNormalisedImage) {
+  SynthSequence seq;
+  std::string why;
+  if (!MakeSequence("bunny-multicolor-forward", 320, 240, &seq, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  const synth::RenderedFrame key = seq.Render(0), frame = seq.Render(3);
+  const SlamOptions slam;
+  StatusOr<Tracker> tracker = Tracker::Create(seq.setup.rig, slam.tracker);
+  ASSERT_TRUE(tracker.ok()) << tracker.status();
+  EXPECT_TRUE(tracker->last_frame_grey().empty());
+  ASSERT_TRUE(tracker->SetKeyframe(key.rgb, GroundTruthInverseDepth(key.depth)).ok());
+  ASSERT_TRUE(tracker->Track(frame.rgb, Rigid3d()).ok());
+  cv::Mat j, mean;
+  KeyframeDepth::NormalisedGrey(frame.rgb, slam.depth, &j, &mean);
+  const cv::Mat& t = tracker->last_frame_grey();
+  ASSERT_EQ(t.size(), j.size());
+  ASSERT_EQ(t.type(), CV_32F);
+  EXPECT_EQ(cv::norm(t, j, cv::NORM_INF), 0.0);
+}
+
 TEST(TrackerTest, RejectsInvalidInput) {
   SynthSequence seq;
   std::string why;
