@@ -6,6 +6,7 @@
 #include <string>
 
 #include "core/slam/slam_config.h"
+#include "core/util/log_level.h"
 #include "core/util/logging.h"
 #include "server/curve.h"
 #include "server/server.h"
@@ -73,11 +74,7 @@ int main(int argc, char** argv) {
     const std::string key = a.substr(2), value = argv[++i];
     if (key == "config") continue;
     if (key == "log-level") {
-      if (value == "debug") prism::SetMinLogLevel(prism::LogLevel::kDebug);
-      else if (value == "info") prism::SetMinLogLevel(prism::LogLevel::kInfo);
-      else if (value == "warning") prism::SetMinLogLevel(prism::LogLevel::kWarning);
-      else if (value == "error") prism::SetMinLogLevel(prism::LogLevel::kError);
-      else return Fail("bad --log-level '" + value + "'");
+      if (!prism::SetMinLogLevel(value)) return Fail("bad --log-level '" + value + "'");
       continue;
     }
     if (prism::Status s = ApplyServerOption(key, value, &options); !s.ok()) return Fail(s.message() + " (see --help)");

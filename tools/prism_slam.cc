@@ -23,6 +23,7 @@
 #include "core/slam/slam_config.h"
 #include "core/slam/slam_system.h"
 #include "core/slam/undistort.h"
+#include "core/util/log_level.h"
 #include "core/util/logging.h"
 #include "core/util/thread_pool.h"
 
@@ -225,11 +226,7 @@ int main(int argc, char** argv) {
     } else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
     else if (a == "--log-level") {
-      if (v == "debug") SetMinLogLevel(LogLevel::kDebug);
-      else if (v == "info") SetMinLogLevel(LogLevel::kInfo);
-      else if (v == "warning") SetMinLogLevel(LogLevel::kWarning);
-      else if (v == "error") SetMinLogLevel(LogLevel::kError);
-      else return Fail("--log-level expects debug, info, warning or error, got '" + v + "'");
+      if (!SetMinLogLevel(v)) return Fail("--log-level expects debug, info, warning or error, got '" + v + "'");
     } else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
   }
   if (sequence_dir.empty() == kitti_dir.empty() || out_dir.empty())

@@ -6,6 +6,8 @@
 #include <cstring>
 #include <ctime>
 
+#include "core/util/log_level.h"
+
 namespace prism {
 namespace {
 std::atomic<int> g_min_level{static_cast<int>(LogLevel::kInfo)};
@@ -27,6 +29,15 @@ const char* LevelName(LogLevel level) {
 
 void SetMinLogLevel(LogLevel level) { g_min_level = static_cast<int>(level); }
 LogLevel MinLogLevel() { return static_cast<LogLevel>(g_min_level.load()); }
+
+bool SetMinLogLevel(const std::string& name) {
+  if (name == "debug") SetMinLogLevel(LogLevel::kDebug);
+  else if (name == "info") SetMinLogLevel(LogLevel::kInfo);
+  else if (name == "warning") SetMinLogLevel(LogLevel::kWarning);
+  else if (name == "error") SetMinLogLevel(LogLevel::kError);
+  else return false;
+  return true;
+}
 
 namespace internal {
 LogMessage::LogMessage(LogLevel level, const char* file, int line) : level_(level) {
