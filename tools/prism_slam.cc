@@ -89,7 +89,7 @@ options:
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
-  --threads N      threads for the depth filter (default: all cores)
+  --threads N      threads for the depth filter and the keyframe adjustments (default: all cores)
   --log-level L    debug, info, warning or error (default: info); debug prints each keyframe
                    adjustment's points, residuals, RMS and iterations
   --no-eval        skip the evaluation against ground truth

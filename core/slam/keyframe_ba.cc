@@ -1,6 +1,7 @@
 #include "core/slam/keyframe_ba.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 #include <sstream>
@@ -8,6 +9,8 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>
 #include <opencv2/imgproc.hpp>
+
+#include "core/util/thread_pool.h"
 
 namespace prism {
 namespace {
@@ -179,7 +182,8 @@ cv::Mat MeanOfChannels(const cv::Mat& rgb) {
   return grey;
 }
 
-StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem) {
+StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem,
+                                                     ThreadPool* pool) {
   PRISM_RETURN_IF_ERROR(options.Check());
   if (problem == nullptr) return InvalidArgumentError("AdjustKeyframeWindowDirect: problem is null");
   const int num_kf = static_cast<int>(problem->world_from_keyframe.size());
@@ -376,10 +380,62 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
   };
 
+  // With a pool: how many workers take targets in parallel, and each worker's scratch. Each target's
+  // terms are kept apart and summed target by target afterwards, in the one-thread order.
+  const int workers = pool != nullptr && !use_relit ? std::max(1, std::min(pool->num_threads(), num_kf)) : 1;
+  std::vector<ProjectedList> worker_visible;
+  std::vector<std::vector<Sampled>> worker_sampled(static_cast<size_t>(workers));
+  std::vector<std::vector<Eigen::Matrix3d>> worker_target_from_host(
+      static_cast<size_t>(workers), std::vector<Eigen::Matrix3d>(static_cast<size_t>(num_kf)));
+  if (workers > 1)
+    for (int w = 0; w < workers; ++w) worker_visible.emplace_back(static_cast<size_t>(num_points));
+  // Runs fn(t, worker) for every target, each worker pulling the next target (its own scratch).
+  auto for_each_target_parallel = [&](const auto& fn) {
+    std::atomic<int> next{0};
+    pool->ParallelFor(0, workers, [&](std::ptrdiff_t w) {
+      for (int t = next.fetch_add(1); t < num_kf; t = next.fetch_add(1)) fn(t, static_cast<int>(w));
+    });
+  };
+
   // The cost, target by target (each target's image read in about raster order).
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
   ProjectedList eval_visible(static_cast<size_t>(num_points));               // scratch: one target's
   std::vector<Sampled> eval_values;  // scratch: their image values (the gradients unused)
+  // Target t's residuals at poses ps and inverse depths rs: residual(point, |scaled residual|) for each, in
+  // the order they are summed.
+  auto evaluate_target = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int t, ProjectedList* vis,
+                             std::vector<Sampled>* values, const auto& residual) {
+    const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
+    const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
+    // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
+    collect_visible(
+        t, rt_t, c_t, eval_world,
+        [&](int i) { return rs[static_cast<size_t>(i)] > 0 && !std::isnan(lint[static_cast<size_t>(i)]); }, vis);
+    // The image reads first, all at once (a short loop whose loads overlap), then the residuals.
+    values->resize(vis->size());
+    for (size_t k = 0; k < vis->size(); ++k) {
+      prefetch_ahead(*vis, k, t);
+      const Eigen::Vector2d& px = (*vis)[k].px;
+      (*values)[k].ok = SampleValue(image_of(*limg, (*vis)[k].point, t), px.x(), px.y(), &(*values)[k].value);
+    }
+    for (size_t k = 0; k < vis->size(); ++k) {
+      if (!(*values)[k].ok) continue;
+      const int i = (*vis)[k].point;
+      const Eigen::Vector3d& pt = (*vis)[k].pt;
+      const double value = (*values)[k].value;
+      double expected = lint[static_cast<size_t>(i)];
+      if (relit_point[static_cast<size_t>(i)]) {
+        if (!normal_rho[static_cast<size_t>(i)].allFinite()) continue;
+        expected = relit_prediction(ps, i, t, pt, normal_rho[static_cast<size_t>(i)], metres);
+      }
+      residual(i, residual_scale[static_cast<size_t>(i)] * std::abs(value - expected));
+    }
+  };
+  struct EvalTerm {
+    int point;
+    double e;
+  };
+  std::vector<std::vector<EvalTerm>> eval_terms(workers > 1 ? static_cast<size_t>(num_kf) : 0);
   // The residuals above options.outlier are listed in *over (point * num_kf + target) as they are summed:
   // the outlier test after the first solve then reads the current state's list instead of projecting and
   // sampling every residual again (the same residuals, values and test).
@@ -395,38 +451,26 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         if (relit_point[static_cast<size_t>(i)] && !std::isnan(lint[static_cast<size_t>(i)]))
           normal_rho[static_cast<size_t>(i)] = implied_normal(ps, i, rs[static_cast<size_t>(i)], metres);
       }
-    for (int t = 0; t < num_kf; ++t) {
-      const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
-      const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
-      // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
-      collect_visible(
-          t, rt_t, c_t, eval_world,
-          [&](int i) { return rs[static_cast<size_t>(i)] > 0 && !std::isnan(lint[static_cast<size_t>(i)]); },
-          &eval_visible);
-      // The image reads first, all at once (a short loop whose loads overlap), then the residuals.
-      eval_values.resize(eval_visible.size());
-      for (size_t k = 0; k < eval_visible.size(); ++k) {
-        prefetch_ahead(eval_visible, k, t);
-        const Eigen::Vector2d& px = eval_visible[k].px;
-        eval_values[k].ok =
-            SampleValue(image_of(*limg, eval_visible[k].point, t), px.x(), px.y(), &eval_values[k].value);
-      }
-      for (size_t k = 0; k < eval_visible.size(); ++k) {
-        if (!eval_values[k].ok) continue;
-        const int i = eval_visible[k].point;
-        const Eigen::Vector3d& pt = eval_visible[k].pt;
-        const double value = eval_values[k].value;
-        double expected = lint[static_cast<size_t>(i)];
-        if (relit_point[static_cast<size_t>(i)]) {
-          if (!normal_rho[static_cast<size_t>(i)].allFinite()) continue;
-          expected = relit_prediction(ps, i, t, pt, normal_rho[static_cast<size_t>(i)], metres);
-        }
-        const double e = residual_scale[static_cast<size_t>(i)] * std::abs(value - expected);
-        cost += HuberCost(e, options.huber);
-        *sq += e * e;
-        ++*count;
-        if (e > options.outlier) over->push_back(i * num_kf + t);
-      }
+    auto add = [&](int t, int i, double e) {
+      cost += HuberCost(e, options.huber);
+      *sq += e * e;
+      ++*count;
+      if (e > options.outlier) over->push_back(i * num_kf + t);
+    };
+    if (workers > 1) {
+      for_each_target_parallel([&](int t, int w) {
+        std::vector<EvalTerm>& terms = eval_terms[static_cast<size_t>(t)];
+        terms.clear();
+        evaluate_target(ps, rs, t, &worker_visible[static_cast<size_t>(w)], &worker_sampled[static_cast<size_t>(w)],
+                        [&](int i, double e) {
+                          terms.push_back({i, e});
+                        });
+      });
+      for (int t = 0; t < num_kf; ++t)
+        for (const EvalTerm& term : eval_terms[static_cast<size_t>(t)]) add(t, term.point, term.e);
+    } else {
+      for (int t = 0; t < num_kf; ++t)
+        evaluate_target(ps, rs, t, &eval_visible, &eval_values, [&](int i, double e) { add(t, i, e); });
     }
     const double along = baseline.dot(ps[1].centre - centre1_initial);
     return cost + 0.5 * gauge_weight * along * along;
@@ -446,12 +490,21 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // (a residual hosted or observed there); it is exactly zero elsewhere.
   std::vector<uint8_t> touched(static_cast<size_t>(num_points) * num_kf, 0);
   std::vector<int> segments;  // scratch: the offsets of a point's touched segments, ascending
-  std::vector<PairSums> pairs(static_cast<size_t>(num_kf * num_kf));    // [host * num_kf + target]
+  std::vector<PairSums> pairs(static_cast<size_t>(num_kf * num_kf));    // [target * num_kf + host]
   std::vector<Eigen::Vector3d> world(static_cast<size_t>(num_points));  // scratch: the points in the world
   std::vector<uint8_t> point_ok(static_cast<size_t>(num_points));
-  ProjectedList visible(static_cast<size_t>(num_points));  // scratch: one target's residuals
-  std::vector<Sampled> sampled;                            // scratch: their image values and gradients
-  std::vector<Eigen::Matrix3d> target_from_host(static_cast<size_t>(num_kf));
+  ProjectedList lin_visible(static_cast<size_t>(num_points));  // scratch: one target's residuals
+  std::vector<Sampled> lin_sampled;                            // scratch: their image values and gradients
+  std::vector<Eigen::Matrix3d> lin_target_from_host(static_cast<size_t>(num_kf));
+  // With workers: each target's residual terms of its points' sums, in order (see linearise_target).
+  // Per target, the terms in its order and each point's term (-1: none).
+  struct LinTerm {
+    int host;
+    double h, b, e;
+    Eigen::Matrix<double, 6, 1> target_segment, host_segment;
+  };
+  std::vector<std::vector<LinTerm>> lin_terms(workers > 1 ? static_cast<size_t>(num_kf) : 0);
+  std::vector<int> lin_term_index(workers > 1 ? static_cast<size_t>(num_kf) * num_points : 0);
   std::vector<double> hinv0(static_cast<size_t>(num_points)), hinv(static_cast<size_t>(num_points));
   std::vector<double> h_pk(static_cast<size_t>(num_points), 0.0);  // relit, K estimated
   for (int level = levels - 1; level >= 0; --level) {
@@ -521,7 +574,13 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             }
           }
         }
-        for (int t = 0; t < num_kf; ++t) {
+        // Target t's residuals. Its pairs' sums are written here (no other target writes them); each
+        // residual's terms of its point's sums (the Hessian and gradient of the inverse depth, the target's
+        // and the host's segments of the coupling) and its cost go to point_terms(point, host, target, h, b,
+        // target segment, host segment, |scaled residual|). With workers they are kept per target and
+        // added afterwards: written here, the points' sums of two targets would share cache lines.
+        auto linearise_target = [&](int t, ProjectedList& visible, std::vector<Sampled>& sampled,
+                                    std::vector<Eigen::Matrix3d>& target_from_host, const auto& point_terms) {
           const Pose& tp = poses[static_cast<size_t>(t)];
           const Eigen::Matrix3d rt_t = tp.rotation.transpose();
           // d (point in target) / d (point in host camera, host units), per host: R_t^T s_h R_h.
@@ -556,11 +615,6 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             const double s_i = residual_scale[static_cast<size_t>(i)];
             const double e = s_i * std::abs(res);
             const double w = (e <= options.huber ? 1.0 : options.huber / e) * s_i * s_i;
-            if (sum_cost) {
-              lin_cost += HuberCost(e, options.huber);
-              lin_sq += e * e;
-              ++lin_count;
-            }
             const double iz = 1.0 / pt.z();
             Eigen::Matrix<double, 2, 3> du_dp;
             du_dp << lcam.fx * iz, 0, -lcam.fx * pt.x() * iz * iz, 0, lcam.fy * iz, -lcam.fy * pt.y() * iz * iz;
@@ -626,33 +680,90 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
               if (p.host > 0) h_ck.segment<6>(6 * (p.host - 1)) += w * j_host.transpose() * j_k;
               h_pk[static_cast<size_t>(i)] += w * j_rho * j_k;
             }
-            hpp[static_cast<size_t>(i)] += w * j_rho * j_rho;
-            bp[static_cast<size_t>(i)] += w * j_rho * res;
             const int kh = p.host, kt = t;
             // The pose blocks are accumulated per (host, target) pair in the target's parameters alone
-            // (lower triangle), and mapped to the host's after the loop (DirectBaHostFromTarget).
-            PairSums& pair = pairs[static_cast<size_t>(kh * num_kf + kt)];
+            // (lower triangle), and mapped to the host's after the loop (DirectBaHostFromTarget). A target's
+            // pairs lie together (no two workers write the same ones).
+            PairSums& pair = pairs[static_cast<size_t>(kt * num_kf + kh)];
             const Eigen::Matrix<double, 1, 6> wj = w * j_target;
             for (int c = 0; c < 6; ++c)
               for (int rr = c; rr < 6; ++rr) pair.h(rr, c) += wj(rr) * j_target(c);
             pair.b += wj.transpose() * res;
             pair.used = true;
-            Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-            uint8_t* point_touched = &touched[static_cast<size_t>(i) * num_kf];
-            if (kt > 0) {
-              hc.segment<6>(6 * (kt - 1)) += wj.transpose() * j_rho;
-              point_touched[kt] = 1;
-            }
-            if (kh > 0) {
-              hc.segment<6>(6 * (kh - 1)) += w * j_host.transpose() * j_rho;
-              point_touched[kh] = 1;
-            }
+            Eigen::Matrix<double, 6, 1> target_segment = Eigen::Matrix<double, 6, 1>::Zero();
+            if (kt > 0) target_segment = wj.transpose() * j_rho;
+            Eigen::Matrix<double, 6, 1> host_segment = Eigen::Matrix<double, 6, 1>::Zero();
+            if (kh > 0) host_segment = w * j_host.transpose() * j_rho;
+            point_terms(i, kh, kt, w * j_rho * j_rho, w * j_rho * res, target_segment, host_segment, e);
           }
+        };
+        auto add_cost = [&](double e) {
+          if (sum_cost) {
+            lin_cost += HuberCost(e, options.huber);
+            lin_sq += e * e;
+            ++lin_count;
+          }
+        };
+        auto add_point_terms = [&](int i, int kh, int kt, double h, double b,
+                                   const Eigen::Matrix<double, 6, 1>& target_segment,
+                                   const Eigen::Matrix<double, 6, 1>& host_segment) {
+          hpp[static_cast<size_t>(i)] += h;
+          bp[static_cast<size_t>(i)] += b;
+          // The target's segment has this one term (one residual per point and target), the host's one per
+          // target.
+          if (kt > 0) {
+            hcp[static_cast<size_t>(i)].segment<6>(6 * (kt - 1)) += target_segment;
+            touched[static_cast<size_t>(i) * num_kf + kt] = 1;
+          }
+          if (kh > 0) {
+            hcp[static_cast<size_t>(i)].segment<6>(6 * (kh - 1)) += host_segment;
+            touched[static_cast<size_t>(i) * num_kf + kh] = 1;
+          }
+        };
+        if (workers > 1) {
+          for_each_target_parallel([&](int t, int w) {
+            std::vector<LinTerm>& terms = lin_terms[static_cast<size_t>(t)];
+            int* index = &lin_term_index[static_cast<size_t>(t) * num_points];
+            terms.clear();
+            std::fill(index, index + num_points, -1);
+            linearise_target(
+                t, worker_visible[static_cast<size_t>(w)], worker_sampled[static_cast<size_t>(w)],
+                worker_target_from_host[static_cast<size_t>(w)],
+                [&](int i, int kh, int /*kt: t*/, double h, double b, const Eigen::Matrix<double, 6, 1>& target_segment,
+                    const Eigen::Matrix<double, 6, 1>& host_segment, double e) {
+                  index[i] = static_cast<int>(terms.size());
+                  terms.push_back({kh, h, b, e, target_segment, host_segment});
+                });
+          });
+          // The cost in the one-thread order (target by target); each point's sums target by target, as the
+          // one-thread order adds them, in parallel over the points.
+          for (int t = 0; t < num_kf; ++t)
+            for (const LinTerm& term : lin_terms[static_cast<size_t>(t)]) add_cost(term.e);
+          const int chunk = 256;
+          pool->ParallelFor(0, (num_points + chunk - 1) / chunk, [&](std::ptrdiff_t c) {
+            const int i1 = std::min(num_points, static_cast<int>(c + 1) * chunk);
+            for (int i = static_cast<int>(c) * chunk; i < i1; ++i)
+              for (int t = 0; t < num_kf; ++t) {
+                const int k = lin_term_index[static_cast<size_t>(t) * num_points + i];
+                if (k < 0) continue;
+                const LinTerm& term = lin_terms[static_cast<size_t>(t)][static_cast<size_t>(k)];
+                add_point_terms(i, term.host, t, term.h, term.b, term.target_segment, term.host_segment);
+              }
+          });
+        } else {
+          for (int t = 0; t < num_kf; ++t)
+            linearise_target(
+                t, lin_visible, lin_sampled, lin_target_from_host,
+                [&](int i, int kh, int kt, double h, double b, const Eigen::Matrix<double, 6, 1>& target_segment,
+                    const Eigen::Matrix<double, 6, 1>& host_segment, double e) {
+                  add_cost(e);
+                  add_point_terms(i, kh, kt, h, b, target_segment, host_segment);
+                });
         }
         // Each pair's sums, in the target's parameters, and mapped to the host's: j_host = j_target A.
         for (int kh = 0; kh < num_kf; ++kh)
           for (int kt = 0; kt < num_kf; ++kt) {
-            PairSums& pair = pairs[static_cast<size_t>(kh * num_kf + kt)];
+            PairSums& pair = pairs[static_cast<size_t>(kt * num_kf + kh)];
             if (!pair.used) continue;
             const Eigen::Matrix<double, 6, 6> h_tt = pair.h.selfadjointView<Eigen::Lower>();
             const Eigen::Matrix<double, 6, 6> a =
@@ -691,19 +802,39 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         for (int i = 0; i < num_points; ++i) {
           const double h = hpp[static_cast<size_t>(i)];
           hinv0[static_cast<size_t>(i)] = h > 1e-12 ? 1.0 / h : 0.0;
-          if (hinv0[static_cast<size_t>(i)] == 0) continue;
-          const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-          // schur -= hc hc^T / h over the touched segments' blocks only (hc is zero elsewhere).
-          const double alpha = -hinv0[static_cast<size_t>(i)];
-          segments.clear();
-          for (int k = 1; k < num_kf; ++k)
-            if (touched[static_cast<size_t>(i) * num_kf + k]) segments.push_back(6 * (k - 1));
-          for (size_t cb = 0; cb < segments.size(); ++cb) {
-            const Eigen::Matrix<double, 6, 1> scaled = alpha * hc.segment<6>(segments[cb]);
-            for (size_t rb = cb; rb < segments.size(); ++rb)
-              schur.block<6, 6>(segments[rb], segments[cb]).noalias() +=
-                  hc.segment<6>(segments[rb]) * scaled.transpose();
-            schur_b.segment<6>(segments[cb]) += scaled * bp[static_cast<size_t>(i)];
+        }
+        if (workers > 1) {
+          // Column block by column block in parallel (each block's sum over the points in the one-thread
+          // order; a column block is contiguous in the column-major matrix).
+          pool->ParallelFor(1, num_kf, [&](std::ptrdiff_t kc) {
+            const int oc = 6 * (static_cast<int>(kc) - 1);
+            for (int i = 0; i < num_points; ++i) {
+              const uint8_t* point_touched = &touched[static_cast<size_t>(i) * num_kf];
+              if (hinv0[static_cast<size_t>(i)] == 0 || !point_touched[kc]) continue;
+              const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+              const Eigen::Matrix<double, 6, 1> scaled = -hinv0[static_cast<size_t>(i)] * hc.segment<6>(oc);
+              for (int kr = static_cast<int>(kc); kr < num_kf; ++kr)
+                if (point_touched[kr])
+                  schur.block<6, 6>(6 * (kr - 1), oc).noalias() += hc.segment<6>(6 * (kr - 1)) * scaled.transpose();
+              schur_b.segment<6>(oc) += scaled * bp[static_cast<size_t>(i)];
+            }
+          });
+        } else {
+          for (int i = 0; i < num_points; ++i) {
+            if (hinv0[static_cast<size_t>(i)] == 0) continue;
+            const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+            // schur -= hc hc^T / h over the touched segments' blocks only (hc is zero elsewhere).
+            const double alpha = -hinv0[static_cast<size_t>(i)];
+            segments.clear();
+            for (int k = 1; k < num_kf; ++k)
+              if (touched[static_cast<size_t>(i) * num_kf + k]) segments.push_back(6 * (k - 1));
+            for (size_t cb = 0; cb < segments.size(); ++cb) {
+              const Eigen::Matrix<double, 6, 1> scaled = alpha * hc.segment<6>(segments[cb]);
+              for (size_t rb = cb; rb < segments.size(); ++rb)
+                schur.block<6, 6>(segments[rb], segments[cb]).noalias() +=
+                    hc.segment<6>(segments[rb]) * scaled.transpose();
+              schur_b.segment<6>(segments[cb]) += scaled * bp[static_cast<size_t>(i)];
+            }
           }
         }
         // Relit with K estimated: log K's row of the Schur complement (every point couples to it).

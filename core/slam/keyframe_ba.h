@@ -34,6 +34,8 @@
 
 namespace prism {
 
+class ThreadPool;
+
 struct DirectBaPoint {
   int host = 0;             // index into DirectBaProblem::world_from_keyframe
   float u = 0, v = 0;       // pixel in the host
@@ -166,6 +168,12 @@ double DepthOverlapFraction(const PinholeCamera& camera, const cv::Mat& inverse_
 
 // Fails on invalid options, fewer than 2 keyframes, a grey image of the wrong size or type, a point with
 // an out-of-range host or a non-positive inverse depth, or a camera with distortion.
-StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem);
+//
+// With a pool of more than one thread the residuals are linearised and evaluated target by target in
+// parallel (without the relit residual; with it the pool is not used). Every sum is still formed in the
+// one-thread order (each target's terms are kept and added target by target afterwards), so the result
+// is the same to the last bit with or without the pool.
+StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem,
+                                                     ThreadPool* pool = nullptr);
 
 }  // namespace prism

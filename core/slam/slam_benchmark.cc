@@ -166,6 +166,9 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
         j, inverse_depth, k, slam_options.keyframe_window_cell_px, 0.0f, [](int, int) { return true; }, &start.points);
   }
   for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
+  // Arg: threads (1: no pool, as SlamSystem on one thread).
+  const int threads = static_cast<int>(state.range(0));
+  std::unique_ptr<ThreadPool> pool = threads > 1 ? std::make_unique<ThreadPool>(threads) : nullptr;
   DirectBaSummary summary;
   double seconds = 0;
   for (auto _ : state) {
@@ -173,7 +176,7 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
     DirectBaProblem problem = start;
     state.ResumeTiming();
     const auto t0 = std::chrono::steady_clock::now();
-    StatusOr<DirectBaSummary> s = AdjustKeyframeWindowDirect(slam_options.keyframe_window_ba, &problem);
+    StatusOr<DirectBaSummary> s = AdjustKeyframeWindowDirect(slam_options.keyframe_window_ba, &problem, pool.get());
     seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (!s.ok()) {
       state.SkipWithError(s.status().ToString().c_str());
@@ -189,11 +192,15 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
       1e9 * seconds / (static_cast<double>(state.iterations()) * summary.residuals * 2 * summary.iterations);
 }
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, torus, std::string("torus-textured-forward"))
+    ->Arg(1)
+    ->Arg(2)
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo-textured-forward"))
+    ->Arg(1)
+    ->Arg(2)
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)

@@ -1209,7 +1209,7 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   std::vector<float> initial_inverse_depth;
   initial_inverse_depth.reserve(problem.points.size());
   for (const DirectBaPoint& p : problem.points) initial_inverse_depth.push_back(p.inverse_depth);
-  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(used_options, &problem);
+  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(used_options, &problem, pool);
   if (at_finish)
     for (Keyframe& kf : keyframes) kf.grey_j.release();
   if (relit && summary.ok()) {
