@@ -496,8 +496,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   ProjectedList lin_visible(static_cast<size_t>(num_points));  // scratch: one target's residuals
   std::vector<Sampled> lin_sampled;                            // scratch: their image values and gradients
   std::vector<Eigen::Matrix3d> lin_target_from_host(static_cast<size_t>(num_kf));
-  // With workers: each target's residual terms of its points' sums, in order (see linearise_target).
-  // Per target, the terms in its order and each point's term (-1: none).
+  // With workers: each target's residual terms of its points' sums in its order (see linearise_target),
+  // and per target and point the index of the point's term there (-1: none).
   struct LinTerm {
     int host;
     double h, b, e;
