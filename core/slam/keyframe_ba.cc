@@ -802,39 +802,19 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         for (int i = 0; i < num_points; ++i) {
           const double h = hpp[static_cast<size_t>(i)];
           hinv0[static_cast<size_t>(i)] = h > 1e-12 ? 1.0 / h : 0.0;
-        }
-        if (workers > 1) {
-          // Column block by column block in parallel (each block's sum over the points in the one-thread
-          // order; a column block is contiguous in the column-major matrix).
-          pool->ParallelFor(1, num_kf, [&](std::ptrdiff_t kc) {
-            const int oc = 6 * (static_cast<int>(kc) - 1);
-            for (int i = 0; i < num_points; ++i) {
-              const uint8_t* point_touched = &touched[static_cast<size_t>(i) * num_kf];
-              if (hinv0[static_cast<size_t>(i)] == 0 || !point_touched[kc]) continue;
-              const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-              const Eigen::Matrix<double, 6, 1> scaled = -hinv0[static_cast<size_t>(i)] * hc.segment<6>(oc);
-              for (int kr = static_cast<int>(kc); kr < num_kf; ++kr)
-                if (point_touched[kr])
-                  schur.block<6, 6>(6 * (kr - 1), oc).noalias() += hc.segment<6>(6 * (kr - 1)) * scaled.transpose();
-              schur_b.segment<6>(oc) += scaled * bp[static_cast<size_t>(i)];
-            }
-          });
-        } else {
-          for (int i = 0; i < num_points; ++i) {
-            if (hinv0[static_cast<size_t>(i)] == 0) continue;
-            const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
-            // schur -= hc hc^T / h over the touched segments' blocks only (hc is zero elsewhere).
-            const double alpha = -hinv0[static_cast<size_t>(i)];
-            segments.clear();
-            for (int k = 1; k < num_kf; ++k)
-              if (touched[static_cast<size_t>(i) * num_kf + k]) segments.push_back(6 * (k - 1));
-            for (size_t cb = 0; cb < segments.size(); ++cb) {
-              const Eigen::Matrix<double, 6, 1> scaled = alpha * hc.segment<6>(segments[cb]);
-              for (size_t rb = cb; rb < segments.size(); ++rb)
-                schur.block<6, 6>(segments[rb], segments[cb]).noalias() +=
-                    hc.segment<6>(segments[rb]) * scaled.transpose();
-              schur_b.segment<6>(segments[cb]) += scaled * bp[static_cast<size_t>(i)];
-            }
+          if (hinv0[static_cast<size_t>(i)] == 0) continue;
+          const Eigen::VectorXd& hc = hcp[static_cast<size_t>(i)];
+          // schur -= hc hc^T / h over the touched segments' blocks only (hc is zero elsewhere).
+          const double alpha = -hinv0[static_cast<size_t>(i)];
+          segments.clear();
+          for (int k = 1; k < num_kf; ++k)
+            if (touched[static_cast<size_t>(i) * num_kf + k]) segments.push_back(6 * (k - 1));
+          for (size_t cb = 0; cb < segments.size(); ++cb) {
+            const Eigen::Matrix<double, 6, 1> scaled = alpha * hc.segment<6>(segments[cb]);
+            for (size_t rb = cb; rb < segments.size(); ++rb)
+              schur.block<6, 6>(segments[rb], segments[cb]).noalias() +=
+                  hc.segment<6>(segments[rb]) * scaled.transpose();
+            schur_b.segment<6>(segments[cb]) += scaled * bp[static_cast<size_t>(i)];
           }
         }
         // Relit with K estimated: log K's row of the Schur complement (every point couples to it).
