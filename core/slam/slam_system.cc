@@ -1223,7 +1223,9 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   }
   // Each adjusted keyframe keeps its depth map; its depth unit follows the adjusted inverse depths of the
   // points it hosts (median ratio).
-  for (int k = first + 1; k < n; ++k) {
+  // The oldest keeps its pose (the gauge) and with refit_oldest_keyframe_scale has its unit re-fitted too.
+  const int first_refitted = options.refit_oldest_keyframe_scale ? first : first + 1;
+  for (int k = first_refitted; k < n; ++k) {
     Sim3d pose = problem.world_from_keyframe[static_cast<size_t>(k - first)];
     std::vector<double> ratios;
     for (size_t i = 0; i < problem.points.size(); ++i) {
@@ -1240,13 +1242,13 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   }
   // The odometry edges follow (a later loop closure starts from the adjusted chain), as do the frames.
   for (PoseGraphEdge& e : graph_edges) {
-    if (e.to - e.from != 1 || e.to <= first) continue;
+    if (e.to - e.from != 1 || e.to < first_refitted) continue;
     e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
                      keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
   }
   if (options.repropagate_after_adjustment && !at_finish) RepropagateNewestKeyframe();
   for (FrameRecord& f : frames)
-    if (f.result.state == SlamState::kTracking && f.result.keyframe_id > first)
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= first_refitted)
       f.result.world_from_camera = WorldFromFrame(f);
   ++keyframe_adjustments;
   PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1 << ": "
