@@ -657,8 +657,8 @@ TEST(SlamSystem, MoreInitialisationRoundsStraightenTheFirstDepth) {
   EXPECT_LT(std::abs(tilt[1]), kMaxTiltRatio * std::abs(tilt[0]));
 }
 
-// SlamOptions::refit_oldest_keyframe_scale: the oldest keyframe of an adjustment keeps its pose but its
-// points' inverse depths move, and its depth unit follows them. The first keyframe is the oldest of every
+// SlamOptions::refit_oldest_keyframe_scale (off by default): the oldest keyframe of an adjustment keeps its pose but
+// its points' inverse depths move, and its depth unit follows them. The first keyframe is the oldest of every
 // adjustment it is in, and without the re-fit it kept the initialisation's unit. Scored here as each
 // keyframe's own scale against the truth (median of true / estimated depth, through the trajectory's
 // Sim(3) scale) after Finish: the first keyframe's against the median of the others'. Measured on the
