@@ -134,6 +134,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"final_adjustment", &o.final_adjustment});
   f.push_back({"final_adjustment_max_keyframes", &o.final_adjustment_max_keyframes});
   f.push_back({"final_refinement_neighbours", &o.final_refinement_neighbours});
+  f.push_back({"final_refinement_first_from_second", &o.final_refinement_first_from_second});
   f.push_back({"final_refinement_relative_sigma", &o.final_refinement_relative_sigma});
   f.push_back({"final_refinement_rounds", &o.final_refinement_rounds});
   AddTracker("tracker.", o.tracker, &f);

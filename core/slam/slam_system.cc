@@ -288,6 +288,8 @@ struct SlamSystem::Impl {
   // The direct adjustment of keyframes first..newest (keyframe_ba.h): after a new keyframe over the
   // window (SlamOptions::keyframe_adjustment), after Finish over all keyframes (final_adjustment).
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
+  // Keyframe 0's refinement seed (final_refinement_first_from_second), in its units.
+  cv::Mat SeedFromSecondKeyframe(const cv::Mat& first_inverse_depth, const cv::Mat& second_inverse_depth);
   // The adjustment's problem over keyframes first..newest (false: too few points); with `relit`, the
   // relit residual at metres_per_world_unit, estimated with the poses.
   bool BuildAdjustmentProblem(int first, bool relit, bool mixed, double metres_per_world_unit, double min_band_fraction,
@@ -1257,6 +1259,36 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
                    << " iterations";
 }
 
+cv::Mat SlamSystem::Impl::SeedFromSecondKeyframe(const cv::Mat& first_inverse_depth,
+                                                 const cv::Mat& second_inverse_depth) {
+  const Keyframe& k0 = keyframes[0];
+  const Keyframe& k1 = keyframes[1];
+  StatusOr<KeyframeDepth> source = KeyframeDepth::Create(k1.rgb, rig.camera, options.depth, rig.crosstalk);
+  StatusOr<KeyframeDepth> target = KeyframeDepth::Create(k0.rgb, rig.camera, options.depth, rig.crosstalk);
+  if (!source.ok() || !target.ok()) return first_inverse_depth;
+  source->Seed(second_inverse_depth, options.final_refinement_relative_sigma, 2);
+  // Keyframe 1's points in keyframe 0's camera, in keyframe 1's units; then in keyframe 0's.
+  target->PropagateFrom(*source, BFromAInUnitsOfA(k1.world_from_keyframe, k0.world_from_keyframe), 0.0);
+  const cv::Mat propagated = target->ToInverseDepthMap(1, 1.0).inverse_depth;
+  const float to_first_units = static_cast<float>(k0.world_from_keyframe.scale / k1.world_from_keyframe.scale);
+  std::vector<double> ratios;
+  for (int y = 0; y < propagated.rows; ++y)
+    for (int x = 0; x < propagated.cols; ++x) {
+      const float p = propagated.at<float>(y, x), o = first_inverse_depth.at<float>(y, x);
+      if (p > 0 && o > 0) ratios.push_back(p * to_first_units / o);
+    }
+  if (ratios.size() < 100) return first_inverse_depth;
+  std::nth_element(ratios.begin(), ratios.begin() + ratios.size() / 2, ratios.end());
+  const float own_scale = static_cast<float>(ratios[ratios.size() / 2]);
+  cv::Mat seed(first_inverse_depth.size(), CV_32F, cv::Scalar(0));
+  for (int y = 0; y < seed.rows; ++y)
+    for (int x = 0; x < seed.cols; ++x) {
+      const float p = propagated.at<float>(y, x), o = first_inverse_depth.at<float>(y, x);
+      seed.at<float>(y, x) = p > 0 ? p * to_first_units : o > 0 ? o * own_scale : 0.0f;
+    }
+  return seed;
+}
+
 void SlamSystem::Impl::RepropagateNewestKeyframe() {
   const int n = static_cast<int>(keyframes.size());
   std::unique_ptr<KeyframeDepth> source = std::move(previous_depth);
@@ -1542,7 +1574,14 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
       const Impl::Keyframe& k = m.keyframes[static_cast<size_t>(id)];
       StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, m.options.depth, m.rig.crosstalk);
       if (!kd.ok()) continue;
-      kd->Seed(out.depth.inverse_depth, relative_sigma, 2);
+      cv::Mat seed = out.depth.inverse_depth;
+      if (id == 0 && n >= 2 && m.options.final_refinement_first_from_second) {
+        const SlamKeyframe* second = nullptr;
+        for (const SlamKeyframe& o : *keyframes)
+          if (o.id == 1 && !o.depth.inverse_depth.empty()) second = &o;
+        if (second != nullptr) seed = m.SeedFromSecondKeyframe(out.depth.inverse_depth, second->depth.inverse_depth);
+      }
+      kd->Seed(seed, relative_sigma, 2);
       const double mean_idepth = kd->MeanInverseDepth();
       for (int j = std::max(0, id - span); j <= std::min(n - 1, id + span); ++j) {
         if (j == id) continue;
