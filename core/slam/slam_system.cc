@@ -289,7 +289,8 @@ struct SlamSystem::Impl {
   // window (SlamOptions::keyframe_adjustment), after Finish over all keyframes (final_adjustment).
   void AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish);
   // Keyframe 0's refinement seed (final_refinement_first_from_second), in its units.
-  cv::Mat SeedFromSecondKeyframe(const cv::Mat& first_inverse_depth, const cv::Mat& second_inverse_depth);
+  cv::Mat SeedFromSecondKeyframe(const KeyframeDepth& first, const cv::Mat& first_inverse_depth,
+                                 const cv::Mat& second_inverse_depth);
   // The adjustment's problem over keyframes first..newest (false: too few points); with `relit`, the
   // relit residual at metres_per_world_unit, estimated with the poses.
   bool BuildAdjustmentProblem(int first, bool relit, bool mixed, double metres_per_world_unit, double min_band_fraction,
@@ -1259,17 +1260,17 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
                    << " iterations";
 }
 
-cv::Mat SlamSystem::Impl::SeedFromSecondKeyframe(const cv::Mat& first_inverse_depth,
+cv::Mat SlamSystem::Impl::SeedFromSecondKeyframe(const KeyframeDepth& first, const cv::Mat& first_inverse_depth,
                                                  const cv::Mat& second_inverse_depth) {
   const Keyframe& k0 = keyframes[0];
   const Keyframe& k1 = keyframes[1];
   StatusOr<KeyframeDepth> source = KeyframeDepth::Create(k1.rgb, rig.camera, options.depth, rig.crosstalk);
-  StatusOr<KeyframeDepth> target = KeyframeDepth::Create(k0.rgb, rig.camera, options.depth, rig.crosstalk);
-  if (!source.ok() || !target.ok()) return first_inverse_depth;
+  if (!source.ok()) return first_inverse_depth;
+  KeyframeDepth target = first.Blank();  // keyframe 0's image parts, no estimates
   source->Seed(second_inverse_depth, options.final_refinement_relative_sigma, 2);
   // Keyframe 1's points in keyframe 0's camera, in keyframe 1's units; then in keyframe 0's.
-  target->PropagateFrom(*source, BFromAInUnitsOfA(k1.world_from_keyframe, k0.world_from_keyframe), 0.0);
-  const cv::Mat propagated = target->ToInverseDepthMap(1, 1.0).inverse_depth;
+  target.PropagateFrom(*source, BFromAInUnitsOfA(k1.world_from_keyframe, k0.world_from_keyframe), 0.0);
+  const cv::Mat propagated = target.ToInverseDepthMap(1, 1.0).inverse_depth;
   const float to_first_units = static_cast<float>(k0.world_from_keyframe.scale / k1.world_from_keyframe.scale);
   std::vector<double> ratios;
   for (int y = 0; y < propagated.rows; ++y)
@@ -1579,7 +1580,8 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
         const SlamKeyframe* second = nullptr;
         for (const SlamKeyframe& o : *keyframes)
           if (o.id == 1 && !o.depth.inverse_depth.empty()) second = &o;
-        if (second != nullptr) seed = m.SeedFromSecondKeyframe(out.depth.inverse_depth, second->depth.inverse_depth);
+        if (second != nullptr)
+          seed = m.SeedFromSecondKeyframe(*kd, out.depth.inverse_depth, second->depth.inverse_depth);
       }
       kd->Seed(seed, relative_sigma, 2);
       const double mean_idepth = kd->MeanInverseDepth();
