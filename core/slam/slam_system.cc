@@ -226,6 +226,9 @@ struct SlamSystem::Impl {
     }
     bool finished = false;
     bool handed_out = false;
+    // The first keyframe made from a frame tracked on this one (its frame's record is on this keyframe);
+    // -1 while there is none. SlamOptions::distribute_keyframe_corrections.
+    int next = -1;
   };
   std::vector<Keyframe> keyframes;
   std::unique_ptr<KeyframeDepth> current_depth;  // of keyframes.back() while tracking
@@ -763,7 +766,23 @@ StatusOr<KeyframeDepth> SlamSystem::Impl::PropagateForTracking(const cv::Mat& rg
 
 Rigid3d SlamSystem::Impl::WorldFromFrame(const FrameRecord& f) const {
   const Keyframe& k = keyframes[static_cast<size_t>(f.result.keyframe_id)];
-  return k.world_from_keyframe.TransformPose(f.frame_from_keyframe.Inverse());
+  Rigid3d keyframe_from_frame = f.frame_from_keyframe.Inverse();
+  if (options.distribute_keyframe_corrections && k.next >= 0) {
+    const Keyframe& n = keyframes[static_cast<size_t>(k.next)];
+    const FrameRecord& made = frames[static_cast<size_t>(n.frame_id)];
+    if (f.result.frame_id > k.frame_id && f.result.frame_id <= n.frame_id && made.result.keyframe_id == k.id &&
+        made.result.state == SlamState::kTracking) {
+      // The next keyframe's camera in this keyframe (this keyframe's unit): now, and as tracked.
+      const Rigid3d keyframe_from_next = BFromAInUnitsOfA(k.world_from_keyframe, n.world_from_keyframe).Inverse();
+      const Rigid3d correction = keyframe_from_next * made.frame_from_keyframe;
+      const double fraction =
+          static_cast<double>(f.result.frame_id - k.frame_id) / static_cast<double>(n.frame_id - k.frame_id);
+      const Eigen::AngleAxisd angle_axis(correction.rotation);
+      const Rigid3d part(ExpSo3(fraction * angle_axis.angle() * angle_axis.axis()), fraction * correction.translation);
+      keyframe_from_frame = part * keyframe_from_frame;
+    }
+  }
+  return k.world_from_keyframe.TransformPose(keyframe_from_frame);
 }
 
 Rigid3d SlamSystem::Impl::LastGoodWorldFromCamera() const {
@@ -924,6 +943,8 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   graph_edges.push_back(edge);
   graph_edge_is_loop.push_back(0);
   keyframes.push_back(std::move(k));
+  if (keyframes[static_cast<size_t>(reference_kf)].next < 0)
+    keyframes[static_cast<size_t>(reference_kf)].next = keyframes.back().id;
   previous_depth.reset();
   previous_depth_kf = -1;
   if (options.keyframe_adjustment && options.repropagate_after_adjustment && current_depth &&
@@ -1250,8 +1271,10 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
                      keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
   }
   if (options.repropagate_after_adjustment && !at_finish) RepropagateNewestKeyframe();
+  // The frames of the oldest keyframe move too when its next keyframe moved (distribute_keyframe_corrections).
+  const int first_moved = options.distribute_keyframe_corrections ? first : first_refitted;
   for (FrameRecord& f : frames)
-    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= first_refitted)
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= first_moved)
       f.result.world_from_camera = WorldFromFrame(f);
   ++keyframe_adjustments;
   PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1 << ": "
