@@ -281,7 +281,9 @@ struct SlamSystem::Impl {
   // graph when an edge was added.
   void CloseLoops(int index);
   bool AlignKeyframes(int j, int k, Sim3d* j_from_k, std::string* why);
-  Rigid3d WorldFromFrame(const FrameRecord& f) const;
+  // The frame's pose: its keyframe's pose composed with frame_from_keyframe, and with corrected the share of
+  // the next keyframe's correction (SlamOptions::distribute_keyframe_corrections).
+  Rigid3d WorldFromFrame(const FrameRecord& f, bool corrected = true) const;
   // Whether a tracked frame_from_keyframe is within SlamOptions::max_step_* of the prediction.
   bool PlausibleStep(const Rigid3d& tracked, const Rigid3d& predicted, double mean_inverse_depth) const {
     const double rotation_deg = RotationAngle(tracked.rotation * predicted.rotation.inverse()) * kRadToDeg;
@@ -764,10 +766,10 @@ StatusOr<KeyframeDepth> SlamSystem::Impl::PropagateForTracking(const cv::Mat& rg
   return kd;
 }
 
-Rigid3d SlamSystem::Impl::WorldFromFrame(const FrameRecord& f) const {
+Rigid3d SlamSystem::Impl::WorldFromFrame(const FrameRecord& f, bool corrected) const {
   const Keyframe& k = keyframes[static_cast<size_t>(f.result.keyframe_id)];
   Rigid3d keyframe_from_frame = f.frame_from_keyframe.Inverse();
-  if (options.distribute_keyframe_corrections && k.next >= 0) {
+  if (corrected && options.distribute_keyframe_corrections && k.next >= 0) {
     const Keyframe& n = keyframes[static_cast<size_t>(k.next)];
     const FrameRecord& made = frames[static_cast<size_t>(n.frame_id)];
     if (f.result.frame_id > k.frame_id && f.result.frame_id <= n.frame_id && made.result.keyframe_id == k.id &&
@@ -786,8 +788,10 @@ Rigid3d SlamSystem::Impl::WorldFromFrame(const FrameRecord& f) const {
 }
 
 Rigid3d SlamSystem::Impl::LastGoodWorldFromCamera() const {
+  // As tracked (the frames' corrections are for their output: the estimation never depends on them).
   for (auto it = frames.rbegin(); it != frames.rend(); ++it)
-    if (it->result.state == SlamState::kTracking) return it->result.world_from_camera;
+    if (it->result.state == SlamState::kTracking)
+      return it->result.keyframe_id >= 0 ? WorldFromFrame(*it, /*corrected=*/false) : it->result.world_from_camera;
   return Rigid3d();
 }
 
