@@ -47,16 +47,21 @@ bool Render(const std::string& preset, int frames, int supersampling, Rendered* 
   return true;
 }
 
-// Every frame of r, then Finish and prism-slam's refinement rounds (options' final_refinement_*), as
-// prism-slam runs a sequence; the keyframes as handed out, refined.
-void RunAsPrismSlam(const Rendered& r, const SlamOptions& options, SlamSystem* slam,
-                    std::vector<SlamKeyframe>* keyframes) {
+// Every frame of r, then Finish; the keyframes as handed out.
+void RunAndFinish(const Rendered& r, SlamSystem* slam, std::vector<SlamKeyframe>* keyframes) {
   for (size_t i = 0; i < r.frames.size(); ++i) {
     StatusOr<SlamFrameResult> f = slam->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
     ASSERT_TRUE(f.ok()) << f.status();
     for (SlamKeyframe& k : slam->TakeFinishedKeyframes()) keyframes->push_back(std::move(k));
   }
   for (SlamKeyframe& k : slam->Finish()) keyframes->push_back(std::move(k));
+}
+
+// RunAndFinish, then prism-slam's refinement rounds (options' final_refinement_*), as prism-slam runs a
+// sequence; the keyframes as handed out, refined.
+void RunAsPrismSlam(const Rendered& r, const SlamOptions& options, SlamSystem* slam,
+                    std::vector<SlamKeyframe>* keyframes) {
+  ASSERT_NO_FATAL_FAILURE(RunAndFinish(r, slam, keyframes));
   slam->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
                              options.final_refinement_rounds, keyframes);
 }
@@ -680,11 +685,7 @@ TEST(SlamSystem, TheFirstKeyframesDepthUnitIsFittedLikeTheOthers) {
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
     ASSERT_TRUE(slam.ok()) << slam.status();
     std::vector<SlamKeyframe> keyframes;
-    for (int i = 0; i < 60; ++i) {
-      ASSERT_TRUE((*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb).ok());
-      for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) keyframes.push_back(std::move(k));
-    }
-    for (SlamKeyframe& k : (*slam)->Finish()) keyframes.push_back(std::move(k));
+    ASSERT_NO_FATAL_FAILURE(RunAndFinish(r, slam->get(), &keyframes));
     ASSERT_GE(keyframes.size(), 4u);
     ASSERT_EQ(keyframes[0].id, 0);
     if (run == 2)
@@ -741,11 +742,7 @@ TEST(SlamSystem, FramesTakeTheirShareOfTheNextKeyframesCorrection) {
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
     ASSERT_TRUE(slam.ok()) << slam.status();
     std::vector<SlamKeyframe> keyframes;
-    for (int i = 0; i < 60; ++i) {
-      ASSERT_TRUE((*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb).ok());
-      for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) keyframes.push_back(std::move(k));
-    }
-    for (SlamKeyframe& k : (*slam)->Finish()) keyframes.push_back(std::move(k));
+    ASSERT_NO_FATAL_FAILURE(RunAndFinish(r, slam->get(), &keyframes));
     ASSERT_GE(keyframes.size(), 4u);
     const std::vector<SlamFrameResult> frames = (*slam)->Trajectory();
     keyframe_poses[run] = (*slam)->KeyframePoses();
