@@ -587,7 +587,10 @@ TEST(SlamSystem, UpdatesTheDepthOnEveryNthFrame) {
 TEST(SlamSystem, AdjustsTheWindowAfterEveryNthKeyframe) {
   Rendered r;
   std::string why;
-  if (!Render("bunny-multicolor-forward", 40, /*supersampling=*/1, &r, &why))
+  // 60 frames: with the 25x25 normalisation box (thirty-fifth round) the 40-frame bunny relocalised at
+  // frames 31-37, and a keyframe made by a relocalisation has no adjustment.
+  constexpr int kFrames = 60;
+  if (!Render("bunny-multicolor-forward", kFrames, /*supersampling=*/1, &r, &why))
     GTEST_SKIP() << "preset unavailable: " << why;
   for (const int interval : {1, 2}) {
     SlamOptions options;
@@ -595,7 +598,8 @@ TEST(SlamSystem, AdjustsTheWindowAfterEveryNthKeyframe) {
     options.start_check_keyframes = 0;
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
     ASSERT_TRUE(slam.ok()) << slam.status();
-    for (int i = 0; i < 40; ++i) ASSERT_TRUE((*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb).ok());
+    for (int i = 0; i < kFrames; ++i)
+      ASSERT_TRUE((*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb).ok());
     const int keyframes = (*slam)->num_keyframes(), adjustments = (*slam)->num_keyframe_adjustments();
     std::printf("interval %d: %d keyframes, %d window adjustments\n", interval, keyframes, adjustments);
     ASSERT_GE(keyframes, 5);
@@ -632,10 +636,12 @@ double FirstDepthTilt(const SlamKeyframe& k, const cv::Mat& true_depth, const Pi
 // SlamOptions::init_rounds: on the torus (forward start over a ground plane; here its 120 degrees in
 // 30 frames) the first depth map is tilted across the image's rows (the ground's relief wrong, which
 // the tracker then trades for rotation). Estimating the depth again at the re-tracked poses
-// straightens it. Measured: tilt 0.314 with one round, 0.120 with three. (The 150-frame preset, seed 1:
-// -0.271 and -0.163, the error at the image's top and bottom edge 12.6% and 7.6%.)
+// straightens it. Measured: tilt 0.314 with one round, 0.120 with three; since the thirty-fifth round's
+// 25x25 normalisation box 0.118 and 0.077. (The 150-frame preset, seed 1, before that: -0.271 and
+// -0.163, the error at the image's top and bottom edge 12.6% and 7.6%.)
 TEST(SlamSystem, MoreInitialisationRoundsStraightenTheFirstDepth) {
-  constexpr double kMaxTiltRatio = 0.7;  // |tilt, 3 rounds| / |tilt, 1 round|; measured 0.38
+  constexpr double kMinTilt = 0.1;       // |tilt, 1 round|: the premise; measured 0.118 (0.314 with 17x17)
+  constexpr double kMaxTiltRatio = 0.8;  // |tilt, 3 rounds| / |tilt, 1 round|; measured 0.65 (0.38 with 17x17)
   Rendered r;
   std::string why;
   if (!Render("torus-textured-forward", 30, /*supersampling=*/1, &r, &why))
@@ -658,7 +664,7 @@ TEST(SlamSystem, MoreInitialisationRoundsStraightenTheFirstDepth) {
         FirstDepthTilt(keyframes[0], r.frames[static_cast<size_t>(keyframes[0].frame_id)].depth, r.setup.rig.camera);
     std::printf("init_rounds %d: first depth tilt %.4f\n", options.init_rounds, tilt[run]);
   }
-  EXPECT_GT(std::abs(tilt[0]), 0.15) << "the one-round first depth is tilted (measured 0.31)";
+  EXPECT_GT(std::abs(tilt[0]), kMinTilt) << "the one-round first depth is tilted (measured 0.118)";
   EXPECT_LT(std::abs(tilt[1]), kMaxTiltRatio * std::abs(tilt[0]));
 }
 
