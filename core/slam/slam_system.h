@@ -122,8 +122,9 @@ struct SlamOptions {
   // mean (depth.local_mean_radius_px) is at least init_min_feature_local_mean grey levels, in [0, 255]
   // (0 = everywhere; J amplifies the noise of the dark room). On raw grey (false) the tracks end a median
   // 3.3 px from the true correspondence and the essential matrix is off by a median 1.2 degrees. Without
-  // lights on the rig (KITTI: daylight) raw grey is used whatever this says (SlamSystem::Create), as the
-  // camera-attached tests are turned off there. On since the thirty-sixth round (README):
+  // lights on the rig (KITTI: daylight) raw grey without a floor is used whatever these say
+  // (SlamSystem::Create), as the camera-attached tests are turned off there. On since the thirty-sixth
+  // round (README):
   // - the same paths three times faster (50 frames, seeds 1-3): raw grey found 20-40 features in the dim
   //   sideways starts and started in a wrong motion (the multi-coloured sphere's seed 1 turned about the
   //   optical axis: 7.7% of path; the relief's seed 3 8.0%; the relief's seed 2 never started); on J
