@@ -125,10 +125,10 @@ struct SlamOptions {
   // lights on the rig (KITTI: daylight) raw grey without a floor is used whatever these say
   // (SlamSystem::Create), as the camera-attached tests are turned off there. On since the thirty-sixth
   // round (README):
-  // - the same paths three times faster (50 frames, seeds 1-3): raw grey found 20-40 features in the dim
-  //   sideways starts and started in a wrong motion (the multi-coloured sphere's seed 1 turned about the
-  //   optical axis: 7.7% of path; the relief's seed 3 8.0%; the relief's seed 2 never started); on J
-  //   120-450 features, and those runs end within 0.1-0.7%;
+  // - the same paths three times faster (50 frames, seeds 1-3): raw grey kept 31-41 features in the dim
+  //   sideways starts, which started in a wrong motion (the multi-coloured sphere's seed 1 turned about
+  //   the optical axis: 7.7% of path; the relief's seed 3 8.0%; the relief's seed 2 never started); on J
+  //   they keep 46-323 features and end at 0.09-0.66%;
   // - the 54 standard runs: 52 within 1% ATE (51 on raw grey), geometric mean 0.159% (0.174%), 46 within
   //   the 3% depth bar (46), median 1.17% (1.21%).
   // An early round (box radius 8, no start check) had measured 47 of 54 against 46 with a minimum of 20
