@@ -168,6 +168,8 @@ Status DirectBaOptions::Check() const {
   else if (border_px < 2) e << "DirectBaOptions.border_px = " << border_px << "; violated: >= 2";
   else if (!(function_tolerance > 0))
     e << "DirectBaOptions.function_tolerance = " << function_tolerance << "; violated: > 0";
+  else if (!(gradient_weight_c >= 0))
+    e << "DirectBaOptions.gradient_weight_c = " << gradient_weight_c << "; violated: >= 0";
   if (e.str().empty()) return Status::Ok();
   return InvalidArgumentError(e.str());
 }
@@ -347,6 +349,17 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       cv::resize(g, half, cv::Size(g.cols / 2, g.rows / 2), 0, 0, cv::INTER_AREA);
       pyramid[static_cast<size_t>(l)].push_back(half);
     }
+  if (options.gradient_weight_c > 0) {
+    const double c2 = options.gradient_weight_c * options.gradient_weight_c;
+    for (int i = 0; i < num_points; ++i) {
+      if (relit_point[static_cast<size_t>(i)]) continue;
+      const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
+      double value;
+      Eigen::Vector2d g;
+      if (SampleWithGradient(pyramid[0][static_cast<size_t>(p.host)], p.u, p.v, &value, &g))
+        residual_scale[static_cast<size_t>(i)] = std::sqrt(c2 / (c2 + g.squaredNorm()));
+    }
+  }
   PinholeCamera lcam = cam;
   const std::vector<cv::Mat>* limg = &pyramid[0];
   std::vector<float> lint(static_cast<size_t>(num_points));

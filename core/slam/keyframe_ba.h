@@ -109,6 +109,17 @@ struct DirectBaOptions {
   int border_px = 3;
   // A solve stops when the cost decreases by less than this fraction, > 0.
   double function_tolerance = 1e-5;
+  // Gradient-dependent residual scale (0 = off, >= 0): a J residual of a point whose host gradient is g
+  // (grey levels of J per pixel) is scaled by c / sqrt(c^2 + |g|^2) before the Huber weight and the
+  // outlier test (DSO weighs its residuals so: a small misalignment moves a strong edge's residual
+  // most). Measured in SlamSystem (thirty-seventh round, c = 20 in the window and final adjustments;
+  // the J gradient of the strongest pixel per 16 px cell is 7-9 in the median): on the 54 standard
+  // runs 52 within 1% ATE either way, geometric mean 0.157% (0.159%), depth within 3% on 47 (46),
+  // geometric mean of the depth errors 1.50% (1.60%); the uniform sphere's seeds 3 and 5 recover
+  // (depth 14.5 / 12.4 -> 1.6 / 2.5%) but the torus's seeds 5 and 6 break (depth 5.0 / 1.8 -> 7.3 /
+  // 8.6%). On the held-out seeds 7-9 the ATE is worse (geometric mean 0.169 -> 0.189%, lower on 9 of
+  // 27). Too mixed: off.
+  double gradient_weight_c = 0.0;
   Status Check() const;
 };
 
