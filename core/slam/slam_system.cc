@@ -329,12 +329,14 @@ StatusOr<std::unique_ptr<SlamSystem::Impl>> SlamSystem::NewImpl(const RigCalibra
   // grey levels of tracker.image_noise_sigma: 1.9-5.8% ATE, median 2.4%, with them; 0.2-4.0%, median
   // 0.9%, without).
   // The initialisation's KLT on J (init_track_normalised) cancels the same lights' shading; without them
-  // raw grey everywhere, as before (KITTI 06: 0.17% of path so, 3.9% on J with a floor of 20).
+  // raw grey everywhere, as before (KITTI 06: 0.17% of path so, 3.9% on J with a floor of 20). The final
+  // adjustment's gradient weight targets the edges those lights move: off without them.
   if (!AnyLight(rig)) {
     impl->options.tracker.camera_attached_min_votes = 0;
     impl->options.depth.camera_attached_min_votes = 0;
     impl->options.init_track_normalised = false;
     impl->options.init_min_feature_local_mean = 0;
+    impl->options.final_adjustment_ba.gradient_weight_c = 0;
   }
   PRISM_ASSIGN_OR_RETURN(Tracker t, Tracker::Create(rig, impl->options.tracker));
   impl->tracker = std::make_unique<Tracker>(std::move(t));
