@@ -242,7 +242,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     ray[static_cast<size_t>(i)] = cam.Unproject(Eigen::Vector2d(p.u, p.v));
   }
   // Which points take the relit residual (all with relit.rig, those marked with relit.mixed), its scale
-  // (1 for J points), and in mixed mode the raw grey images they are compared against.
+  // (1 for J points, or their gradient weight below), and in mixed mode the raw grey images they are
+  // compared against.
   std::vector<uint8_t> relit_point(static_cast<size_t>(num_points), 0);
   std::vector<double> residual_scale(static_cast<size_t>(num_points), 1.0);
   for (int i = 0; i < num_points; ++i) {
