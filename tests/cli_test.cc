@@ -363,12 +363,13 @@ TEST(SlamCliTest, ADistortedSequenceIsUndistortedAndTracked) {
 }
 
 // The real monocular KITTI sequence (../shared/data): the SLAM runs through every frame and
-// reports its ATE (the issue asks for the figure; its 1% bar is on the synthetic presets). The ATE
-// here is chaotic: changing one tracker parameter by 1e-4 of its value (image_noise_sigma 3 ->
-// 3.0001 or 2.9999, huber_threshold 2 -> 2.0001 or 1.9999) moves it between 0.1 and 3.7% of the
-// path (README, The SLAM); the defaults give 0.45%. The bound sits above that spread and below the
-// failures seen: 5.7% with the SLAM's previous shading normalisation (11x11 box, floor 8) and 11%
-// with relocalisation by the lowest residual RMS.
+// reports its ATE (the issue asks for the figure; its 1% bar is on the synthetic presets). Until the
+// thirty-eighth round the ATE was chaotic: the frame after each new keyframe was tracked from no motion
+// (KITTI moves about 7% of the mean depth per frame), 3-4 frames per run fell below the inlier bar and
+// relocalised against older keyframes, and changing one tracker parameter by 1e-4 of its value moved
+// the ATE between 0.07 and 2.3% of the path. With the constant-velocity guess carried over to the new
+// keyframe (SlamOptions::keep_velocity_across_keyframes) eight such runs (image_noise_sigma 2.9997 to
+// 3.0004) gave 0.036-0.042% and none relocalised. The bound leaves ten times that; the 2% runs fail it.
 TEST(SlamCliTest, RunsThroughKitti06AndReportsItsAte) {
   const std::string data = std::string(PRISM_SHARED_DATA_DIR) + "/kitti-06-first51";
   if (!fs::exists(data + "/calib.txt")) GTEST_SKIP() << "real data absent: " << data << " (see ../shared/data)";
@@ -378,8 +379,15 @@ TEST(SlamCliTest, RunsThroughKitti06AndReportsItsAte) {
   std::printf("KITTI 06 (51 frames): %s\n", r.out.c_str());
   EXPECT_EQ(JsonNumber(r.out, "frames"), 51);
   EXPECT_EQ(JsonNumber(r.out, "tracking_frames"), 51);
-  const double kMaxAtePercentOfPath = 5.0;
+  const double kMaxAtePercentOfPath = 0.5;
   EXPECT_LT(JsonNumber(r.out, "ate_percent_of_path"), kMaxAtePercentOfPath);
+  // No frame needed relocalisation (states.txt's message names it).
+  std::ifstream states(out / "states.txt");
+  ASSERT_TRUE(states.good());
+  int relocalised = 0;
+  for (std::string line; std::getline(states, line);)
+    if (line.find("relocalised") != std::string::npos) ++relocalised;
+  EXPECT_EQ(relocalised, 0);
   fs::remove_all(out);
 }
 

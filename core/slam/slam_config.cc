@@ -109,6 +109,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"tracking_max_relative_sigma", &o.tracking_max_relative_sigma});
   f.push_back({"max_step_rotation_deg", &o.max_step_rotation_deg});
   f.push_back({"max_step_translation_fraction", &o.max_step_translation_fraction});
+  f.push_back({"keep_velocity_across_keyframes", &o.keep_velocity_across_keyframes});
   f.push_back({"relocalise_max_keyframes", &o.relocalise_max_keyframes});
   f.push_back({"relocalise_after_lost_frames", &o.relocalise_after_lost_frames});
   f.push_back({"loop_closure", &o.loop_closure});

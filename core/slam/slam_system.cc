@@ -935,6 +935,9 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
                                       const Rigid3d& frame_from_reference, const KeyframeDepth& source) {
   // The tracker must accept it before it becomes the keyframe.
   PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, PropagateForTracking(rgb, source, frame_from_reference));
+  // The last frame-to-frame motion (newest from previous tracked frame), for the next frame's guess.
+  const bool had_velocity = has_last && has_prev;
+  const Rigid3d velocity = had_velocity ? last_frame_from_kf * prev_frame_from_kf.Inverse() : Rigid3d();
   FinishCurrent();  // the keyframe being replaced (uses current_depth before it is replaced)
   Keyframe k;
   k.id = static_cast<int>(keyframes.size());
@@ -968,9 +971,12 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
     const ScopedSeconds loop_timer(&timings.loop_search);
     CloseLoops(static_cast<int>(keyframes.size()) - 2);
   }
+  // The new keyframe is at this frame's pose; with the velocity kept, the previous frame sits one step
+  // behind it, so the next frame's constant-velocity guess is one step ahead.
   has_last = true;
   last_frame_from_kf = Rigid3d();
-  has_prev = false;
+  has_prev = options.keep_velocity_across_keyframes && had_velocity;
+  prev_frame_from_kf = has_prev ? velocity.Inverse() : Rigid3d();
   return Status::Ok();
 }
 
