@@ -1,14 +1,19 @@
 // The command-line contract of prism-synth and prism-eval, run as real processes: a rendered
 // sequence evaluated against itself gives zeros, against a perturbed copy gives the perturbation.
+#include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
+#include <map>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include "core/io/calibration_io.h"
 #include "core/io/image_io.h"
@@ -179,6 +184,92 @@ TEST_F(CliTest, CloudAgainstTheSurfaceIsPerfectAndAShiftedCopyIsOffByTheShift) {
 namespace prism {
 namespace {
 
+// prism-slam's tracking.txt against the ground truth of its sequence: a line per frame aligned against a
+// keyframe, fractions within [0, 1], and the step from the previous frame as a fraction of the keyframe's
+// mean depth equal to the true one (the true translation times the true mean inverse depth over the
+// keyframe's pixels with a depth) within kStepTolerance in the median. The smooth synthetic path leaves
+// the constant-velocity guess little to correct.
+void ExpectTrackingFileMatchesTheTruth(const std::string& seq_dir, const std::string& out) {
+  constexpr double kStepTolerance = 0.1;        // median ratio of the reported to the true step, minus 1
+  constexpr double kMinMedianInliers = 0.9;     // median inlier fraction on a clean rendered scene
+  constexpr double kMaxGuessCorrection = 0.25;  // median correction of the guess, in medians of the step
+  StatusOr<Sequence> seq = LoadSequence(seq_dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  auto frame_at = [&](double t) {
+    for (size_t i = 0; i < seq->frames.size(); ++i)
+      if (std::abs(seq->frames[i].timestamp_s - t) < 1e-4) return static_cast<int>(i);
+    return -1;
+  };
+  std::map<int, double> keyframe_timestamp;
+  {
+    std::ifstream in(out + "/keyframes/keyframes.txt");
+    std::string line;
+    while (std::getline(in, line)) {
+      if (line.empty() || line[0] == '#') continue;
+      std::istringstream f(line);
+      int id = 0;
+      int64_t frame_id = 0;
+      double t = 0;
+      f >> id >> frame_id >> t;
+      keyframe_timestamp[id] = t;
+    }
+  }
+  std::map<int, double> keyframe_mean_inverse_depth;  // true, over the keyframe's estimated pixels
+  auto true_mean_inverse_depth = [&](int id) {
+    auto it = keyframe_mean_inverse_depth.find(id);
+    if (it != keyframe_mean_inverse_depth.end()) return it->second;
+    double sum = 0;
+    int n = 0;
+    const int k = keyframe_timestamp.count(id) ? frame_at(keyframe_timestamp[id]) : -1;
+    char name[32];
+    std::snprintf(name, sizeof(name), "%06d_idepth.tiff", id);
+    const cv::Mat estimated = cv::imread(out + "/keyframes/" + name, cv::IMREAD_UNCHANGED);
+    StatusOr<cv::Mat> depth = k >= 0 ? seq->ReadDepth(static_cast<size_t>(k)) : StatusOr<cv::Mat>(cv::Mat());
+    if (depth.ok() && !estimated.empty() && estimated.type() == CV_32F && estimated.size() == depth->size())
+      for (int y = 0; y < depth->rows; ++y)
+        for (int x = 0; x < depth->cols; ++x)
+          if (estimated.at<float>(y, x) > 0 && depth->at<float>(y, x) > 0) sum += 1.0 / depth->at<float>(y, x), ++n;
+    return keyframe_mean_inverse_depth[id] = n > 0 ? sum / n : 0.0;
+  };
+  std::ifstream in(out + "/tracking.txt");
+  ASSERT_TRUE(in.good()) << "no tracking.txt";
+  std::string line;
+  std::vector<double> ratios, inliers, steps, corrections;
+  int rows = 0;
+  while (std::getline(in, line)) {
+    if (line.empty() || line[0] == '#') continue;
+    ++rows;
+    std::istringstream f(line);
+    double t = 0, rms = 0, visible = 0, inlier = 0, step = 0, rotation = 0, correction = 0;
+    int keyframe = -1, iterations = 0, retried = 0;
+    ASSERT_TRUE(f >> t >> keyframe >> rms >> visible >> inlier >> iterations >> retried >> step >> rotation >>
+                correction)
+        << line;
+    EXPECT_GE(keyframe, 0) << line;
+    EXPECT_TRUE(visible >= 0 && visible <= 1 && inlier >= 0 && inlier <= 1) << line;
+    EXPECT_GT(iterations, 0) << line;
+    const int i = frame_at(t);
+    ASSERT_GT(i, 0) << line;
+    StatusOr<Rigid3d> a = seq->GroundTruthPose(static_cast<size_t>(i - 1)),
+                      b = seq->GroundTruthPose(static_cast<size_t>(i));
+    ASSERT_TRUE(a.ok() && b.ok());
+    const double true_step = (b->translation - a->translation).norm() * true_mean_inverse_depth(keyframe);
+    ASSERT_GT(true_step, 0) << line;
+    ratios.push_back(step / true_step);
+    inliers.push_back(inlier);
+    steps.push_back(step);
+    corrections.push_back(correction);
+  }
+  ASSERT_GE(rows, 40) << "of 60 frames, those after the initialisation";
+  auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  };
+  EXPECT_NEAR(median(ratios), 1.0, kStepTolerance);
+  EXPECT_GE(median(inliers), kMinMedianInliers);
+  EXPECT_LT(median(corrections), kMaxGuessCorrection * median(steps));
+}
+
 // prism-slam on a short rendered sequence: every output file is written and the summary says how
 // many frames were tracked; prism-preview renders its semi-dense cloud to a PNG.
 TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
@@ -202,6 +293,7 @@ TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
   EXPECT_TRUE(fs::exists(out + "/keyframes/keyframes.txt"));
   EXPECT_TRUE(fs::exists(out + "/keyframes/000000_idepth.tiff"));
   EXPECT_TRUE(fs::exists(out + "/states.txt"));
+  ExpectTrackingFileMatchesTheTruth(seq, out);
   StatusOr<PointCloud> cloud = ReadPointCloudPly(out + "/semidense.ply");
   ASSERT_TRUE(cloud.ok()) << cloud.status();
   EXPECT_GT(cloud->size(), 1000u);

@@ -39,6 +39,10 @@ Writes to DIR:
   trajectory.txt   every frame's world_from_camera (TUM format, SLAM scale; frames before the
                    initialisation and lost frames are left out)
   states.txt       per frame: timestamp, state (initializing|tracking|lost), keyframe id, message
+  tracking.txt     per frame aligned against a keyframe: timestamp, keyframe id, residual RMS, visible
+                   and inlier fractions, iterations, retried (0/1), and the step from the previous frame,
+                   its rotation (degrees) and the result's distance from the constant-velocity guess,
+                   distances as fractions of the keyframe's mean depth (core/slam/slam_system.h)
   keyframes/       per keyframe <id>_idepth.tiff and <id>_variance.tiff (32-bit float, 0 = none)
                    and keyframes.txt (id frame_id timestamp scale tx ty tz qx qy qz qw)
   semidense.ply    the semi-dense points of all keyframes, world frame, with colours
@@ -401,9 +405,17 @@ int main(int argc, char** argv) {
   int counts[3] = {0, 0, 0};
   std::ofstream states(out_dir + "/states.txt");
   states << "# timestamp state keyframe_id message\n" << std::setprecision(17);
+  std::ofstream tracking(out_dir + "/tracking.txt");
+  tracking << "# timestamp keyframe_id residual_rms visible_fraction inlier_fraction iterations retried step "
+              "rotation_deg guess_correction\n";
   for (const SlamFrameResult& r : results) {
     ++counts[static_cast<int>(r.state)];
     states << r.timestamp << " " << SlamStateName(r.state) << " " << r.keyframe_id << " " << r.message << "\n";
+    const SlamTrackingQuality& q = r.tracking;
+    if (q.tracked)
+      tracking << std::fixed << std::setprecision(6) << r.timestamp << std::defaultfloat << " " << r.keyframe_id << " "
+               << q.residual_rms << " " << q.visible_fraction << " " << q.inlier_fraction << " " << q.iterations << " "
+               << (q.retried ? 1 : 0) << " " << q.step << " " << q.rotation_deg << " " << q.guess_correction << "\n";
     if (r.state == SlamState::kTracking) estimate.push_back({r.timestamp, r.world_from_camera});
   }
   if (Status s = WriteTumTrajectory(out_dir + "/trajectory.txt", estimate); !s.ok()) return Fail(s.ToString());

@@ -812,10 +812,12 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
   PRISM_ASSIGN_OR_RETURN(TrackingResult tr, tracker->Track(rgb, guess));
   const double mean_idepth_now = current_depth->MeanInverseDepth();
   const bool implausible = tr.ok && has_last && !PlausibleStep(tr.frame_from_keyframe, guess, mean_idepth_now);
+  bool retried = false;
   if ((!tr.ok || implausible) && has_last) {
     PRISM_ASSIGN_OR_RETURN(TrackingResult retry, tracker->Track(rgb, last_frame_from_kf));
     if (retry.ok && PlausibleStep(retry.frame_from_keyframe, guess, mean_idepth_now)) {
       tr = retry;
+      retried = true;
     } else if (implausible) {
       std::ostringstream m;
       m << "implausible jump from the predicted pose ("
@@ -873,6 +875,20 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
   rec.frame_from_keyframe = tr.frame_from_keyframe;
   rec.result.keyframe_id = keyframes[static_cast<size_t>(kf_index)].id;
   rec.result.state = SlamState::kTracking;
+  {
+    SlamTrackingQuality& q = rec.result.tracking;
+    q.tracked = true;
+    q.residual_rms = tr.residual_rms;
+    q.visible_fraction = tr.visible_fraction;
+    q.inlier_fraction = tr.inlier_fraction;
+    for (int n : tr.iterations) q.iterations += n;
+    q.retried = retried;
+    // The previous frame's pose on this keyframe (the keyframe's own pose when it was made from it).
+    const Rigid3d frame_from_previous = tr.frame_from_keyframe * (has_last ? last_frame_from_kf : Rigid3d()).Inverse();
+    q.step = frame_from_previous.translation.norm() * mean_idepth_now;
+    q.rotation_deg = RotationAngle(frame_from_previous.rotation) * kRadToDeg;
+    q.guess_correction = (tr.frame_from_keyframe.translation - guess.translation).norm() * mean_idepth_now;
+  }
   rec.result.world_from_camera = WorldFromFrame(rec);
   frames.push_back(rec);
   prev_frame_from_kf = last_frame_from_kf;

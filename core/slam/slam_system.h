@@ -440,6 +440,27 @@ enum class SlamState {
 };
 const char* SlamStateName(SlamState state);
 
+// How a frame's alignment against its keyframe went (SlamFrameResult::tracking; prism-slam writes it to
+// tracking.txt). Distances are fractions of the keyframe's mean depth (its mean inverse depth times the
+// translation, in the keyframe's depth unit), so they mean the same on every scene and scale.
+struct SlamTrackingQuality {
+  bool tracked = false;  // false: the frame was not aligned against a keyframe (initialising, lost, relocalised)
+  // At the finest pyramid level (TrackingResult): RMS of the inlier residuals (grey levels of the
+  // tracker's image), the fraction of the keyframe's points projecting into the frame and the fraction of
+  // those that are inliers.
+  double residual_rms = 0;
+  double visible_fraction = 0;
+  double inlier_fraction = 0;
+  int iterations = 0;    // Gauss-Newton iterations over all levels of the kept attempt
+  bool retried = false;  // the constant-velocity guess failed and the frame was tracked from the last pose
+  // The motion from the previous frame (translation, rotation in degrees) and how far the result lies
+  // from the constant-velocity guess it started from. A result that stops far short of the guess (a
+  // correction near the step) is what a failing alignment looks like (see the README, thirty-eighth round).
+  double step = 0;
+  double rotation_deg = 0;
+  double guess_correction = 0;
+};
+
 struct SlamFrameResult {
   int64_t frame_id = 0;  // 0, 1, 2, ... in ProcessFrame order
   double timestamp = 0;
@@ -450,6 +471,7 @@ struct SlamFrameResult {
   bool depth_updated = false;  // the keyframe's depth was updated by stereo with this frame
   int keyframe_id = -1;        // the keyframe this frame was tracked against
   std::string message;         // why, when kLost
+  SlamTrackingQuality tracking;
 };
 
 // A keyframe handed to the dense stage once its depth map is final.
