@@ -754,6 +754,17 @@ struct Server::Impl {
         p->set_keyframe_id(e.slam.keyframe_id);
         p->set_metres_per_unit(e.metres_per_unit);
         p->set_refined(e.refined);
+        if (const SlamTrackingQuality& q = e.slam.tracking; q.tracked) {
+          v1::TrackingQuality* t = p->mutable_tracking();
+          t->set_residual_rms(q.residual_rms);
+          t->set_visible_fraction(q.visible_fraction);
+          t->set_inlier_fraction(q.inlier_fraction);
+          t->set_iterations(static_cast<uint32_t>(std::max(0, q.iterations)));
+          t->set_retried(q.retried);
+          t->set_step(q.step);
+          t->set_rotation_deg(q.rotation_deg);
+          t->set_guess_correction(q.guess_correction);
+        }
         s->pose_log.Append(*p);
         if (Send(s->peer, env)) {
           ++s->poses_sent;

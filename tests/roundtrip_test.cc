@@ -4,7 +4,10 @@
 // prism-eval cloud on the object).
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
+#include <fstream>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -118,6 +121,31 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
   // session (lost ones would be left out of trajectory.txt).
   EXPECT_GE(JsonNumber(r.out, "refined_poses"), 1) << r.out;
   ASSERT_EQ(est->size(), static_cast<size_t>(kFrames));
+  // Each frame's alignment came over the wire (PoseUpdate.tracking) for every frame tracked after the
+  // initialisation: prism-client's tracking.txt, as prism-slam's (cli_test checks its figures against
+  // the truth). The clean rendered scene keeps nearly every point an inlier.
+  {
+    constexpr int kMinTrackedRows = 40;        // of 60 frames, those after the initialisation
+    constexpr double kMinMedianInliers = 0.9;  // as cli_test
+    std::ifstream in(P("out/tracking.txt"));
+    ASSERT_TRUE(in.good()) << "no tracking.txt";
+    std::string line;
+    std::vector<double> inliers;
+    while (std::getline(in, line)) {
+      if (line.empty() || line[0] == '#') continue;
+      std::istringstream f(line);
+      double t = 0, rms = 0, visible = 0, inlier = 0, step = 0;
+      int keyframe = -1, iterations = 0, retried = 0;
+      ASSERT_TRUE(f >> t >> keyframe >> rms >> visible >> inlier >> iterations >> retried >> step) << line;
+      EXPECT_GE(keyframe, 0) << line;
+      EXPECT_TRUE(visible > 0 && visible <= 1 && inlier > 0 && inlier <= 1 && step > 0 && iterations > 0) << line;
+      inliers.push_back(inlier);
+    }
+    ASSERT_GE(static_cast<int>(inliers.size()), kMinTrackedRows);
+    EXPECT_LE(inliers.size(), static_cast<size_t>(kFrames));
+    std::nth_element(inliers.begin(), inliers.begin() + static_cast<std::ptrdiff_t>(inliers.size() / 2), inliers.end());
+    EXPECT_GE(inliers[inliers.size() / 2], kMinMedianInliers);
+  }
   // Sim(3) from the trajectory (tests/sim3_from_trajectory.h): rotation from the camera orientations,
   // then scale and translation from the camera centres.
   const test::TrajectoryAlignment alignment = test::AlignTrajectory(*est, seq->groundtruth);

@@ -23,7 +23,8 @@ constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT
 
 Streams the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth output) to
 prism-server and writes to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera,
-metres once the server has estimated the scale; tracked frames only, as prism-slam), map.ply (the running map: positions, normals,
+metres once the server has estimated the scale; tracked frames only, as prism-slam), tracking.txt (how
+each frame aligned against its keyframe, as prism-slam writes it), map.ply (the running map: positions, normals,
 colours; at the end the server rebuilds it at the final keyframe poses and sends it as one chunk that
 replaces the map, "map_replaced" in the summary), chunks/<sequence>.drc (the Draco map chunks as received; Debian's draco_decoder reads
 them) and summary.json (also printed). Progress goes to stderr. DIR/session.json (written as soon as
@@ -263,6 +264,21 @@ int main(int argc, char** argv) {
                     p.translation[0] * s, p.translation[1] * s, p.translation[2] * s, p.rotation_xyzw[0],
                     p.rotation_xyzw[1], p.rotation_xyzw[2], p.rotation_xyzw[3]);
       traj << line;
+    }
+  }
+  {
+    // As prism-slam's tracking.txt: each frame aligned against a keyframe, as the server tracked it.
+    std::ofstream tracking(out_dir + "/tracking.txt");
+    tracking << "# timestamp keyframe_id residual_rms visible_fraction inlier_fraction iterations retried step "
+                "rotation_deg guess_correction\n";
+    char line[256];
+    for (const auto& [sequence, p] : poses) {
+      if (!p.has_tracking) continue;
+      const pc::TrackingQuality& q = p.tracking;
+      std::snprintf(line, sizeof(line), "%.6f %lld %g %g %g %u %d %g %g %g\n", p.timestamp_ns * 1e-9,
+                    static_cast<long long>(p.keyframe_id), q.residual_rms, q.visible_fraction, q.inlier_fraction,
+                    q.iterations, q.retried ? 1 : 0, q.step, q.rotation_deg, q.guess_correction);
+      tracking << line;
     }
   }
   const std::vector<pc::Point> map = session->Map();

@@ -432,6 +432,12 @@ struct Session::Impl {
         e.pose.keyframe_id = p.keyframe_id();
         e.pose.refined = p.refined();
         e.pose.metres_per_unit = p.metres_per_unit();
+        e.pose.has_tracking = p.has_tracking();
+        if (p.has_tracking()) {
+          const v1::TrackingQuality& t = p.tracking();
+          e.pose.tracking = {t.residual_rms(), t.visible_fraction(), t.inlier_fraction(), t.iterations(), t.retried(),
+                             t.step(),         t.rotation_deg(),     t.guess_correction()};
+        }
         Emit(std::move(e));
         return;
       }

@@ -106,6 +106,20 @@ struct SessionOptions {
 
 enum class TrackingState { kUnknown, kInitialising, kTracking, kLost };
 
+// How the server's SLAM aligned a frame against its keyframe (Pose::tracking): distances are fractions
+// of the keyframe's mean depth. A tracked frame whose inlier fraction drops or whose result lies far from
+// its constant-velocity guess (guess_correction near step) is about to be lost.
+struct TrackingQuality {
+  double residual_rms = 0;      // grey levels, the inlier residuals at the finest pyramid level
+  double visible_fraction = 0;  // of the keyframe's points, projecting into the frame
+  double inlier_fraction = 0;   // of those, inliers
+  uint32_t iterations = 0;      // Gauss-Newton iterations over all levels
+  bool retried = false;         // the constant-velocity guess failed; tracked again from the last pose
+  double step = 0;              // translation from the previous frame
+  double rotation_deg = 0;      // rotation from the previous frame
+  double guess_correction = 0;  // distance of the result from the constant-velocity guess
+};
+
 struct Pose {
   uint64_t frame_sequence_number = 0;
   int64_t timestamp_ns = 0;
@@ -118,6 +132,9 @@ struct Pose {
   // A later, better pose of a frame already received (sent at the end of a session for the frames
   // the SLAM moved afterwards: initialisation, loop closures); the latest pose of a frame wins.
   bool refined = false;
+  // Set when the frame was aligned against a keyframe (not while initialising, lost or relocalised).
+  bool has_tracking = false;
+  TrackingQuality tracking;
 };
 
 struct Point {
