@@ -99,6 +99,20 @@ class PythonClientTest(unittest.TestCase):
             poses, cloud = session.poses(), session.map()
             all_poses = session.poses(tracked_only=False)
             keyframes = session.poses(tracked_only=False, keyframes_only=True)
+            # Each frame's alignment against its keyframe (PoseUpdate.tracking), per frame: every frame
+            # tracked after the initialisation has it, as roundtrip_test checks for prism-client.
+            tracking = {}
+            while True:
+                event = session.poll(0)
+                if event is None:
+                    break
+                if event[0] == "pose" and event[1]["tracking"] is not None:
+                    tracking[event[1]["frame"]] = event[1]["tracking"]
+        self.assertGreaterEqual(len(tracking), 40)  # of 60 frames, those after the initialisation
+        inliers = [t["inlier_fraction"] for t in tracking.values()]
+        self.assertTrue(all(0 < f <= 1 for f in inliers), inliers)
+        self.assertTrue(all(t["step"] > 0 and t["iterations"] > 0 for t in tracking.values()))
+        self.assertGreaterEqual(float(np.median(inliers)), 0.9)  # a clean rendered scene, as cli_test
         self.assertEqual(server.stop(), 0)
         self.assertEqual(summary["frames_received"], self.frames)
         self.assertEqual(summary["reason"], "closed by client")

@@ -88,6 +88,22 @@ py::dict PoseToDict(const pc::Pose& pose) {
   d["keyframe_id"] = pose.keyframe_id;
   d["refined"] = pose.refined;
   d["metres_per_unit"] = pose.metres_per_unit;
+  // How the frame aligned against its keyframe (client.h, TrackingQuality); None when it was not
+  // (initialising, lost, relocalised).
+  if (pose.has_tracking) {
+    py::dict t;
+    t["residual_rms"] = pose.tracking.residual_rms;
+    t["visible_fraction"] = pose.tracking.visible_fraction;
+    t["inlier_fraction"] = pose.tracking.inlier_fraction;
+    t["iterations"] = pose.tracking.iterations;
+    t["retried"] = pose.tracking.retried;
+    t["step"] = pose.tracking.step;
+    t["rotation_deg"] = pose.tracking.rotation_deg;
+    t["guess_correction"] = pose.tracking.guess_correction;
+    d["tracking"] = t;
+  } else {
+    d["tracking"] = py::none();
+  }
   return d;
 }
 
