@@ -15,12 +15,14 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "core/eval/statistics.h"
 #include "core/io/calibration_io.h"
 #include "core/io/image_io.h"
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
 #include "tests/test_process.h"
+#include "tests/tracking_file.h"
 
 namespace prism {
 namespace {
@@ -231,43 +233,32 @@ void ExpectTrackingFileMatchesTheTruth(const std::string& seq_dir, const std::st
           if (estimated.at<float>(y, x) > 0 && depth->at<float>(y, x) > 0) sum += 1.0 / depth->at<float>(y, x), ++n;
     return keyframe_mean_inverse_depth[id] = n > 0 ? sum / n : 0.0;
   };
-  std::ifstream in(out + "/tracking.txt");
-  ASSERT_TRUE(in.good()) << "no tracking.txt";
-  std::string line;
+  std::vector<test::TrackingRow> rows;
+  std::string bad_line;
+  ASSERT_TRUE(test::ReadTrackingFile(out + "/tracking.txt", &rows, &bad_line)) << "tracking.txt: " << bad_line;
   std::vector<double> ratios, inliers, steps, corrections;
-  int rows = 0;
-  while (std::getline(in, line)) {
-    if (line.empty() || line[0] == '#') continue;
-    ++rows;
-    std::istringstream f(line);
-    double t = 0, rms = 0, visible = 0, inlier = 0, step = 0, rotation = 0, correction = 0;
-    int keyframe = -1, iterations = 0, retried = 0;
-    ASSERT_TRUE(f >> t >> keyframe >> rms >> visible >> inlier >> iterations >> retried >> step >> rotation >>
-                correction)
-        << line;
-    EXPECT_GE(keyframe, 0) << line;
-    EXPECT_TRUE(visible >= 0 && visible <= 1 && inlier >= 0 && inlier <= 1) << line;
-    EXPECT_GT(iterations, 0) << line;
-    const int i = frame_at(t);
-    ASSERT_GT(i, 0) << line;
+  for (const test::TrackingRow& row : rows) {
+    EXPECT_GE(row.keyframe_id, 0) << row.line;
+    EXPECT_TRUE(row.visible_fraction >= 0 && row.visible_fraction <= 1 && row.inlier_fraction >= 0 &&
+                row.inlier_fraction <= 1)
+        << row.line;
+    EXPECT_GT(row.iterations, 0) << row.line;
+    const int i = frame_at(row.timestamp);
+    ASSERT_GT(i, 0) << row.line;
     StatusOr<Rigid3d> a = seq->GroundTruthPose(static_cast<size_t>(i - 1)),
                       b = seq->GroundTruthPose(static_cast<size_t>(i));
     ASSERT_TRUE(a.ok() && b.ok());
-    const double true_step = (b->translation - a->translation).norm() * true_mean_inverse_depth(keyframe);
-    ASSERT_GT(true_step, 0) << line;
-    ratios.push_back(step / true_step);
-    inliers.push_back(inlier);
-    steps.push_back(step);
-    corrections.push_back(correction);
+    const double true_step = (b->translation - a->translation).norm() * true_mean_inverse_depth(row.keyframe_id);
+    ASSERT_GT(true_step, 0) << row.line;
+    ratios.push_back(row.step / true_step);
+    inliers.push_back(row.inlier_fraction);
+    steps.push_back(row.step);
+    corrections.push_back(row.guess_correction);
   }
-  ASSERT_GE(rows, 40) << "of 60 frames, those after the initialisation";
-  auto median = [](std::vector<double> v) {
-    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
-    return v[v.size() / 2];
-  };
-  EXPECT_NEAR(median(ratios), 1.0, kStepTolerance);
-  EXPECT_GE(median(inliers), kMinMedianInliers);
-  EXPECT_LT(median(corrections), kMaxGuessCorrection * median(steps));
+  ASSERT_GE(rows.size(), 40u) << "of 60 frames, those after the initialisation";
+  EXPECT_NEAR(Median(ratios), 1.0, kStepTolerance);
+  EXPECT_GE(Median(inliers), kMinMedianInliers);
+  EXPECT_LT(Median(corrections), kMaxGuessCorrection * Median(steps));
 }
 
 // prism-slam on a short rendered sequence: every output file is written and the summary says how

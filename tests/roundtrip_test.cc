@@ -4,21 +4,20 @@
 // prism-eval cloud on the object).
 #include <unistd.h>
 
-#include <algorithm>
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 #include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
 
+#include "core/eval/statistics.h"
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
 #include "tests/server_process.h"
 #include "tests/sim3_from_trajectory.h"
 #include "tests/test_process.h"
+#include "tests/tracking_file.h"
 
 namespace prism {
 namespace {
@@ -127,24 +126,20 @@ TEST_F(RoundTripTest, StreamedSequenceGivesTheTrajectoryAndAMapOfTheObject) {
   {
     constexpr int kMinTrackedRows = 40;        // of 60 frames, those after the initialisation
     constexpr double kMinMedianInliers = 0.9;  // as cli_test
-    std::ifstream in(P("out/tracking.txt"));
-    ASSERT_TRUE(in.good()) << "no tracking.txt";
-    std::string line;
+    std::vector<test::TrackingRow> rows;
+    std::string bad_line;
+    ASSERT_TRUE(test::ReadTrackingFile(P("out/tracking.txt"), &rows, &bad_line)) << "tracking.txt: " << bad_line;
     std::vector<double> inliers;
-    while (std::getline(in, line)) {
-      if (line.empty() || line[0] == '#') continue;
-      std::istringstream f(line);
-      double t = 0, rms = 0, visible = 0, inlier = 0, step = 0;
-      int keyframe = -1, iterations = 0, retried = 0;
-      ASSERT_TRUE(f >> t >> keyframe >> rms >> visible >> inlier >> iterations >> retried >> step) << line;
-      EXPECT_GE(keyframe, 0) << line;
-      EXPECT_TRUE(visible > 0 && visible <= 1 && inlier > 0 && inlier <= 1 && step > 0 && iterations > 0) << line;
-      inliers.push_back(inlier);
+    for (const test::TrackingRow& row : rows) {
+      EXPECT_GE(row.keyframe_id, 0) << row.line;
+      EXPECT_TRUE(row.visible_fraction > 0 && row.visible_fraction <= 1 && row.inlier_fraction > 0 &&
+                  row.inlier_fraction <= 1 && row.step > 0 && row.iterations > 0)
+          << row.line;
+      inliers.push_back(row.inlier_fraction);
     }
     ASSERT_GE(static_cast<int>(inliers.size()), kMinTrackedRows);
     EXPECT_LE(inliers.size(), static_cast<size_t>(kFrames));
-    std::nth_element(inliers.begin(), inliers.begin() + static_cast<std::ptrdiff_t>(inliers.size() / 2), inliers.end());
-    EXPECT_GE(inliers[inliers.size() / 2], kMinMedianInliers);
+    EXPECT_GE(Median(inliers), kMinMedianInliers);
   }
   // Sim(3) from the trajectory (tests/sim3_from_trajectory.h): rotation from the camera orientations,
   // then scale and translation from the camera centres.
