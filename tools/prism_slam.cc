@@ -466,6 +466,7 @@ int main(int argc, char** argv) {
        << ",\n  \"tracking_ms_per_tracked_frame\": " << 1000.0 * timings.tracking / std::max(1, timings.tracked_frames)
        << ",\n  \"depth_updates\": " << timings.depth_updates
        << ",\n  \"depth_pixels_searched\": " << timings.depth_pixels_searched
+       << ",\n  \"depth_pixels_skipped\": " << timings.depth_pixels_skipped
        << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds
        << ",\n  \"depth_refinement_ms\": " << 1000.0 * refine_seconds;
   if (metres_per_unit > 0)

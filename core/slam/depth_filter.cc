@@ -81,6 +81,8 @@ Status DepthFilterOptions::Check() const {
     return InvalidArgumentError("DepthFilterOptions: camera_attached_min_flow_px must be > 0");
   if (!(camera_attached_error_ratio > 0 && camera_attached_error_ratio <= 1))
     return InvalidArgumentError("DepthFilterOptions: camera_attached_error_ratio must be in (0, 1]");
+  if (!(skip_information_ratio >= 0))
+    return InvalidArgumentError("DepthFilterOptions: skip_information_ratio must be >= 0");
   if (light_edge_radius_px < 0 || light_edge_radius_px > 16)
     return InvalidArgumentError("DepthFilterOptions: light_edge_radius_px must be in [0, 16]");
   if (!(light_edge_low_share >= 0 && light_edge_low_share < light_edge_high_share && light_edge_high_share <= 1))
@@ -322,6 +324,7 @@ DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3
     total.outliers += s.outliers;
     total.no_match += s.no_match;
     total.dropped += s.dropped;
+    total.skipped += s.skipped;
   }
   return total;
 }
@@ -349,6 +352,8 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   const int attached_votes = options_.camera_attached_min_votes;
   const float attached_flow = static_cast<float>(options_.camera_attached_min_flow_px);
   const float attached_ratio = static_cast<float>(options_.camera_attached_error_ratio);
+  const float skip_ratio = static_cast<float>(options_.skip_information_ratio);
+  const bool skip_on = skip_ratio > 0;
 
   const LineSamplerImage keyframe_image = ViewOf(grey_j_), frame_image = ViewOf(frame);
   std::vector<float> errors, samples;
@@ -358,8 +363,8 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
   // the keyframe (unit, towards the projection of the frame's centre) and the cosine between it and
   // the image gradient; then for those that pass, again at once, the search interval in the frame;
   // then the searches, one pixel at a time.
-  std::vector<float> row_dk_x, row_dk_y, row_gcos;
-  std::vector<uint8_t> row_pass, geo_ok;
+  std::vector<float> row_dk_x, row_dk_y, row_gcos, row_galong;
+  std::vector<uint8_t> row_pass, geo_ok, geo_skip;
   std::vector<int> row_list;
   // Per passing candidate: the search interval's ends and centre in the frame, the keyframe step's
   // image there and its length, and R ray.
@@ -380,7 +385,9 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       row_dk_x.resize(static_cast<size_t>(n_row));
       row_dk_y.resize(static_cast<size_t>(n_row));
       row_gcos.resize(static_cast<size_t>(n_row));
+      row_galong.resize(static_cast<size_t>(n_row));
       row_pass.resize(static_cast<size_t>(n_row));
+      geo_skip.resize(static_cast<size_t>(n_row));
       row_list.resize(static_cast<size_t>(n_row));
       geo_ok.resize(static_cast<size_t>(n_row));
       geo_values.resize(static_cast<size_t>(n_row));
@@ -401,10 +408,12 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       const float ux = dkx / dk_norm, uy = dky / dk_norm;
       const float gx = gxr[x], gy = gyr[x];
       const float g_norm = std::sqrt(gx * gx + gy * gy);
-      const float gcos = std::abs(gx * ux + gy * uy) / std::max(g_norm, 1e-6f);
+      const float galong = std::abs(gx * ux + gy * uy);
+      const float gcos = galong / std::max(g_norm, 1e-6f);
       row_dk_x[j] = ux;
       row_dk_y[j] = uy;
       row_gcos[j] = gcos;
+      row_galong[j] = galong;
       row_pass[j] = (pix[j].var > 0) & (dk_norm > min_dk_norm) & !(gcos < min_cos);
     }
     // Those that pass, then for all of them at once (vectorised as above) the search interval's ends and
@@ -447,11 +456,25 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       const float mx = (fx * q2x / q2z + cx) - pmx, my = (fy * q2y / q2z + cy) - pmy;
       const float m_norm = std::sqrt(mx * mx + my * my);
       ok = ok & !(m_norm < 0.4f || m_norm > 2.5f);
-      geo_ok[l] = ok;
-      geo[l].pa_x = fx * qax / qaz + cx;
-      geo[l].pa_y = fy * qay / qaz + cy;
-      geo[l].pb_x = fx * qbx / qbz + cx;
-      geo[l].pb_y = fy * qby / qbz + cy;
+      const float pax = fx * qax / qaz + cx, pay = fy * qay / qaz + cy;
+      const float pbx = fx * qbx / qbz + cx, pby = fy * qby / qbz + cy;
+      // The observation this frame would give, predicted at the estimate (skip_information_ratio): the
+      // segment's inverse depth per pixel, and the variance model of a match below with the keyframe's
+      // gradient along the line for the patch's.
+      const float seg_x = pbx - pax, seg_y = pby - pay;
+      const float seg_len = std::sqrt(seg_x * seg_x + seg_y * seg_y);
+      const float alpha_pred = (hi - lo) / std::max(seg_len, 1e-6f);
+      const float gcos_j = row_gcos[j], ga_j = row_galong[j];
+      const float var_pred =
+          alpha_pred * alpha_pred *
+          (sigma_l2 / std::max(gcos_j * gcos_j, 1e-6f) + 2 * sigma_i2 / std::max(ga_j * ga_j, 1e-2f) + 0.1f);
+      const bool skip = skip_on & ok & (pxl.observations > 0) & (var_pred > skip_ratio * pxl.var);
+      geo_skip[l] = skip;
+      geo_ok[l] = ok & !skip;
+      geo[l].pa_x = pax;
+      geo[l].pa_y = pay;
+      geo[l].pb_x = pbx;
+      geo[l].pb_y = pby;
       geo[l].pm_x = pmx;
       geo[l].pm_y = pmy;
       geo[l].m_x = mx;
@@ -462,6 +485,7 @@ void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid
       geo[l].a_z = az;
     }
     for (int l = 0; l < n_pass; ++l) {
+      stats->skipped += geo_skip[l];
       if (!geo_ok[l]) continue;
       const int j = list[l];
       const int x = static_cast<int>(row_index[j]) - row_offset;

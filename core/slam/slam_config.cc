@@ -76,6 +76,7 @@ void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Fie
   f->push_back({p + "camera_attached_min_votes", &d.camera_attached_min_votes});
   f->push_back({p + "camera_attached_min_flow_px", &d.camera_attached_min_flow_px});
   f->push_back({p + "camera_attached_error_ratio", &d.camera_attached_error_ratio});
+  f->push_back({p + "skip_information_ratio", &d.skip_information_ratio});
 }
 
 void AddDirectBa(const std::string& p, DirectBaOptions& b, std::vector<Field>* f) {

@@ -922,6 +922,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     }
     const DepthUpdateStats stats = current_depth->Update(j, tr.frame_from_keyframe, pool);
     timings.depth_pixels_searched += stats.searched;
+    timings.depth_pixels_skipped += stats.skipped;
   }
 
   // New keyframe?
@@ -1628,7 +1629,11 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
       const int id = out.id;
       if (id < 0 || id >= n || out.depth.inverse_depth.empty()) continue;
       const Impl::Keyframe& k = m.keyframes[static_cast<size_t>(id)];
-      StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, m.options.depth, m.rig.crosstalk);
+      // Every search made: this runs once, after the last frame (skip_information_ratio is for the
+      // online mapping's time).
+      DepthFilterOptions refine_options = m.options.depth;
+      refine_options.skip_information_ratio = 0;
+      StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, refine_options, m.rig.crosstalk);
       if (!kd.ok()) continue;
       cv::Mat seed = out.depth.inverse_depth;
       if (id == 0 && n >= 2 && m.options.final_refinement_first_from_second) {

@@ -501,6 +501,7 @@ struct SlamTimings {
   int tracked_frames = 0;             // frames that reached the tracker
   int depth_updates = 0;              // stereo updates of the current keyframe's depth
   int64_t depth_pixels_searched = 0;  // over those updates: epipolar searches
+  int64_t depth_pixels_skipped = 0;   // and searches skipped as uninformative (skip_information_ratio)
 };
 
 // What the start check (SlamOptions::start_check_*) found.
