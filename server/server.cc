@@ -864,6 +864,7 @@ struct Server::Impl {
     sum->set_shading_pair_spread(st.shading_pair_spread);
     sum->set_start_check(static_cast<v1::StartCheck>(st.start_check));
     sum->set_start_pair_spread(st.start_pair_spread);
+    sum->set_frames_depth_update_skipped(st.frames_depth_update_skipped);
     sum->set_reason(s->reason);
     // Persist: the merged map and the summary.
     const std::string dir = store.Dir(s->id);

@@ -44,6 +44,8 @@ const char* ServerOptionsHelp() {
   frame-queue N           frames queued per session (default 8; also the initial frame credits)
   input-policy live|upload  full frame queue: drop the oldest (live) or reject (upload) (default live)
   keyframe-queue N        finished keyframes queued per session for the dense stage (default 4)
+  skip-depth-update-backlog N  when N frames wait for a session's SLAM, the next frame is tracked
+                          without its stereo depth update (behind: poses first; default 0 = never)
   voxel-m M               map voxel edge, metres (default 0.002)
   remap-at-end true|false at a session's end, rebuild the map at the final keyframe poses and send it as
                           one chunk that replaces the map (default true; the keyframe clouds it needs
@@ -151,6 +153,9 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   } else if (key == "frame-queue") {
     if (!is_int) return bad();
     o->pipeline.frame_queue_capacity = static_cast<int>(i);
+  } else if (key == "skip-depth-update-backlog") {
+    if (!is_int) return bad();
+    o->pipeline.skip_depth_update_backlog = static_cast<int>(i);
   } else if (key == "keyframe-queue") {
     if (!is_int) return bad();
     o->pipeline.keyframe_queue_capacity = static_cast<int>(i);

@@ -20,6 +20,7 @@
 #include <thread>
 #include <vector>
 
+#include "core/eval/trajectory_metrics.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
 #include "core/synth/trajectory.h"
@@ -33,18 +34,22 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 constexpr char kUsage[] = R"(usage: prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F]
+                       [--server-option KEY=VALUE ...]
 
 Starts prism-server (from this binary's folder) on 127.0.0.1 with a free port (input policy upload,
 so no frame is dropped), renders the preset (default bunny-multicolor-forward, 150 frames, 512x512)
 in memory and streams it through libprism_client once per codec, as fast as the server's frame
 credits allow. Prints one JSON object:
 With --fps F the frames are pushed at F frames/s (a live camera) instead of as fast as possible.
+--server-option KEY=VALUE (repeatable) passes --KEY VALUE to prism-server.
   per codec: frames_per_s (frames sent / time until the last pose), map_frames_per_s (frames sent /
   time until the session summary, i.e. every keyframe's chunks delivered), map_done_after_last_pose_s,
   frame_to_pose_ms p50/p95 (frame
   sent -> its pose received), keyframe_to_chunk_ms p50/p95 (the pose of the frame that became
   keyframe k + 1, which finishes keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point,
-  chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb.
+  chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
+  ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
+  against the rendered truth after a Sim(3) alignment) and frames_depth_update_skipped.
 )";
 
 int Fail(const std::string& m) {
@@ -97,6 +102,7 @@ int main(int argc, char** argv) {
   std::string preset = "bunny-multicolor-forward", codecs = "png,jpeg,raw";
   int frames = 150;
   double fps = 0;
+  std::vector<std::string> server_options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
@@ -109,7 +115,12 @@ int main(int argc, char** argv) {
     else if (a == "--frames") frames = std::atoi(v.c_str());
     else if (a == "--codecs") codecs = v;
     else if (a == "--fps") fps = std::atof(v.c_str());
-    else return Fail("unknown argument '" + a + "' (see --help)");
+    else if (a == "--server-option") {
+      const size_t eq = v.find('=');
+      if (eq == std::string::npos || eq == 0) return Fail("--server-option wants KEY=VALUE, got '" + v + "'");
+      server_options.push_back("--" + v.substr(0, eq));
+      server_options.push_back(v.substr(eq + 1));
+    } else return Fail("unknown argument '" + a + "' (see --help)");
   }
   if (frames < 20) return Fail("--frames must be >= 20");
   if (!(fps >= 0)) return Fail("--fps must be >= 0");
@@ -155,6 +166,7 @@ int main(int argc, char** argv) {
                                    "off",
                                    "--log-level",
                                    "warning"};
+  args.insert(args.end(), server_options.begin(), server_options.end());
   std::vector<char*> cargs;
   for (std::string& s : args) cargs.push_back(s.data());
   cargs.push_back(nullptr);
@@ -217,8 +229,21 @@ int main(int argc, char** argv) {
     std::map<uint64_t, Clock::time_point> chunk_time;  // keyframe id -> first chunk arrival
     uint64_t chunk_bytes = 0, chunk_points = 0, chunks = 0;
     Clock::time_point last_pose;
+    // The latest pose of each tracked frame (a refined one replaces the first).
+    std::map<uint64_t, prism::Rigid3d> tracked_poses;
     auto handle = [&](const prism::client::Event& e) {
       const auto now = Clock::now();
+      if (e.kind == prism::client::Event::Kind::kPose) {
+        if (e.pose.state == prism::client::TrackingState::kTracking) {
+          const auto& q = e.pose.rotation_xyzw;
+          prism::Rigid3d p;
+          p.rotation = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized();
+          p.translation = Eigen::Vector3d(e.pose.translation[0], e.pose.translation[1], e.pose.translation[2]);
+          tracked_poses[e.pose.frame_sequence_number] = p;
+        } else {
+          tracked_poses.erase(e.pose.frame_sequence_number);
+        }
+      }
       if (e.kind == prism::client::Event::Kind::kPose && !e.pose.refined) {
         auto it = sent.find(e.pose.frame_sequence_number);
         if (it != sent.end())
@@ -255,6 +280,19 @@ int main(int argc, char** argv) {
     }
     const auto t_done = Clock::now();
     const double seconds = std::chrono::duration<double>(last_pose - t0).count();
+    double ate_percent = -1;  // -1: too few tracked poses to align
+    {
+      prism::Trajectory gt, est;
+      for (const auto& [seq, pose] : tracked_poses) {
+        if (seq >= static_cast<uint64_t>(frames)) continue;
+        gt.push_back(trajectory[seq]);
+        est.push_back({trajectory[seq].timestamp_s, pose});
+      }
+      prism::TrajectoryEvalOptions eo;
+      eo.alignment = prism::AlignmentModel::kSim3;
+      const prism::StatusOr<prism::AteResult> ate = prism::ComputeAte(gt, est, eo);
+      if (ate.ok() && ate->trajectory_length_m > 0) ate_percent = 100.0 * ate->error_m.rmse / ate->trajectory_length_m;
+    }
     const double map_seconds = std::chrono::duration<double>(t_done - t0).count();
     std::vector<double> kf_to_chunk;
     for (const auto& [kf, t] : chunk_time) {
@@ -275,7 +313,9 @@ int main(int argc, char** argv) {
          << ", \"chunk_bits_per_point\": " << (chunk_points ? 8.0 * chunk_bytes / chunk_points : -1)
          << ", \"keyframes\": " << summary.keyframes << ", \"keyframes_dropped\": " << summary.keyframes_dropped
          << ", \"keyframes_failed\": " << summary.keyframes_failed
-         << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS") << "}";
+         << ", \"frames_depth_update_skipped\": " << summary.frames_depth_update_skipped
+         << ", \"ate_percent_of_path\": " << ate_percent << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS")
+         << "}";
     first = false;
   }
   json << "\n  },\n  \"server_peak_rss_mb\": " << ProcStatusMb(pid, "VmHWM") << "\n}\n";

@@ -115,6 +115,7 @@ py::dict SummaryToDict(const pc::Summary& s) {
   d["keyframes"] = s.keyframes;
   d["keyframes_dropped"] = s.keyframes_dropped;
   d["keyframes_failed"] = s.keyframes_failed;
+  d["frames_depth_update_skipped"] = s.frames_depth_update_skipped;
   d["chunks_sent"] = s.chunks_sent;
   d["map_points"] = s.map_points;
   d["metres_per_unit"] = s.metres_per_unit;

@@ -485,6 +485,7 @@ struct Session::Impl {
         summary.keyframes = s.keyframes();
         summary.keyframes_dropped = s.keyframes_dropped();
         summary.keyframes_failed = s.keyframes_failed();
+        summary.frames_depth_update_skipped = s.frames_depth_update_skipped();
         summary.chunks_sent = s.chunks_sent();
         summary.map_points = s.map_points();
         summary.metres_per_unit = s.metres_per_unit();

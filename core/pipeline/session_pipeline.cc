@@ -26,6 +26,9 @@ Status SessionPipelineOptions::Check() const {
   if (frame_queue_capacity < 1 || frame_queue_capacity > 1024)
     return InvalidArgumentError("SessionPipelineOptions.frame_queue_capacity = " +
                                 std::to_string(frame_queue_capacity) + "; violated: in [1, 1024]");
+  if (skip_depth_update_backlog < 0 || skip_depth_update_backlog > 1024)
+    return InvalidArgumentError("SessionPipelineOptions.skip_depth_update_backlog = " +
+                                std::to_string(skip_depth_update_backlog) + "; violated: in [0, 1024]");
   if (keyframe_queue_capacity < 1 || keyframe_queue_capacity > 256)
     return InvalidArgumentError("SessionPipelineOptions.keyframe_queue_capacity = " +
                                 std::to_string(keyframe_queue_capacity) + "; violated: in [1, 256]");
@@ -159,6 +162,9 @@ void SessionPipeline::SlamLoop() {
       continue;
     }
     const auto t0 = std::chrono::steady_clock::now();
+    // Behind the input: this frame's pose only (the frames still waiting, not counting this one).
+    const bool skip_depth_update = options_.skip_depth_update_backlog > 0 &&
+                                   frames_.size() >= static_cast<size_t>(options_.skip_depth_update_backlog);
     Status decoded = DecodeFrame(frame->bytes.data(), frame->bytes.size(), frame->codec, rig_.camera.width,
                                  rig_.camera.height, &rgb);
     if (decoded.ok() && !undistorter_->identity()) {
@@ -180,7 +186,8 @@ void SessionPipeline::SlamLoop() {
       continue;
     }
     try {
-      StatusOr<SlamFrameResult> r = slam_->ProcessFrame(static_cast<double>(frame->timestamp_ns) * 1e-9, rgb);
+      StatusOr<SlamFrameResult> r =
+          slam_->ProcessFrame(static_cast<double>(frame->timestamp_ns) * 1e-9, rgb, skip_depth_update);
       if (!r.ok()) {
         PipelineEvent e;
         e.kind = PipelineEvent::Kind::kError;
@@ -194,6 +201,9 @@ void SessionPipeline::SlamLoop() {
       {
         std::lock_guard<std::mutex> lock(mutex_);
         ++stats_.frames_processed;
+        // Asked to skip and did (a frame that made a keyframe, or was tracked while initialising, did not).
+        stats_.frames_depth_update_skipped +=
+            skip_depth_update && r->state == SlamState::kTracking && !r->depth_updated;
         stats_.slam_ms_total += MsSince(t0);
       }
       PipelineEvent e;

@@ -50,6 +50,11 @@ struct SessionPipelineOptions {
   // room, so it stops consuming frames, the frame queue fills and the server stops granting frame
   // credits (memory stays bounded by the two queue capacities).
   int keyframe_queue_capacity = 4;
+  // When at least this many frames wait in the frame queue as the SLAM thread takes the next one, that
+  // frame skips the SLAM's stereo depth update (SlamSystem::ProcessFrame's skip_depth_update; a frame
+  // that makes a keyframe still updates): a SLAM that has fallen behind its input spends its time on
+  // poses until it has caught up, as LSD-SLAM's and DSO's mapping threads do. 0 = never, in [0, 1024].
+  int skip_depth_update_backlog = 0;
   // At the end of the stream, after the final adjustment: when keyframe poses moved since their clouds
   // entered the map, the map is rebuilt from the kept clouds at the final poses (DenseStage::Remap)
   // and sent as one chunk with replaces_map. false: the map keeps the poses each keyframe had when it
@@ -73,12 +78,13 @@ struct EncodedFrame {
 };
 
 struct PipelineStats {
-  uint64_t frames_received = 0;   // accepted by Push
-  uint64_t frames_dropped = 0;    // dropped from a full queue (drop-oldest) or at Abort
-  uint64_t frames_rejected = 0;   // refused by Push (full queue with kReject, or closed)
-  uint64_t frames_bad = 0;        // failed to decode (corrupt, wrong size)
-  uint64_t frames_processed = 0;  // tracked by SLAM
-  uint64_t keyframes = 0;         // finished keyframes from SLAM
+  uint64_t frames_received = 0;              // accepted by Push
+  uint64_t frames_dropped = 0;               // dropped from a full queue (drop-oldest) or at Abort
+  uint64_t frames_rejected = 0;              // refused by Push (full queue with kReject, or closed)
+  uint64_t frames_bad = 0;                   // failed to decode (corrupt, wrong size)
+  uint64_t frames_processed = 0;             // tracked by SLAM
+  uint64_t frames_depth_update_skipped = 0;  // of those, without their depth update (skip_depth_update_backlog)
+  uint64_t keyframes = 0;                    // finished keyframes from SLAM
   uint64_t keyframes_dropped = 0;
   uint64_t keyframe_waits = 0;    // upload: times SLAM waited for room in the keyframe queue
   uint64_t keyframes_failed = 0;  // dense stage errors

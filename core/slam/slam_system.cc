@@ -237,6 +237,7 @@ struct SlamSystem::Impl {
   std::unique_ptr<KeyframeDepth> previous_depth;
   int previous_depth_kf = -1;
   int frames_since_keyframe = 0;
+  bool skip_depth_update = false;  // for the frame being processed (ProcessFrame's argument)
 
   struct FrameRecord {
     SlamFrameResult result;
@@ -381,7 +382,7 @@ StatusOr<std::unique_ptr<SlamSystem>> SlamSystem::Create(const RigCalibration& r
 SlamSystem::SlamSystem(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 SlamSystem::~SlamSystem() = default;
 
-StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::Mat& rgb) {
+StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::Mat& rgb, bool skip_depth_update) {
   const PinholeCamera& cam = impl_->rig.camera;
   if (rgb.type() != CV_8UC3 || rgb.cols != cam.width || rgb.rows != cam.height) {
     std::ostringstream m;
@@ -389,7 +390,9 @@ StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::M
       << rgb.cols << "x" << rgb.rows << " type " << rgb.type();
     return InvalidArgumentError(m.str());
   }
+  impl_->skip_depth_update = skip_depth_update;
   StatusOr<SlamFrameResult> r = impl_->Process(timestamp, rgb);
+  impl_->skip_depth_update = false;
   if (start_check_) StepStartCheck(timestamp, rgb, &r);
   return r;
 }
@@ -906,7 +909,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
            tr.visible_fraction < options.keyframe_min_visible_fraction ||
            rotation_deg > options.keyframe_max_rotation_deg;
   };
-  if (frames_since_keyframe % options.depth_update_interval == 0 || needs_keyframe(current_depth->MeanInverseDepth())) {
+  if ((!skip_depth_update && frames_since_keyframe % options.depth_update_interval == 0) ||
+      needs_keyframe(current_depth->MeanInverseDepth())) {
     const ScopedSeconds timer(&timings.depth_update);
     ++timings.depth_updates;
     frames.back().result.depth_updated = true;

@@ -530,7 +530,10 @@ class SlamSystem {
   ~SlamSystem();
 
   // rgb: CV_8UC3 of the camera's size. Fails only on invalid input; tracking loss is a state.
-  StatusOr<SlamFrameResult> ProcessFrame(double timestamp, const cv::Mat& rgb);
+  // skip_depth_update: the frame is tracked, but the keyframe's depth is not updated by stereo with it
+  // (unless it makes a new keyframe, whose depth always takes the widest baseline). A caller that has
+  // fallen behind its input (SessionPipelineOptions::skip_depth_update_backlog) spends its time on poses.
+  StatusOr<SlamFrameResult> ProcessFrame(double timestamp, const cv::Mat& rgb, bool skip_depth_update = false);
 
   // Keyframes whose depth maps are final (the system has moved on to a newer keyframe), oldest first;
   // each is returned once.

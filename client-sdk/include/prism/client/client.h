@@ -157,6 +157,9 @@ struct MapChunk {
 struct Summary {
   uint64_t frames_received = 0, frames_dropped = 0, frames_rejected = 0;
   uint64_t keyframes = 0, keyframes_dropped = 0, keyframes_failed = 0;
+  // Frames the server tracked without their depth update because it had fallen behind
+  // (SessionSummary.frames_depth_update_skipped; its skip-depth-update-backlog option).
+  uint64_t frames_depth_update_skipped = 0;
   uint64_t chunks_sent = 0, map_points = 0;
   double metres_per_unit = 0;
   std::string reason;
