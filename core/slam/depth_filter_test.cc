@@ -50,6 +50,16 @@ cv::Mat TrueInverseDepthTimes(const cv::Mat& depth, float factor) {
   return seed;
 }
 
+// The mean true inverse depth everywhere (a seed without depth knowledge).
+cv::Mat MeanInverseDepthSeed(const cv::Mat& depth) {
+  double sum = 0;
+  int n = 0;
+  for (int y = 0; y < depth.rows; ++y)
+    for (int x = 0; x < depth.cols; ++x)
+      if (depth.at<float>(y, x) > 0) sum += 1.0 / depth.at<float>(y, x), ++n;
+  return cv::Mat(depth.size(), CV_32F, cv::Scalar(sum / n));
+}
+
 struct DepthError {
   int count = 0;
   double median_rel = 0;
@@ -92,12 +102,7 @@ TEST_P(DepthFilterPresetTest, ConvergesFromAWideSeedWithTruePoses) {
   DepthFilterOptions options;
   StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(key.rgb, seq.setup.rig.camera, options);
   ASSERT_TRUE(kd.ok()) << kd.status();
-  double sum = 0;
-  int n = 0;
-  for (int y = 0; y < key.depth.rows; ++y)
-    for (int x = 0; x < key.depth.cols; ++x)
-      if (key.depth.at<float>(y, x) > 0) sum += 1.0 / key.depth.at<float>(y, x), ++n;
-  cv::Mat seed(key.depth.size(), CV_32F, cv::Scalar(sum / n));
+  const cv::Mat seed = MeanInverseDepthSeed(key.depth);
   kd->Seed(seed, 0.5, 0);
   for (int frame = 1; frame <= 12; ++frame) {
     const synth::RenderedFrame f = seq.Render(frame);
@@ -136,12 +141,7 @@ TEST(KeyframeDepth, SkipsUninformativeSearchesAndKeepsTheAccuracy) {
   const synth::RenderedFrame key = seq.Render(0);
   std::vector<synth::RenderedFrame> frames;
   for (int frame = 1; frame <= 16; ++frame) frames.push_back(seq.Render(frame));
-  double sum = 0;
-  int n = 0;
-  for (int y = 0; y < key.depth.rows; ++y)
-    for (int x = 0; x < key.depth.cols; ++x)
-      if (key.depth.at<float>(y, x) > 0) sum += 1.0 / key.depth.at<float>(y, x), ++n;
-  const cv::Mat seed(key.depth.size(), CV_32F, cv::Scalar(sum / n));
+  const cv::Mat seed = MeanInverseDepthSeed(key.depth);
   struct Run {
     int64_t searched = 0, skipped = 0;
     int last_searched = 0, last_skipped = 0;
