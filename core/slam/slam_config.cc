@@ -106,6 +106,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"new_pixel_relative_sigma", &o.new_pixel_relative_sigma});
   f.push_back({"tracker_refresh_frames", &o.tracker_refresh_frames});
   f.push_back({"depth_update_interval", &o.depth_update_interval});
+  f.push_back({"mapping_budget_ms", &o.mapping_budget_ms});
   f.push_back({"tracking_min_observations", &o.tracking_min_observations});
   f.push_back({"tracking_max_relative_sigma", &o.tracking_max_relative_sigma});
   f.push_back({"max_step_rotation_deg", &o.max_step_rotation_deg});

@@ -112,6 +112,7 @@ Status SlamOptions::Check() const {
   if (!(new_pixel_relative_sigma > 0)) return InvalidArgumentError("SlamOptions: new_pixel_relative_sigma must be > 0");
   if (tracker_refresh_frames < 1) return InvalidArgumentError("SlamOptions: tracker_refresh_frames must be >= 1");
   if (depth_update_interval < 1) return InvalidArgumentError("SlamOptions: depth_update_interval must be >= 1");
+  if (!(mapping_budget_ms >= 0)) return InvalidArgumentError("SlamOptions: mapping_budget_ms must be >= 0");
   if (loop_min_keyframe_gap < 2) return InvalidArgumentError("SlamOptions: loop_min_keyframe_gap must be >= 2");
   if (!(loop_max_distance_fraction > 0))
     return InvalidArgumentError("SlamOptions: loop_max_distance_fraction must be > 0");
@@ -909,8 +910,14 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
            tr.visible_fraction < options.keyframe_min_visible_fraction ||
            rotation_deg > options.keyframe_max_rotation_deg;
   };
-  if ((!skip_depth_update && frames_since_keyframe % options.depth_update_interval == 0) ||
-      needs_keyframe(current_depth->MeanInverseDepth())) {
+  // Over the mapping budget: the time spent so far on mapping against the budget of the frames tracked.
+  const bool over_budget =
+      options.mapping_budget_ms > 0 && 1000.0 * (timings.depth_update + timings.keyframes) >
+                                           options.mapping_budget_ms * static_cast<double>(timings.tracked_frames);
+  const bool interval_update = !skip_depth_update && frames_since_keyframe % options.depth_update_interval == 0;
+  const bool makes_keyframe = needs_keyframe(current_depth->MeanInverseDepth());
+  if (interval_update && over_budget && !makes_keyframe) ++timings.depth_updates_over_budget;
+  if ((interval_update && !over_budget) || makes_keyframe) {
     const ScopedSeconds timer(&timings.depth_update);
     ++timings.depth_updates;
     frames.back().result.depth_updated = true;

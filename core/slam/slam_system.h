@@ -157,6 +157,14 @@ struct SlamOptions {
   // frame on one core: 17-40 / 26-52 ms (2-core EPYC; see the README). Not the default: slightly
   // worse on the trajectory, for a speed gain the keyframe adjustment then dominates.
   int depth_update_interval = 1;
+  // A time budget for the mapping, ms per tracked frame (0 = off, >= 0): a frame's stereo update is
+  // skipped while the mapping time so far (SlamTimings::depth_update + keyframes, the part the speed bar
+  // puts on a core of its own) exceeds the budget times the frames tracked; a frame that makes a
+  // keyframe is always updated. The mapping then keeps up with 1000 / budget frames/s on a core, as
+  // LSD-SLAM's mapping thread does by leaving out frames that arrived while it was busy; the frames left
+  // out are mostly those just after a keyframe (its adjustment is the debt), whose baselines are the
+  // shortest. Wall time, so two runs differ. 1000 / 30 keeps up with a 30 frames/s camera.
+  double mapping_budget_ms = 0;
   // The tracker uses the keyframe's estimates with at least this many observations and at most this
   // relative standard deviation, >= 1 and > 0. On the 27 standard runs (with the re-propagation
   // below), 0.1 -> 0.05: 20 -> 21 runs within 1% ATE, median depth error 4.3 -> 3.95%; 0.03 was worse
@@ -500,6 +508,7 @@ struct SlamTimings {
   double relocalisation = 0;          // lost frames' searches among the keyframes
   int tracked_frames = 0;             // frames that reached the tracker
   int depth_updates = 0;              // stereo updates of the current keyframe's depth
+  int depth_updates_over_budget = 0;  // tracked frames not updated because of mapping_budget_ms
   int64_t depth_pixels_searched = 0;  // over those updates: epipolar searches
   int64_t depth_pixels_skipped = 0;   // and searches skipped as uninformative (skip_information_ratio)
 };
