@@ -910,9 +910,11 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
            tr.visible_fraction < options.keyframe_min_visible_fraction ||
            rotation_deg > options.keyframe_max_rotation_deg;
   };
-  // Over the mapping budget: the time spent so far on mapping against the budget of the frames tracked.
+  // Over the mapping budget: the time spent so far on mapping, with this update's expected time (the
+  // mean of the updates so far), against the budget of the frames tracked.
+  const double expected_update = timings.depth_updates > 0 ? timings.depth_update / timings.depth_updates : 0.0;
   const bool over_budget =
-      options.mapping_budget_ms > 0 && 1000.0 * (timings.depth_update + timings.keyframes) >
+      options.mapping_budget_ms > 0 && 1000.0 * (timings.depth_update + timings.keyframes + expected_update) >
                                            options.mapping_budget_ms * static_cast<double>(timings.tracked_frames);
   const bool interval_update = !skip_depth_update && frames_since_keyframe % options.depth_update_interval == 0;
   const bool makes_keyframe = needs_keyframe(current_depth->MeanInverseDepth());
