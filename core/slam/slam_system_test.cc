@@ -679,7 +679,9 @@ TEST(SlamSystem, AMappingBudgetLeavesOutUpdatesOnlyWhenOverIt) {
     StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses(*poses));
     ASSERT_TRUE(ate.ok()) << ate.status();
     std::printf("%s: ATE %.3f%% of the path\n", poses == &starved_poses ? "starved" : "no budget", PercentOfPath(*ate));
-    if (poses == &starved_poses) EXPECT_LT(PercentOfPath(*ate), kMaxAtePercentStarved);
+    if (poses == &starved_poses) {
+      EXPECT_LT(PercentOfPath(*ate), kMaxAtePercentStarved);
+    }
   }
 
   SlamOptions options;
