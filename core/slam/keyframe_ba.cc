@@ -453,8 +453,10 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // The residuals above options.outlier are listed in *over (point * num_kf + target) as they are summed:
   // the outlier test after the first solve then reads the current state's list instead of projecting and
   // sampling every residual again (the same residuals, values and test).
+  DirectBaSummary summary;
   auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq,
                       std::vector<int>* over) {
+    ++summary.evaluations;
     double cost = 0;
     *count = 0;
     *sq = 0;
@@ -490,7 +492,6 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     return cost + 0.5 * gauge_weight * along * along;
   };
 
-  DirectBaSummary summary;
   int count = 0;
   double sq = 0;
   std::vector<int> over, trial_over;  // the current state's residuals above the outlier threshold; a trial's
@@ -543,6 +544,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     const int rounds = level == 0 ? 2 : 1;
     for (int round = 0; round < rounds; ++round) {
       double lambda = 1e-3;
+      double nu = 2;  // gain_ratio_damping: lambda's factor after the next rejected step
       // The first solve at full resolution without coarser levels starts where initial_cost was taken
       // (the same poses, depths, intensities and residuals). A solve after which no outlier test follows
       // takes its starting cost from its first linearisation, which reads the same residuals in the same
@@ -895,17 +897,41 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           metres = k_before * std::exp(d_log_k);  // evaluate at the trial K (restored if rejected)
           const double ncost = evaluate(np, nr, &nc, &nsq, &trial_over);
           if (!(ncost < cost)) metres = k_before;
+          // gain_ratio_damping: the decrease the damped model predicts, (lambda d^T D d - g^T d) / 2 over the
+          // step d taken (g: the gradient; D: the damping's diagonal, max(1e-6, hcc) for the poses, hpp for
+          // the points, max(1e-6, h_kk) for log K).
+          double predicted = 0;
+          if (options.gain_ratio_damping) {
+            for (int d = 0; d < dim; ++d)
+              predicted += lambda * std::max(1e-6, hcc(d, d)) * dc(d) * dc(d) - bc(d) * dc(d);
+            for (int i = 0; i < num_points; ++i) {
+              const double d = nr[static_cast<size_t>(i)] - rho[static_cast<size_t>(i)];
+              predicted += lambda * hpp[static_cast<size_t>(i)] * d * d - bp[static_cast<size_t>(i)] * d;
+            }
+            if (estimate_k) predicted += lambda * std::max(1e-6, h_kk) * d_log_k * d_log_k - b_k * d_log_k;
+            predicted *= 0.5;
+          }
           if (ncost < cost) {
             const double decrease = (cost - ncost) / std::max(1e-300, cost);
+            const double gain = predicted > 0 ? (cost - ncost) / predicted : 0.0;
             poses.swap(np);
             rho.swap(nr);
             cost = ncost;
             count = nc;  // count, sq and over: always the current state's
             sq = nsq;
             over.swap(trial_over);
-            lambda = std::max(1e-7, lambda / 3);
+            if (options.gain_ratio_damping) {
+              const double c = 2 * gain - 1;
+              lambda = std::max(1e-7, lambda * std::max(1.0 / 3, 1 - c * c * c));
+              nu = 2;
+            } else {
+              lambda = std::max(1e-7, lambda / 3);
+            }
             accepted = true;
             if (decrease < options.function_tolerance) it = options.max_iterations;
+          } else if (options.gain_ratio_damping) {
+            lambda *= nu;
+            nu *= 2;
           } else {
             lambda *= 5;
           }

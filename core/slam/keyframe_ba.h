@@ -121,11 +121,19 @@ struct DirectBaOptions {
   // 27). Too mixed there; SlamOptions::final_adjustment_ba uses c = 20 (in the final adjustment alone
   // it improves nearly every run).
   double gradient_weight_c = 0.0;
+  // Levenberg-Marquardt damping. false: lambda / 3 after an accepted step and x 5 after a rejected one.
+  // true: by the gain ratio rho (the cost's decrease over the decrease the damped linear model
+  // predicts; Nielsen's rule, as in Madsen, Nielsen and Tingleff's notes and Ceres' LM strategy):
+  // lambda x max(1/3, 1 - (2 rho - 1)^3) after an accepted step, x nu with nu doubling after each
+  // rejected one. A step that only just succeeds then keeps lambda where it was, instead of lowering it
+  // to a value whose next step is rejected (each rejection costs a full cost evaluation).
+  bool gain_ratio_damping = false;
   Status Check() const;
 };
 
 struct DirectBaSummary {
   int iterations = 0;
+  int evaluations = 0;  // cost evaluations (the initial one, and one per step tried, accepted or not)
   int residuals = 0;                      // used in the final solve
   double initial_rms = 0, final_rms = 0;  // grey levels, over the residuals used
 };

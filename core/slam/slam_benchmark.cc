@@ -166,8 +166,11 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
         j, inverse_depth, k, slam_options.keyframe_window_cell_px, 0.0f, [](int, int) { return true; }, &start.points);
   }
   for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
-  // Arg: threads (1: no pool, as SlamSystem on one thread).
+  // Args: threads (1: no pool, as SlamSystem on one thread); the LM damping rule
+  // (DirectBaOptions::gain_ratio_damping, 0: the fixed factors, 1: the gain ratio, SlamSystem's).
   const int threads = static_cast<int>(state.range(0));
+  DirectBaOptions ba_options = slam_options.keyframe_window_ba;
+  ba_options.gain_ratio_damping = state.range(1) != 0;
   std::unique_ptr<ThreadPool> pool = threads > 1 ? std::make_unique<ThreadPool>(threads) : nullptr;
   DirectBaSummary summary;
   double seconds = 0;
@@ -176,7 +179,7 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
     DirectBaProblem problem = start;
     state.ResumeTiming();
     const auto t0 = std::chrono::steady_clock::now();
-    StatusOr<DirectBaSummary> s = AdjustKeyframeWindowDirect(slam_options.keyframe_window_ba, &problem, pool.get());
+    StatusOr<DirectBaSummary> s = AdjustKeyframeWindowDirect(ba_options, &problem, pool.get());
     seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (!s.ok()) {
       state.SkipWithError(s.status().ToString().c_str());
@@ -187,20 +190,24 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
   state.counters["points"] = static_cast<double>(start.points.size());
   state.counters["residuals"] = summary.residuals;
   state.counters["iterations"] = summary.iterations;
+  state.counters["evaluations"] = summary.evaluations;
+  state.counters["final_rms"] = summary.final_rms;
   // Each iteration linearises once and evaluates at least once: per residual of the final solve.
   state.counters["ns_per_residual"] =
       1e9 * seconds / (static_cast<double>(state.iterations()) * summary.residuals * 2 * summary.iterations);
 }
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, torus, std::string("torus-textured-forward"))
-    ->Arg(1)
-    ->Arg(2)
+    ->Args({1, 0})
+    ->Args({1, 1})
+    ->Args({2, 1})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo-textured-forward"))
-    ->Arg(1)
-    ->Arg(2)
+    ->Args({1, 0})
+    ->Args({1, 1})
+    ->Args({2, 1})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)
