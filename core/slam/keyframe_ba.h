@@ -133,7 +133,7 @@ struct DirectBaOptions {
 
 struct DirectBaSummary {
   int iterations = 0;
-  int evaluations = 0;  // cost evaluations (the initial one, and one per step tried, accepted or not)
+  int evaluations = 0;                    // cost evaluations (the initial one, and one per step tried, accepted or not)
   int residuals = 0;                      // used in the final solve
   double initial_rms = 0, final_rms = 0;  // grey levels, over the residuals used
 };

@@ -192,8 +192,8 @@ TEST(KeyframeBa, TheGainRatioDampingEvaluatesTheCostLessOften) {
     StatusOr<DirectBaSummary> sg = AdjustKeyframeWindowDirect(options, &gain);
     ASSERT_TRUE(sg.ok()) << sg.status();
     std::printf("%s: evaluations %d -> %d, iterations %d -> %d, final RMS %.4f -> %.4f, centre error %.4f -> %.4f\n",
-                preset, sf->evaluations, sg->evaluations, sf->iterations, sg->iterations, sf->final_rms,
-                sg->final_rms, CentreError(fixed, w.truth), CentreError(gain, w.truth));
+                preset, sf->evaluations, sg->evaluations, sf->iterations, sg->iterations, sf->final_rms, sg->final_rms,
+                CentreError(fixed, w.truth), CentreError(gain, w.truth));
     EXPECT_LE(sg->evaluations, sf->evaluations) << preset;
     fewer += sg->evaluations < sf->evaluations;
     EXPECT_LE(sg->final_rms, sf->final_rms * (1 + kGainRatioMaxRmsIncrease)) << preset;
