@@ -897,22 +897,22 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           metres = k_before * std::exp(d_log_k);  // evaluate at the trial K (restored if rejected)
           const double ncost = evaluate(np, nr, &nc, &nsq, &trial_over);
           if (!(ncost < cost)) metres = k_before;
-          // gain_ratio_damping: the decrease the damped model predicts, (lambda d^T D d - g^T d) / 2 over the
-          // step d taken (g: the gradient; D: the damping's diagonal, max(1e-6, hcc) for the poses, hpp for
-          // the points, max(1e-6, h_kk) for log K).
-          double predicted = 0;
-          if (options.gain_ratio_damping) {
-            for (int d = 0; d < dim; ++d)
-              predicted += lambda * std::max(1e-6, hcc(d, d)) * dc(d) * dc(d) - bc(d) * dc(d);
-            for (int i = 0; i < num_points; ++i) {
-              const double d = nr[static_cast<size_t>(i)] - rho[static_cast<size_t>(i)];
-              predicted += lambda * hpp[static_cast<size_t>(i)] * d * d - bp[static_cast<size_t>(i)] * d;
-            }
-            if (estimate_k) predicted += lambda * std::max(1e-6, h_kk) * d_log_k * d_log_k - b_k * d_log_k;
-            predicted *= 0.5;
-          }
           if (ncost < cost) {
             const double decrease = (cost - ncost) / std::max(1e-300, cost);
+            // gain_ratio_damping: the decrease the damped model predicts over the step d taken (a step
+            // rejected needs none), (lambda d^T D d - g^T d) / 2 (g: the gradient; D: the damping's diagonal,
+            // max(1e-6, hcc) for the poses, hpp for the points, max(1e-6, h_kk) for log K).
+            double predicted = 0;
+            if (options.gain_ratio_damping) {
+              for (int d = 0; d < dim; ++d)
+                predicted += lambda * std::max(1e-6, hcc(d, d)) * dc(d) * dc(d) - bc(d) * dc(d);
+              for (int i = 0; i < num_points; ++i) {
+                const double d = nr[static_cast<size_t>(i)] - rho[static_cast<size_t>(i)];
+                predicted += lambda * hpp[static_cast<size_t>(i)] * d * d - bp[static_cast<size_t>(i)] * d;
+              }
+              if (estimate_k) predicted += lambda * std::max(1e-6, h_kk) * d_log_k * d_log_k - b_k * d_log_k;
+              predicted *= 0.5;
+            }
             const double gain = predicted > 0 ? (cost - ncost) / predicted : 0.0;
             poses.swap(np);
             rho.swap(nr);
