@@ -4,6 +4,7 @@
 #include <atomic>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <sstream>
 
 #include <Eigen/Cholesky>
@@ -91,14 +92,15 @@ struct Projected {
 // reallocates (std::vector's push_back, with its growth path, was a call per residual).
 class ProjectedList {
  public:
-  explicit ProjectedList(size_t capacity) : items_(capacity) {}
+  // The entries are left uninitialised (each is written before it is read).
+  explicit ProjectedList(size_t capacity) : items_(new Projected[capacity]) {}
   void clear() { size_ = 0; }
   void push_back(const Projected& p) { items_[size_++] = p; }
   size_t size() const { return size_; }
   const Projected& operator[](size_t k) const { return items_[k]; }
 
  private:
-  std::vector<Projected> items_;
+  std::unique_ptr<Projected[]> items_;
   size_t size_ = 0;
 };
 
@@ -107,6 +109,14 @@ struct Sampled {
   double value;
   Eigen::Vector2d g;
   bool ok;
+};
+
+// One target's residuals as a cost evaluation read them (linearise_from_evaluation): projections, values
+// and gradients.
+struct TargetSamples {
+  explicit TargetSamples(size_t capacity) : visible(capacity) {}
+  ProjectedList visible;
+  std::vector<Sampled> sampled;
 };
 
 // How many residuals ahead the image rows are prefetched.
@@ -417,10 +427,16 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   std::vector<Sampled> eval_values;  // scratch: their image values (the gradients unused)
   // Target t's residuals at poses ps and inverse depths rs: residual(point, |scaled residual|) for each, in
   // the order they are summed.
+  std::atomic<long long> image_samples{0};  // residuals whose image was read (DirectBaSummary::image_samples)
+  // With `store` (linearise_from_evaluation) the projections and samples go there, with the gradients.
   auto evaluate_target = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int t, ProjectedList* vis,
-                             std::vector<Sampled>* values, const auto& residual) {
+                             std::vector<Sampled>* values, TargetSamples* store, const auto& residual) {
     const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
     const Eigen::Vector3d& c_t = ps[static_cast<size_t>(t)].centre;
+    if (store != nullptr) {
+      vis = &store->visible;
+      values = &store->sampled;
+    }
     // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
     collect_visible(
         t, rt_t, c_t, eval_world,
@@ -430,8 +446,12 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     for (size_t k = 0; k < vis->size(); ++k) {
       prefetch_ahead(*vis, k, t);
       const Eigen::Vector2d& px = (*vis)[k].px;
-      (*values)[k].ok = SampleValue(image_of(*limg, (*vis)[k].point, t), px.x(), px.y(), &(*values)[k].value);
+      Sampled& sk = (*values)[k];
+      sk.ok = store != nullptr
+                  ? SampleWithGradient(image_of(*limg, (*vis)[k].point, t), px.x(), px.y(), &sk.value, &sk.g)
+                  : SampleValue(image_of(*limg, (*vis)[k].point, t), px.x(), px.y(), &sk.value);
     }
+    image_samples.fetch_add(static_cast<long long>(vis->size()), std::memory_order_relaxed);
     for (size_t k = 0; k < vis->size(); ++k) {
       if (!(*values)[k].ok) continue;
       const int i = (*vis)[k].point;
@@ -454,9 +474,22 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // the outlier test after the first solve then reads the current state's list instead of projecting and
   // sampling every residual again (the same residuals, values and test).
   DirectBaSummary summary;
+  // linearise_from_evaluation: two slots of per-target samples, the current state's (valid when its
+  // evaluation read the images of the current level) and a trial's.
+  const bool reuse_samples = options.linearise_from_evaluation && !use_relit;
+  std::vector<TargetSamples> sample_slots[2];
+  if (reuse_samples)
+    for (std::vector<TargetSamples>& slot : sample_slots)
+      for (int k = 0; k < num_kf; ++k) slot.emplace_back(static_cast<size_t>(num_points));
+  int current_slot = 0;
+  bool current_samples_valid = false;
+  // The cost at (ps, rs); with slot >= 0 (and reuse_samples) its reads are kept in sample_slots[slot].
   auto evaluate = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int* count, double* sq,
-                      std::vector<int>* over) {
+                      std::vector<int>* over, int slot) {
     ++summary.evaluations;
+    auto store_of = [&](int t) -> TargetSamples* {
+      return reuse_samples && slot >= 0 ? &sample_slots[slot][static_cast<size_t>(t)] : nullptr;
+    };
     double cost = 0;
     *count = 0;
     *sq = 0;
@@ -478,7 +511,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         std::vector<EvalTerm>& terms = eval_terms[static_cast<size_t>(t)];
         terms.clear();
         evaluate_target(ps, rs, t, &worker_visible[static_cast<size_t>(w)], &worker_sampled[static_cast<size_t>(w)],
-                        [&](int i, double e) {
+                        store_of(t), [&](int i, double e) {
                           terms.push_back({i, e});
                         });
       });
@@ -486,7 +519,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
         for (const EvalTerm& term : eval_terms[static_cast<size_t>(t)]) add(t, term.point, term.e);
     } else {
       for (int t = 0; t < num_kf; ++t)
-        evaluate_target(ps, rs, t, &eval_visible, &eval_values, [&](int i, double e) { add(t, i, e); });
+        evaluate_target(ps, rs, t, &eval_visible, &eval_values, store_of(t), [&](int i, double e) { add(t, i, e); });
     }
     const double along = baseline.dot(ps[1].centre - centre1_initial);
     return cost + 0.5 * gauge_weight * along * along;
@@ -495,7 +528,9 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   int count = 0;
   double sq = 0;
   std::vector<int> over, trial_over;  // the current state's residuals above the outlier threshold; a trial's
-  const double initial_cost = evaluate(poses, rho, &count, &sq, &over);
+  // Its reads serve the first linearisation when that is at this level (pyramid_levels 1).
+  const double initial_cost = evaluate(poses, rho, &count, &sq, &over, levels == 1 ? current_slot : -1);
+  current_samples_valid = reuse_samples && levels == 1;
   summary.initial_rms = count > 0 ? std::sqrt(sq / count) : 0;
 
   // Per point: the Hessian of its inverse depth, its gradient, and its coupling with the poses.
@@ -532,6 +567,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     lcam.cx = (cam.cx + 0.5) * f - 0.5;
     lcam.cy = (cam.cy + 0.5) * f - 0.5;
     limg = &pyramid[static_cast<size_t>(level)];
+    if (levels > 1) current_samples_valid = false;  // read at another level (or none)
     for (int i = 0; i < num_points; ++i) {
       const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
       double value = p.intensity;
@@ -552,7 +588,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       const bool cost_from_linearisation = !use_relit && (round > 0 || level > 0);
       double cost = levels == 1 && round == 0 ? initial_cost
                     : cost_from_linearisation ? 0.0
-                                              : evaluate(poses, rho, &count, &sq, &over);
+                                              : evaluate(poses, rho, &count, &sq, &over, current_slot);
+      if (!cost_from_linearisation && !(levels == 1 && round == 0)) current_samples_valid = reuse_samples;
       for (int it = 0; it < options.max_iterations; ++it) {
         ++summary.iterations;
         // The cost at this linearisation, summed with it (cost_from_linearisation, first iteration).
@@ -603,25 +640,36 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           for (int k = 0; k < num_kf; ++k)
             target_from_host[static_cast<size_t>(k)] =
                 rt_t * (poses[static_cast<size_t>(k)].scale * poses[static_cast<size_t>(k)].rotation);
-          // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
-          collect_visible(
-              t, rt_t, tp.centre, world, [&](int i) { return point_ok[static_cast<size_t>(i)] != 0; }, &visible);
-          // The image reads first, all at once: a short loop whose loads overlap (inside the long loop
-          // below each one waited for its sample; 12% of the adjustment's time, BM_KeyframeWindowAdjustment).
-          sampled.resize(visible.size());
-          for (size_t k = 0; k < visible.size(); ++k) {
-            prefetch_ahead(visible, k, t);
-            Sampled& sk = sampled[k];
-            sk.ok = SampleWithGradient(image_of(*limg, visible[k].point, t), visible[k].px.x(), visible[k].px.y(),
-                                       &sk.value, &sk.g);
+          // With the current state's evaluation kept (linearise_from_evaluation), its projections and reads
+          // (in the same order as below; residuals dropped as outliers since then are skipped).
+          const bool from_evaluation = current_samples_valid;
+          const ProjectedList& vis =
+              from_evaluation ? sample_slots[current_slot][static_cast<size_t>(t)].visible : visible;
+          const std::vector<Sampled>& smp =
+              from_evaluation ? sample_slots[current_slot][static_cast<size_t>(t)].sampled : sampled;
+          if (!from_evaluation) {
+            // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
+            collect_visible(
+                t, rt_t, tp.centre, world, [&](int i) { return point_ok[static_cast<size_t>(i)] != 0; }, &visible);
+            // The image reads first, all at once: a short loop whose loads overlap (inside the long loop
+            // below each one waited for its sample; 12% of the adjustment's time, BM_KeyframeWindowAdjustment).
+            sampled.resize(visible.size());
+            for (size_t k = 0; k < visible.size(); ++k) {
+              prefetch_ahead(visible, k, t);
+              Sampled& sk = sampled[k];
+              sk.ok = SampleWithGradient(image_of(*limg, visible[k].point, t), visible[k].px.x(), visible[k].px.y(),
+                                         &sk.value, &sk.g);
+            }
+            image_samples.fetch_add(static_cast<long long>(visible.size()), std::memory_order_relaxed);
           }
-          for (size_t k = 0; k < visible.size(); ++k) {
-            if (!sampled[k].ok) continue;
-            const int i = visible[k].point;
+          for (size_t k = 0; k < vis.size(); ++k) {
+            if (!smp[k].ok) continue;
+            const int i = vis[k].point;
+            if (from_evaluation && !active[static_cast<size_t>(i) * num_kf + t]) continue;
             const DirectBaPoint& p = problem->points[static_cast<size_t>(i)];
-            const Eigen::Vector3d& pt = visible[k].pt;
-            const double value = sampled[k].value;
-            const Eigen::Vector2d& g = sampled[k].g;
+            const Eigen::Vector3d& pt = vis[k].pt;
+            const double value = smp[k].value;
+            const Eigen::Vector2d& g = smp[k].g;
             const double r = rho[static_cast<size_t>(i)];
             const bool relit_i = relit_point[static_cast<size_t>(i)];
             const double res =
@@ -895,7 +943,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
           double nsq = 0;
           const double k_before = metres;
           metres = k_before * std::exp(d_log_k);  // evaluate at the trial K (restored if rejected)
-          const double ncost = evaluate(np, nr, &nc, &nsq, &trial_over);
+          const double ncost = evaluate(np, nr, &nc, &nsq, &trial_over, 1 - current_slot);
           if (!(ncost < cost)) metres = k_before;
           if (ncost < cost) {
             const double decrease = (cost - ncost) / std::max(1e-300, cost);
@@ -920,6 +968,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             count = nc;  // count, sq and over: always the current state's
             sq = nsq;
             over.swap(trial_over);
+            current_slot = 1 - current_slot;  // the trial's reads are the current state's now
+            current_samples_valid = reuse_samples;
             if (options.gain_ratio_damping) {
               const double c = 2 * gain - 1;
               lambda = std::max(1e-7, lambda * std::max(1.0 / 3, 1 - c * c * c));
@@ -947,6 +997,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // count and sq are the final state's already (from its evaluation at the start of the last round or
   // when its step was accepted; nothing it depends on has changed since): no evaluation of its own.
   summary.final_rms = count > 0 ? std::sqrt(sq / count) : 0;
+  summary.image_samples = image_samples.load();
   summary.residuals = count;
   for (int k = 1; k < num_kf; ++k) {
     Sim3d& out = problem->world_from_keyframe[static_cast<size_t>(k)];

@@ -128,6 +128,13 @@ struct DirectBaOptions {
   // rejected one. A step that only just succeeds then keeps lambda where it was, instead of lowering it
   // to a value whose next step is rejected (each rejection costs a full cost evaluation).
   bool gain_ratio_damping = false;
+  // Linearise from the cost evaluation's image reads: each evaluation samples the gradients with the
+  // values and keeps its projections and samples per target keyframe (the current state's and the
+  // trial's), so the linearisation at a state whose cost was evaluated reads no image. The same
+  // arithmetic on the same numbers: the result is the same to the last bit either way; it trades memory
+  // (about 80 bytes per residual, twice) for the linearisation's projections and image reads. Not with
+  // the relit residual (DirectBaRelit), which linearises from its own reads.
+  bool linearise_from_evaluation = true;
   Status Check() const;
 };
 
@@ -135,6 +142,7 @@ struct DirectBaSummary {
   int iterations = 0;
   int evaluations = 0;                    // cost evaluations (the initial one, and one per step tried, accepted or not)
   int residuals = 0;                      // used in the final solve
+  long long image_samples = 0;            // residuals whose image value was read (evaluations and linearisations)
   double initial_rms = 0, final_rms = 0;  // grey levels, over the residuals used
 };
 

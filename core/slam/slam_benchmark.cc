@@ -167,10 +167,13 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
   }
   for (DirectBaPoint& p : start.points) p.inverse_depth *= std::exp(noise(rng));
   // Args: threads (1: no pool, as SlamSystem on one thread); the LM damping rule
-  // (DirectBaOptions::gain_ratio_damping, 0: the fixed factors, 1: the gain ratio, SlamSystem's).
+  // (DirectBaOptions::gain_ratio_damping, 0: the fixed factors, 1: the gain ratio, SlamSystem's); the
+  // linearisation's reads (DirectBaOptions::linearise_from_evaluation, 0: its own, 1: the evaluation's,
+  // SlamSystem's).
   const int threads = static_cast<int>(state.range(0));
   DirectBaOptions ba_options = slam_options.keyframe_window_ba;
   ba_options.gain_ratio_damping = state.range(1) != 0;
+  ba_options.linearise_from_evaluation = state.range(2) != 0;
   std::unique_ptr<ThreadPool> pool = threads > 1 ? std::make_unique<ThreadPool>(threads) : nullptr;
   DirectBaSummary summary;
   double seconds = 0;
@@ -192,22 +195,25 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
   state.counters["iterations"] = summary.iterations;
   state.counters["evaluations"] = summary.evaluations;
   state.counters["final_rms"] = summary.final_rms;
+  state.counters["image_samples"] = static_cast<double>(summary.image_samples);
   // Each iteration linearises once and evaluates at least once: per residual of the final solve.
   state.counters["ns_per_residual"] =
       1e9 * seconds / (static_cast<double>(state.iterations()) * summary.residuals * 2 * summary.iterations);
 }
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, torus, std::string("torus-textured-forward"))
-    ->Args({1, 0})
-    ->Args({1, 1})
-    ->Args({2, 1})
+    ->Args({1, 0, 1})
+    ->Args({1, 1, 0})
+    ->Args({1, 1, 1})
+    ->Args({2, 1, 1})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo-textured-forward"))
-    ->Args({1, 0})
-    ->Args({1, 1})
-    ->Args({2, 1})
+    ->Args({1, 0, 1})
+    ->Args({1, 1, 0})
+    ->Args({1, 1, 1})
+    ->Args({2, 1, 1})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)

@@ -88,6 +88,7 @@ void AddDirectBa(const std::string& p, DirectBaOptions& b, std::vector<Field>* f
   f->push_back({p + "function_tolerance", &b.function_tolerance});
   f->push_back({p + "gradient_weight_c", &b.gradient_weight_c});
   f->push_back({p + "gain_ratio_damping", &b.gain_ratio_damping});
+  f->push_back({p + "linearise_from_evaluation", &b.linearise_from_evaluation});
 }
 
 // The fields of `o`, by key. Pointers into `o`: valid while it lives.
