@@ -88,19 +88,33 @@ struct Projected {
   Eigen::Vector2d px;
 };
 
-// One target's projections: at most one per point, so room for all is made once and an append never
-// reallocates (std::vector's push_back, with its growth path, was a call per residual).
+// One target's projections: at most one per point. The scratch lists get room for all at once, so an
+// append never reallocates (std::vector's push_back, with its growth path, was a call per residual); the
+// lists kept per target (linearise_from_evaluation) start empty and grow to what their target sees.
 class ProjectedList {
  public:
   // The entries are left uninitialised (each is written before it is read).
-  explicit ProjectedList(size_t capacity) : items_(new Projected[capacity]) {}
+  explicit ProjectedList(size_t capacity)
+      : items_(capacity > 0 ? new Projected[capacity] : nullptr), capacity_(capacity) {}
   void clear() { size_ = 0; }
-  void push_back(const Projected& p) { items_[size_++] = p; }
+  void push_back(const Projected& p) {
+    if (size_ == capacity_) [[unlikely]]
+      Grow();
+    items_[size_++] = p;
+  }
   size_t size() const { return size_; }
   const Projected& operator[](size_t k) const { return items_[k]; }
 
  private:
+  [[gnu::noinline]] void Grow() {
+    const size_t capacity = std::max<size_t>(1024, 2 * capacity_);
+    std::unique_ptr<Projected[]> items(new Projected[capacity]);
+    std::copy(items_.get(), items_.get() + size_, items.get());
+    items_ = std::move(items);
+    capacity_ = capacity;
+  }
   std::unique_ptr<Projected[]> items_;
+  size_t capacity_ = 0;
   size_t size_ = 0;
 };
 
@@ -114,8 +128,7 @@ struct Sampled {
 // One target's residuals as a cost evaluation read them (linearise_from_evaluation): projections, values
 // and gradients.
 struct TargetSamples {
-  explicit TargetSamples(size_t capacity) : visible(capacity) {}
-  ProjectedList visible;
+  ProjectedList visible{0};
   std::vector<Sampled> sampled;
 };
 
@@ -479,8 +492,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   const bool reuse_samples = options.linearise_from_evaluation && !use_relit;
   std::vector<TargetSamples> sample_slots[2];
   if (reuse_samples)
-    for (std::vector<TargetSamples>& slot : sample_slots)
-      for (int k = 0; k < num_kf; ++k) slot.emplace_back(static_cast<size_t>(num_points));
+    for (std::vector<TargetSamples>& slot : sample_slots) slot.resize(static_cast<size_t>(num_kf));
   int current_slot = 0;
   bool current_samples_valid = false;
   // The cost at (ps, rs); with slot >= 0 (and reuse_samples) its reads are kept in sample_slots[slot].
