@@ -437,11 +437,11 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // The cost, target by target (each target's image read in about raster order).
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
   ProjectedList eval_visible(static_cast<size_t>(num_points));               // scratch: one target's
-  std::vector<Sampled> eval_values;  // scratch: their image values (the gradients unused)
-  // Target t's residuals at poses ps and inverse depths rs: residual(point, |scaled residual|) for each, in
-  // the order they are summed.
+  std::vector<Sampled> eval_values;         // scratch: their image values (the gradients unused)
   std::atomic<long long> image_samples{0};  // residuals whose image was read (DirectBaSummary::image_samples)
-  // With `store` (linearise_from_evaluation) the projections and samples go there, with the gradients.
+  // Target t's residuals at poses ps and inverse depths rs: residual(point, |scaled residual|) for each, in
+  // the order they are summed. With `store` (linearise_from_evaluation) the projections and samples go
+  // there, with the gradients.
   auto evaluate_target = [&](const std::vector<Pose>& ps, const std::vector<double>& rs, int t, ProjectedList* vis,
                              std::vector<Sampled>* values, TargetSamples* store, const auto& residual) {
     const Eigen::Matrix3d rt_t = ps[static_cast<size_t>(t)].rotation.transpose();
