@@ -416,6 +416,23 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     const Projected& ahead = visible[k + kPrefetchAhead];
     PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
   };
+  std::atomic<long long> image_samples{0};  // residuals whose image was read (DirectBaSummary::image_samples)
+  // The image reads of target t's residuals `visible`, all at once: a short loop whose loads overlap
+  // (inside the long loops after it each one waited for its sample; 12% of the adjustment's time,
+  // BM_KeyframeWindowAdjustment), prefetched kPrefetchAhead residuals ahead. The gradients with the
+  // values when `with_gradient`.
+  auto read_images = [&](const ProjectedList& visible, int t, bool with_gradient, std::vector<Sampled>* sampled) {
+    sampled->resize(visible.size());
+    for (size_t k = 0; k < visible.size(); ++k) {
+      prefetch_ahead(visible, k, t);
+      const cv::Mat& image = image_of(*limg, visible[k].point, t);
+      const Eigen::Vector2d& px = visible[k].px;
+      Sampled& sk = (*sampled)[k];
+      sk.ok = with_gradient ? SampleWithGradient(image, px.x(), px.y(), &sk.value, &sk.g)
+                            : SampleValue(image, px.x(), px.y(), &sk.value);
+    }
+    image_samples.fetch_add(static_cast<long long>(visible.size()), std::memory_order_relaxed);
+  };
 
   // With a pool: how many workers take targets in parallel, and each worker's scratch. Each target's
   // terms are kept apart and summed target by target afterwards, in the one-thread order.
@@ -437,8 +454,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
   // The cost, target by target (each target's image read in about raster order).
   std::vector<Eigen::Vector3d> eval_world(static_cast<size_t>(num_points));  // scratch
   ProjectedList eval_visible(static_cast<size_t>(num_points));               // scratch: one target's
-  std::vector<Sampled> eval_values;         // scratch: their image values (the gradients unused)
-  std::atomic<long long> image_samples{0};  // residuals whose image was read (DirectBaSummary::image_samples)
+  std::vector<Sampled> eval_values;  // scratch: their image values (the gradients unused)
   // Target t's residuals at poses ps and inverse depths rs: residual(point, |scaled residual|) for each, in
   // the order they are summed. With `store` (linearise_from_evaluation) the projections and samples go
   // there, with the gradients.
@@ -454,17 +470,8 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
     collect_visible(
         t, rt_t, c_t, eval_world,
         [&](int i) { return rs[static_cast<size_t>(i)] > 0 && !std::isnan(lint[static_cast<size_t>(i)]); }, vis);
-    // The image reads first, all at once (a short loop whose loads overlap), then the residuals.
-    values->resize(vis->size());
-    for (size_t k = 0; k < vis->size(); ++k) {
-      prefetch_ahead(*vis, k, t);
-      const Eigen::Vector2d& px = (*vis)[k].px;
-      Sampled& sk = (*values)[k];
-      sk.ok = store != nullptr
-                  ? SampleWithGradient(image_of(*limg, (*vis)[k].point, t), px.x(), px.y(), &sk.value, &sk.g)
-                  : SampleValue(image_of(*limg, (*vis)[k].point, t), px.x(), px.y(), &sk.value);
-    }
-    image_samples.fetch_add(static_cast<long long>(vis->size()), std::memory_order_relaxed);
+    // The image reads first, then the residuals.
+    read_images(*vis, t, /*with_gradient=*/store != nullptr, values);
     for (size_t k = 0; k < vis->size(); ++k) {
       if (!(*values)[k].ok) continue;
       const int i = (*vis)[k].point;
@@ -598,10 +605,13 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       // takes its starting cost from its first linearisation, which reads the same residuals in the same
       // order (not with the relit residual, whose linearisation leaves out more points).
       const bool cost_from_linearisation = !use_relit && (round > 0 || level > 0);
-      double cost = levels == 1 && round == 0 ? initial_cost
-                    : cost_from_linearisation ? 0.0
-                                              : evaluate(poses, rho, &count, &sq, &over, current_slot);
-      if (!cost_from_linearisation && !(levels == 1 && round == 0)) current_samples_valid = reuse_samples;
+      double cost = 0.0;
+      if (levels == 1 && round == 0) {
+        cost = initial_cost;
+      } else if (!cost_from_linearisation) {
+        cost = evaluate(poses, rho, &count, &sq, &over, current_slot);
+        current_samples_valid = reuse_samples;
+      }
       for (int it = 0; it < options.max_iterations; ++it) {
         ++summary.iterations;
         // The cost at this linearisation, summed with it (cost_from_linearisation, first iteration).
@@ -663,16 +673,7 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
             // The projections first, then the image reads (prefetched kPrefetchAhead residuals ahead).
             collect_visible(
                 t, rt_t, tp.centre, world, [&](int i) { return point_ok[static_cast<size_t>(i)] != 0; }, &visible);
-            // The image reads first, all at once: a short loop whose loads overlap (inside the long loop
-            // below each one waited for its sample; 12% of the adjustment's time, BM_KeyframeWindowAdjustment).
-            sampled.resize(visible.size());
-            for (size_t k = 0; k < visible.size(); ++k) {
-              prefetch_ahead(visible, k, t);
-              Sampled& sk = sampled[k];
-              sk.ok = SampleWithGradient(image_of(*limg, visible[k].point, t), visible[k].px.x(), visible[k].px.y(),
-                                         &sk.value, &sk.g);
-            }
-            image_samples.fetch_add(static_cast<long long>(visible.size()), std::memory_order_relaxed);
+            read_images(visible, t, /*with_gradient=*/true, &sampled);
           }
           for (size_t k = 0; k < vis.size(); ++k) {
             if (!smp[k].ok) continue;
