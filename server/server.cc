@@ -583,6 +583,9 @@ struct Server::Impl {
     SessionPipelineOptions po = options.pipeline;
     if (open.input_policy() == v1::INPUT_POLICY_LIVE) po.input_policy = OverflowPolicy::kDropOldest;
     if (open.input_policy() == v1::INPUT_POLICY_UPLOAD) po.input_policy = OverflowPolicy::kReject;
+    // A live camera's SLAM behind its input skips depth updates (ServerOptions::skip_depth_update_backlog_live).
+    if (po.input_policy == OverflowPolicy::kDropOldest)
+      po.skip_depth_update_backlog = options.skip_depth_update_backlog_live;
     // The keyframe clouds kept for the map's rebuild at the end take at most a quarter of the session's
     // memory limit (kKeptBytesPerPoint each); none without remap-at-end.
     po.dense.remap_max_points = po.remap_at_end

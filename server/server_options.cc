@@ -44,8 +44,9 @@ const char* ServerOptionsHelp() {
   frame-queue N           frames queued per session (default 8; also the initial frame credits)
   input-policy live|upload  full frame queue: drop the oldest (live) or reject (upload) (default live)
   keyframe-queue N        finished keyframes queued per session for the dense stage (default 4)
-  skip-depth-update-backlog N  when N frames wait for a session's SLAM, the next frame is tracked
-                          without its stereo depth update (behind: poses first; default 0 = never)
+  skip-depth-update-backlog N  when N frames wait for an upload session's SLAM, the next frame is
+                          tracked without its stereo depth update (behind: poses first; default 0 = never)
+  skip-depth-update-backlog-live N  the same for live sessions (default 2; 0 = never)
   voxel-m M               map voxel edge, metres (default 0.002)
   remap-at-end true|false at a session's end, rebuild the map at the final keyframe poses and send it as
                           one chunk that replaces the map (default true; the keyframe clouds it needs
@@ -90,6 +91,8 @@ Status ServerOptions::Check() const {
     return bad("max_pending_chunks_in_memory", std::to_string(max_pending_chunks_in_memory), "in [1, 4096]");
   if (default_chunk_credits < 1) return bad("default_chunk_credits", std::to_string(default_chunk_credits), ">= 1");
   if (shutdown_deadline_ms < 0) return bad("shutdown_deadline_ms", std::to_string(shutdown_deadline_ms), ">= 0");
+  if (skip_depth_update_backlog_live < 0 || skip_depth_update_backlog_live > 1024)
+    return bad("skip_depth_update_backlog_live", std::to_string(skip_depth_update_backlog_live), "in [0, 1024]");
   if (!curve_keys.empty() && allowed_clients.empty())
     return bad("allowed_clients", "''", "a file of client public keys when curve_keys is set");
   if (curve_keys.empty() && !allowed_clients.empty())
@@ -156,6 +159,9 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   } else if (key == "skip-depth-update-backlog") {
     if (!is_int) return bad();
     o->pipeline.skip_depth_update_backlog = static_cast<int>(i);
+  } else if (key == "skip-depth-update-backlog-live") {
+    if (!is_int) return bad();
+    o->skip_depth_update_backlog_live = static_cast<int>(i);
   } else if (key == "keyframe-queue") {
     if (!is_int) return bad();
     o->pipeline.keyframe_queue_capacity = static_cast<int>(i);

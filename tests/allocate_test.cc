@@ -92,5 +92,14 @@ TEST(ServerOptionsTest, AdvertiseMustBeATcpEndpoint) {
   EXPECT_NE(r.out.find("advertise"), std::string::npos) << r.out;
 }
 
+// The live sessions' backlog (skip-depth-update-backlog-live) is checked like the upload sessions'.
+TEST(ServerOptionsTest, TheLiveBacklogMustBeInRange) {
+  for (const char* bad : {"-1", "1025", "two"}) {
+    const ProcessResult r = Execute(Bin("prism-server") + " --data-dir /tmp --skip-depth-update-backlog-live " + bad);
+    EXPECT_EQ(r.exit_code, 2) << bad << ": " << r.out;
+    EXPECT_NE(r.out.find("skip"), std::string::npos) << bad << ": " << r.out;
+  }
+}
+
 }  // namespace
 }  // namespace prism

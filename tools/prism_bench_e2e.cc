@@ -33,14 +33,17 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-constexpr char kUsage[] = R"(usage: prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F]
+constexpr char kUsage[] =
+    R"(usage: prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F] [--live]
                        [--server-option KEY=VALUE ...]
 
 Starts prism-server (from this binary's folder) on 127.0.0.1 with a free port (input policy upload,
-so no frame is dropped), renders the preset (default bunny-multicolor-forward, 150 frames, 512x512)
+so no frame is dropped unless --live), renders the preset (default bunny-multicolor-forward, 150 frames, 512x512)
 in memory and streams it through libprism_client once per codec, as fast as the server's frame
 credits allow. Prints one JSON object:
 With --fps F the frames are pushed at F frames/s (a live camera) instead of as fast as possible.
+With --live the sessions are opened as a live camera's (SessionOptions::live: the server drops the
+oldest queued frame when its queue is full instead of withholding credit; frames_dropped counts them).
 --server-option KEY=VALUE (repeatable) passes --KEY VALUE to prism-server.
   per codec: frames_per_s (frames sent / time until the last pose), map_frames_per_s (frames sent /
   time until the session summary, i.e. every keyframe's chunks delivered), map_done_after_last_pose_s,
@@ -49,7 +52,7 @@ With --fps F the frames are pushed at F frames/s (a live camera) instead of as f
   keyframe k + 1, which finishes keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point,
   chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
   ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
-  against the rendered truth after a Sim(3) alignment) and frames_depth_update_skipped.
+  against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped.
 )";
 
 int Fail(const std::string& m) {
@@ -102,12 +105,17 @@ int main(int argc, char** argv) {
   std::string preset = "bunny-multicolor-forward", codecs = "png,jpeg,raw";
   int frames = 150;
   double fps = 0;
+  bool live = false;
   std::vector<std::string> server_options;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--help" || a == "-h") {
       std::cout << kUsage;
       return 0;
+    }
+    if (a == "--live") {
+      live = true;
+      continue;
     }
     if (i + 1 >= argc) return Fail("missing value for '" + a + "' (see --help)");
     const std::string v = argv[++i];
@@ -196,8 +204,8 @@ int main(int argc, char** argv) {
   json.setf(std::ios::fixed);
   json.precision(2);
   json << "{\n  \"preset\": \"" << preset << "\",\n  \"frames\": " << frames << ",\n  \"push_fps\": " << fps
-       << ",\n  \"size\": \"" << setup->rig.camera.width << "x" << setup->rig.camera.height
-       << "\",\n  \"hardware_threads\": " << std::thread::hardware_concurrency()
+       << ",\n  \"live\": " << (live ? "true" : "false") << ",\n  \"size\": \"" << setup->rig.camera.width << "x"
+       << setup->rig.camera.height << "\",\n  \"hardware_threads\": " << std::thread::hardware_concurrency()
        << ",\n  \"server_rss_mb_idle\": " << ProcStatusMb(pid, "VmRSS") << ",\n  \"codecs\": {";
   const prism::client::Rig rig = ToClientRig(setup->rig);
   std::stringstream codec_list(codecs);
@@ -213,6 +221,7 @@ int main(int argc, char** argv) {
       return Fail("unknown codec '" + codec_name + "'");
     }
     so.timeout_ms = 60000;
+    so.live = live;
     std::unique_ptr<prism::client::Session> session;
     prism::client::Status s = prism::client::Session::Open(endpoint, rig, so, &session);
     if (!s.ok()) {
@@ -314,8 +323,8 @@ int main(int argc, char** argv) {
          << ", \"keyframes\": " << summary.keyframes << ", \"keyframes_dropped\": " << summary.keyframes_dropped
          << ", \"keyframes_failed\": " << summary.keyframes_failed
          << ", \"frames_depth_update_skipped\": " << summary.frames_depth_update_skipped
-         << ", \"ate_percent_of_path\": " << ate_percent << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS")
-         << "}";
+         << ", \"frames_dropped\": " << summary.frames_dropped << ", \"ate_percent_of_path\": " << ate_percent
+         << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS") << "}";
     first = false;
   }
   json << "\n  },\n  \"server_peak_rss_mb\": " << ProcStatusMb(pid, "VmHWM") << "\n}\n";
