@@ -42,8 +42,9 @@ so no frame is dropped unless --live), renders the preset (default bunny-multico
 in memory and streams it through libprism_client once per codec, as fast as the server's frame
 credits allow. Prints one JSON object:
 With --fps F the frames are pushed at F frames/s (a live camera) instead of as fast as possible.
-With --live the sessions are opened as a live camera's (SessionOptions::live: the server drops the
-oldest queued frame when its queue is full instead of withholding credit; frames_dropped counts them).
+With --live the sessions are opened as a live camera's (SessionOptions::live: a full frame queue drops
+its oldest frame instead of refusing the new one, frames_dropped counts them, and the server's
+skip-depth-update-backlog-live applies; the SDK still waits for a frame credit before each push).
 --server-option KEY=VALUE (repeatable) passes --KEY VALUE to prism-server.
   per codec: frames_per_s (frames sent / time until the last pose), map_frames_per_s (frames sent /
   time until the session summary, i.e. every keyframe's chunks delivered), map_done_after_last_pose_s,
