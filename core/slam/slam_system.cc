@@ -648,6 +648,9 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   // Track the buffered frames against the first one and refine its depth by stereo with each (two
   // passes: the second re-tracks on the refined depth).
   std::vector<Rigid3d> poses(init_frames.size());
+  // Each buffered frame's alignment in the last pass (its record's SlamTrackingQuality; frame 0 is the
+  // keyframe itself).
+  std::vector<SlamTrackingQuality> quality(init_frames.size());
   const Rigid3d last_guess(Eigen::Quaterniond(R), t * scale);
   for (int pass = 0; pass < 1 + options.init_rounds; ++pass) {
     if (pass >= 2) {
@@ -683,6 +686,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
       if (from_essential) guess = last_guess;
       StatusOr<TrackingResult> tr = init->Track(init_frames[i].rgb, guess);
       const double mean_idepth = depth->MeanInverseDepth();
+      bool retried = false;
       if (tr.ok() && tr->ok && !from_essential && !PlausibleStep(tr->frame_from_keyframe, guess, mean_idepth)) {
         StatusOr<TrackingResult> retry = init->Track(init_frames[i].rgb, prev);
         if (!(retry.ok() && retry->ok && PlausibleStep(retry->frame_from_keyframe, guess, mean_idepth))) {
@@ -690,12 +694,29 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
           return false;
         }
         tr = retry;
+        retried = true;
       }
       if (!tr.ok() || !tr->ok) {
         *why = "tracking the initialisation frames failed" + (tr.ok() ? ": " + tr->lost_reason : std::string());
         return false;
       }
       poses[i] = tr->frame_from_keyframe;
+      {
+        // As TrackFrame reports a frame's alignment (the previous buffered frame's pose; frame 1's is the
+        // keyframe's own).
+        SlamTrackingQuality& q = quality[i];
+        q.tracked = true;
+        q.residual_rms = tr->residual_rms;
+        q.visible_fraction = tr->visible_fraction;
+        q.inlier_fraction = tr->inlier_fraction;
+        q.iterations = 0;
+        for (int n : tr->iterations) q.iterations += n;
+        q.retried = retried;
+        const Rigid3d frame_from_previous = poses[i] * prev.Inverse();
+        q.step = frame_from_previous.translation.norm() * mean_idepth;
+        q.rotation_deg = RotationAngle(frame_from_previous.rotation) * kRadToDeg;
+        q.guess_correction = (poses[i].translation - guess.translation).norm() * mean_idepth;
+      }
       prev2 = prev;
       prev = poses[i];
       if (pass == 0) {
@@ -742,6 +763,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
     f.result.keyframe_id = 0;
     f.result.state = SlamState::kTracking;
     f.result.message.clear();
+    f.result.tracking = quality[i];
     f.result.world_from_camera = WorldFromFrame(f);
   }
   frames[static_cast<size_t>(first.frame_id)].result.new_keyframe = true;
