@@ -23,6 +23,7 @@
 #include "tests/sim3_from_trajectory.h"
 #include "tests/test_process.h"
 #include "tests/tracking_file.h"
+#include "tools/client_rig.h"
 
 namespace prism {
 namespace {
@@ -227,31 +228,6 @@ TEST_F(RoundTripTest, TwoConcurrentSessionsBothComplete) {
   EXPECT_EQ(server.Stop(kServerStopTimeoutMs), 0);
 }
 
-// The SDK's form of a rig calibration: its pinhole camera, lights and crosstalk.
-client::Rig ClientRigOf(const RigCalibration& calibration) {
-  client::Rig r;
-  r.camera.width = calibration.camera.width;
-  r.camera.height = calibration.camera.height;
-  r.camera.fx = calibration.camera.fx;
-  r.camera.fy = calibration.camera.fy;
-  r.camera.cx = calibration.camera.cx;
-  r.camera.cy = calibration.camera.cy;
-  for (int i = 0; i < 3; ++i) {
-    const Light& l = calibration.lights[static_cast<size_t>(i)];
-    r.lights[i].name = l.name;
-    r.lights[i].directional = l.type == LightType::kDirectional;
-    for (int k = 0; k < 3; ++k) {
-      r.lights[i].position_in_camera[k] = l.position_in_camera[k];
-      r.lights[i].direction_in_camera[k] = l.direction_in_camera[k];
-      r.lights[i].color[k] = l.color[k];
-    }
-    r.lights[i].intensity = l.intensity;
-  }
-  for (int row = 0; row < 3; ++row)
-    for (int col = 0; col < 3; ++col) r.crosstalk[row * 3 + col] = calibration.crosstalk(row, col);
-  return r;
-}
-
 // The server's default for a live camera's SLAM that has fallen behind its input
 // (ServerOptions::skip_depth_update_backlog_live, 2): it tracks frames without their stereo depth update
 // until it has caught up; an upload session's SLAM (skip-depth-update-backlog, 0) updates with every frame.
@@ -282,7 +258,7 @@ TEST_F(RoundTripTest, ALiveSessionBehindItsInputSkipsDepthUpdatesAndAnUploadSess
     options.live = live;
     options.timeout_ms = 20000 * kSanitizerWaitScale;
     std::unique_ptr<client::Session> session;
-    client::Status st = client::Session::Open(server.endpoint(), ClientRigOf(seq->calibration), options, &session);
+    client::Status st = client::Session::Open(server.endpoint(), ToClientRig(seq->calibration), options, &session);
     ASSERT_TRUE(st.ok()) << st.ToString();
     // The latest pose of each tracked frame (a refined one replaces the first), by timestamp.
     std::map<int64_t, Rigid3d> tracked;

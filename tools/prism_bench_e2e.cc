@@ -26,6 +26,7 @@
 #include "core/synth/trajectory.h"
 #include "core/util/thread_pool.h"
 #include "prism/client/client.h"
+#include "tools/client_rig.h"
 
 extern char** environ;
 
@@ -74,30 +75,6 @@ double ProcStatusMb(pid_t pid, const std::string& key) {
     if (line.rfind(key + ":", 0) == 0) return std::atof(line.c_str() + key.size() + 1) / 1024.0;  // kB
   }
   return -1;
-}
-
-prism::client::Rig ToClientRig(const prism::RigCalibration& rig) {
-  prism::client::Rig r;
-  r.camera.width = rig.camera.width;
-  r.camera.height = rig.camera.height;
-  r.camera.fx = rig.camera.fx;
-  r.camera.fy = rig.camera.fy;
-  r.camera.cx = rig.camera.cx;
-  r.camera.cy = rig.camera.cy;
-  for (int i = 0; i < 3; ++i) {
-    const prism::Light& l = rig.lights[i];
-    r.lights[i].name = l.name;
-    r.lights[i].directional = l.type == prism::LightType::kDirectional;
-    for (int k = 0; k < 3; ++k) {
-      r.lights[i].position_in_camera[k] = l.position_in_camera[k];
-      r.lights[i].direction_in_camera[k] = l.direction_in_camera[k];
-      r.lights[i].color[k] = l.color[k];
-    }
-    r.lights[i].intensity = l.intensity;
-  }
-  for (int row = 0; row < 3; ++row)
-    for (int col = 0; col < 3; ++col) r.crosstalk[row * 3 + col] = rig.crosstalk(row, col);
-  return r;
 }
 
 }  // namespace
@@ -208,7 +185,7 @@ int main(int argc, char** argv) {
        << ",\n  \"live\": " << (live ? "true" : "false") << ",\n  \"size\": \"" << setup->rig.camera.width << "x"
        << setup->rig.camera.height << "\",\n  \"hardware_threads\": " << std::thread::hardware_concurrency()
        << ",\n  \"server_rss_mb_idle\": " << ProcStatusMb(pid, "VmRSS") << ",\n  \"codecs\": {";
-  const prism::client::Rig rig = ToClientRig(setup->rig);
+  const prism::client::Rig rig = prism::ToClientRig(setup->rig);
   std::stringstream codec_list(codecs);
   std::string codec_name;
   bool first = true;

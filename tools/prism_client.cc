@@ -15,6 +15,7 @@
 
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
+#include "tools/client_rig.h"
 
 namespace {
 
@@ -144,28 +145,7 @@ int main(int argc, char** argv) {
   if (command == "stream" && !seq->has_calibration)
     return Fail("sequence '" + sequence_dir + "' has no camera.yaml (the rig calibration)");
 
-  const prism::RigCalibration& cal = seq->calibration;
-  pc::Rig rig;
-  rig.camera.width = cal.camera.width;
-  rig.camera.height = cal.camera.height;
-  rig.camera.fx = cal.camera.fx;
-  rig.camera.fy = cal.camera.fy;
-  rig.camera.cx = cal.camera.cx;
-  rig.camera.cy = cal.camera.cy;
-  rig.camera.distortion = cal.camera.distortion;
-  for (size_t l = 0; l < 3; ++l) {
-    const prism::Light& src = cal.lights[l];
-    pc::Light& dst = rig.lights[l];
-    dst.name = src.name;
-    dst.directional = src.type == prism::LightType::kDirectional;
-    for (int k = 0; k < 3; ++k) {
-      dst.position_in_camera[k] = src.position_in_camera[k];
-      dst.direction_in_camera[k] = src.direction_in_camera[k];
-      dst.color[k] = src.color[k];
-    }
-    dst.intensity = src.intensity;
-  }
-  for (int k = 0; k < 9; ++k) rig.crosstalk[k] = cal.crosstalk(k / 3, k % 3);
+  const pc::Rig rig = prism::ToClientRig(seq->calibration);
 
   pc::Status st;
   if (!session) {
