@@ -22,6 +22,25 @@ namespace {
 
 constexpr double kRadToDeg = 180.0 / M_PI;
 
+// How a frame's alignment went (SlamFrameResult::tracking): tr, tracked from `guess`, whether it was
+// tracked again from the last pose, the previous frame's pose on the same keyframe, and the keyframe's
+// mean inverse depth (distances as fractions of the mean depth).
+SlamTrackingQuality QualityOf(const TrackingResult& tr, bool retried, const Rigid3d& guess,
+                              const Rigid3d& previous_from_keyframe, double mean_idepth) {
+  SlamTrackingQuality q;
+  q.tracked = true;
+  q.residual_rms = tr.residual_rms;
+  q.visible_fraction = tr.visible_fraction;
+  q.inlier_fraction = tr.inlier_fraction;
+  for (int n : tr.iterations) q.iterations += n;
+  q.retried = retried;
+  const Rigid3d frame_from_previous = tr.frame_from_keyframe * previous_from_keyframe.Inverse();
+  q.step = frame_from_previous.translation.norm() * mean_idepth;
+  q.rotation_deg = RotationAngle(frame_from_previous.rotation) * kRadToDeg;
+  q.guess_correction = (tr.frame_from_keyframe.translation - guess.translation).norm() * mean_idepth;
+  return q;
+}
+
 double SecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
@@ -701,22 +720,8 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
         return false;
       }
       poses[i] = tr->frame_from_keyframe;
-      {
-        // As TrackFrame reports a frame's alignment (the previous buffered frame's pose; frame 1's is the
-        // keyframe's own).
-        SlamTrackingQuality& q = quality[i];
-        q.tracked = true;
-        q.residual_rms = tr->residual_rms;
-        q.visible_fraction = tr->visible_fraction;
-        q.inlier_fraction = tr->inlier_fraction;
-        q.iterations = 0;
-        for (int n : tr->iterations) q.iterations += n;
-        q.retried = retried;
-        const Rigid3d frame_from_previous = poses[i] * prev.Inverse();
-        q.step = frame_from_previous.translation.norm() * mean_idepth;
-        q.rotation_deg = RotationAngle(frame_from_previous.rotation) * kRadToDeg;
-        q.guess_correction = (poses[i].translation - guess.translation).norm() * mean_idepth;
-      }
+      // The previous buffered frame's pose (frame 1's is the keyframe's own).
+      quality[i] = QualityOf(*tr, retried, guess, prev, mean_idepth);
       prev2 = prev;
       prev = poses[i];
       if (pass == 0) {
@@ -901,20 +906,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
   rec.frame_from_keyframe = tr.frame_from_keyframe;
   rec.result.keyframe_id = keyframes[static_cast<size_t>(kf_index)].id;
   rec.result.state = SlamState::kTracking;
-  {
-    SlamTrackingQuality& q = rec.result.tracking;
-    q.tracked = true;
-    q.residual_rms = tr.residual_rms;
-    q.visible_fraction = tr.visible_fraction;
-    q.inlier_fraction = tr.inlier_fraction;
-    for (int n : tr.iterations) q.iterations += n;
-    q.retried = retried;
-    // The previous frame's pose on this keyframe (the keyframe's own pose when it was made from it).
-    const Rigid3d frame_from_previous = tr.frame_from_keyframe * (has_last ? last_frame_from_kf : Rigid3d()).Inverse();
-    q.step = frame_from_previous.translation.norm() * mean_idepth_now;
-    q.rotation_deg = RotationAngle(frame_from_previous.rotation) * kRadToDeg;
-    q.guess_correction = (tr.frame_from_keyframe.translation - guess.translation).norm() * mean_idepth_now;
-  }
+  // The previous frame's pose on this keyframe (the keyframe's own pose when it was made from it).
+  rec.result.tracking = QualityOf(tr, retried, guess, has_last ? last_frame_from_kf : Rigid3d(), mean_idepth_now);
   rec.result.world_from_camera = WorldFromFrame(rec);
   frames.push_back(rec);
   prev_frame_from_kf = last_frame_from_kf;
