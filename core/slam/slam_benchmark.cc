@@ -11,7 +11,8 @@
 //                    per residual linearised or evaluated is the "ns_per_residual" counter.
 //   BM_SlamSequence: the whole SlamSystem (initialisation, tracking, depth filter, keyframes, keyframe
 //                    adjustment) over 150 frames of a preset; the per-frame time is the "ms_per_frame"
-//                    counter (with and without the keyframe adjustment on the bunny).
+//                    counter (with and without the keyframe adjustment on the bunny; budget_*: with
+//                    a mapping budget of 33.3 ms per frame).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -219,7 +220,8 @@ BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 
-void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment) {
+void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment,
+                     double mapping_budget_ms = 0) {
   const Frames* f = GetFrames(preset);
   if (!f) {
     state.SkipWithError("preset unavailable");
@@ -233,6 +235,7 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
     frame_ms.clear();
     SlamOptions options;
     options.keyframe_adjustment = keyframe_adjustment;
+    options.mapping_budget_ms = mapping_budget_ms;
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(f->setup.rig, options, &pool);
     if (!slam.ok()) {
       state.SkipWithError(slam.status().ToString().c_str());
@@ -268,6 +271,9 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
   state.counters["mapping_ms"] = 1000.0 * (timings.depth_update + timings.keyframes) / tracked;
   state.counters["depth_update_ms"] = 1000.0 * timings.depth_update / tracked;
   state.counters["keyframe_adjustment_ms"] = 1000.0 * timings.keyframe_adjustment / tracked;
+  // Stereo updates made, per tracked frame (below 1 under a mapping budget; the first keyframe's frame
+  // and those tracked during the initialisation have none).
+  state.counters["updates_per_frame"] = timings.depth_updates / tracked;
   state.counters["lost_frames"] = lost;
   state.counters["keyframes"] = keyframes;
 }
@@ -315,6 +321,27 @@ PRISM_SLAM_PRESET_BENCHMARK(boxes_multicolor_forward, "boxes-multicolor-forward"
 PRISM_SLAM_PRESET_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
 PRISM_SLAM_PRESET_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
 PRISM_SLAM_PRESET_BENCHMARK(torus_textured_forward, "torus-textured-forward");
+// The same with SlamOptions::mapping_budget_ms = 33.3 (off by default): stereo updates are left out
+// when the mapping would fall behind 30 frames/s on its core. Wall-time dependent: mapping_ms should be
+// about 33.3 or less, except where the keyframe work alone nearly fills the budget (the armadillo);
+// updates_per_frame says what was left out. `--benchmark_filter=SlamSequence/budget_`.
+#define PRISM_SLAM_BUDGET_BENCHMARK(NAME, PRESET)                                    \
+  BENCHMARK_CAPTURE(BM_SlamSequence, budget_##NAME, std::string(PRESET), true, 33.3) \
+      ->Arg(1)                                                                       \
+      ->Unit(benchmark::kMillisecond)                                                \
+      ->Iterations(1)                                                                \
+      ->UseRealTime()                                                                \
+      ->Repetitions(3)                                                               \
+      ->ReportAggregatesOnly(true)
+PRISM_SLAM_BUDGET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
+PRISM_SLAM_BUDGET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");
+PRISM_SLAM_BUDGET_BENCHMARK(dragon_multicolor_sideways, "dragon-multicolor-sideways");
+PRISM_SLAM_BUDGET_BENCHMARK(sphere_uniform_sideways, "sphere-uniform-sideways");
+PRISM_SLAM_BUDGET_BENCHMARK(relief_uniform_sideways, "relief-uniform-sideways");
+PRISM_SLAM_BUDGET_BENCHMARK(boxes_multicolor_forward, "boxes-multicolor-forward");
+PRISM_SLAM_BUDGET_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
+PRISM_SLAM_BUDGET_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
+PRISM_SLAM_BUDGET_BENCHMARK(torus_textured_forward, "torus-textured-forward");
 
 }  // namespace
 }  // namespace prism
