@@ -303,14 +303,25 @@ BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sidewa
     ->ReportAggregatesOnly(true);
 // Every standard preset, everything on one core (the depth filter's pool has one thread): the
 // per-preset figures of the speed bar (tracking and mapping together within 33 ms keeps up with 30 fps
-// on one core, so a second core is spare).
-#define PRISM_SLAM_PRESET_BENCHMARK(NAME, PRESET)                              \
-  BENCHMARK_CAPTURE(BM_SlamSequence, preset_##NAME, std::string(PRESET), true) \
-      ->Arg(1)                                                                 \
-      ->Unit(benchmark::kMillisecond)                                          \
-      ->Iterations(1)                                                          \
-      ->UseRealTime()                                                          \
-      ->Repetitions(3)                                                         \
+// on one core, so a second core is spare). preset_*: the defaults. budget_*: with
+// SlamOptions::mapping_budget_ms = 33.3 (off by default), stereo updates are left out when the mapping
+// would fall behind 30 frames/s on its core; wall-time dependent: mapping_ms should be about 33.3 or
+// less, except where the keyframe work alone nearly fills the budget, and updates_per_frame says what
+// was left out (`--benchmark_filter=SlamSequence/budget_`).
+#define PRISM_SLAM_PRESET_BENCHMARK(NAME, PRESET)                                    \
+  BENCHMARK_CAPTURE(BM_SlamSequence, preset_##NAME, std::string(PRESET), true, 0.0)  \
+      ->Arg(1)                                                                       \
+      ->Unit(benchmark::kMillisecond)                                                \
+      ->Iterations(1)                                                                \
+      ->UseRealTime()                                                                \
+      ->Repetitions(3)                                                               \
+      ->ReportAggregatesOnly(true);                                                  \
+  BENCHMARK_CAPTURE(BM_SlamSequence, budget_##NAME, std::string(PRESET), true, 33.3) \
+      ->Arg(1)                                                                       \
+      ->Unit(benchmark::kMillisecond)                                                \
+      ->Iterations(1)                                                                \
+      ->UseRealTime()                                                                \
+      ->Repetitions(3)                                                               \
       ->ReportAggregatesOnly(true)
 PRISM_SLAM_PRESET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
 PRISM_SLAM_PRESET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");
@@ -321,27 +332,6 @@ PRISM_SLAM_PRESET_BENCHMARK(boxes_multicolor_forward, "boxes-multicolor-forward"
 PRISM_SLAM_PRESET_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
 PRISM_SLAM_PRESET_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
 PRISM_SLAM_PRESET_BENCHMARK(torus_textured_forward, "torus-textured-forward");
-// The same with SlamOptions::mapping_budget_ms = 33.3 (off by default): stereo updates are left out
-// when the mapping would fall behind 30 frames/s on its core. Wall-time dependent: mapping_ms should be
-// about 33.3 or less, except where the keyframe work alone nearly fills the budget (the armadillo);
-// updates_per_frame says what was left out. `--benchmark_filter=SlamSequence/budget_`.
-#define PRISM_SLAM_BUDGET_BENCHMARK(NAME, PRESET)                                    \
-  BENCHMARK_CAPTURE(BM_SlamSequence, budget_##NAME, std::string(PRESET), true, 33.3) \
-      ->Arg(1)                                                                       \
-      ->Unit(benchmark::kMillisecond)                                                \
-      ->Iterations(1)                                                                \
-      ->UseRealTime()                                                                \
-      ->Repetitions(3)                                                               \
-      ->ReportAggregatesOnly(true)
-PRISM_SLAM_BUDGET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
-PRISM_SLAM_BUDGET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");
-PRISM_SLAM_BUDGET_BENCHMARK(dragon_multicolor_sideways, "dragon-multicolor-sideways");
-PRISM_SLAM_BUDGET_BENCHMARK(sphere_uniform_sideways, "sphere-uniform-sideways");
-PRISM_SLAM_BUDGET_BENCHMARK(relief_uniform_sideways, "relief-uniform-sideways");
-PRISM_SLAM_BUDGET_BENCHMARK(boxes_multicolor_forward, "boxes-multicolor-forward");
-PRISM_SLAM_BUDGET_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
-PRISM_SLAM_BUDGET_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
-PRISM_SLAM_BUDGET_BENCHMARK(torus_textured_forward, "torus-textured-forward");
 
 }  // namespace
 }  // namespace prism
