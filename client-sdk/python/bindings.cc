@@ -21,6 +21,7 @@
 #include "core/io/image_io.h"
 #include "core/io/sequence.h"
 #include "prism/client/client.h"
+#include "tools/client_rig.h"
 
 namespace py = pybind11;
 namespace pc = prism::client;
@@ -149,32 +150,6 @@ py::tuple EventToPython(const pc::Event& e) {
       return py::make_tuple("summary", SummaryToDict(e.summary));
   }
   return py::make_tuple("unknown", py::none());
-}
-
-pc::Rig RigFromCalibration(const prism::RigCalibration& c) {
-  pc::Rig rig;
-  rig.camera.width = c.camera.width;
-  rig.camera.height = c.camera.height;
-  rig.camera.fx = c.camera.fx;
-  rig.camera.fy = c.camera.fy;
-  rig.camera.cx = c.camera.cx;
-  rig.camera.cy = c.camera.cy;
-  for (int k = 0; k < 5; ++k) rig.camera.distortion[k] = c.camera.distortion[k];
-  for (int l = 0; l < 3; ++l) {
-    const prism::Light& in = c.lights[l];
-    pc::Light& out = rig.lights[l];
-    out.name = in.name;
-    out.directional = in.type == prism::LightType::kDirectional;
-    for (int k = 0; k < 3; ++k) {
-      out.position_in_camera[k] = in.position_in_camera[k];
-      out.direction_in_camera[k] = in.direction_in_camera[k];
-      out.color[k] = in.color[k];
-    }
-    out.intensity = in.intensity;
-  }
-  for (int r = 0; r < 3; ++r)
-    for (int col = 0; col < 3; ++col) rig.crosstalk[3 * r + col] = c.crosstalk(r, col);
-  return rig;
 }
 
 pc::Codec ParseCodec(const std::string& name) {
@@ -379,7 +354,7 @@ PYBIND11_MODULE(_native, m) {
       [](const std::string& path) {
         prism::StatusOr<prism::RigCalibration> c = prism::ReadCalibrationYaml(path);
         if (!c.ok()) Raise({pc::Code::kInvalidArgument, c.status().ToString(), false});
-        return RigFromCalibration(*c);
+        return prism::ToClientRig(*c);
       },
       py::arg("path"), "Reads a rig calibration (camera.yaml, OpenCV FileStorage) into a Rig.");
   m.def(

@@ -308,21 +308,13 @@ BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sidewa
 // would fall behind 30 frames/s on its core; wall-time dependent: mapping_ms should be about 33.3 or
 // less, except where the keyframe work alone nearly fills the budget, and updates_per_frame says what
 // was left out (`--benchmark_filter=SlamSequence/budget_`).
-#define PRISM_SLAM_PRESET_BENCHMARK(NAME, PRESET)                                    \
-  BENCHMARK_CAPTURE(BM_SlamSequence, preset_##NAME, std::string(PRESET), true, 0.0)  \
-      ->Arg(1)                                                                       \
-      ->Unit(benchmark::kMillisecond)                                                \
-      ->Iterations(1)                                                                \
-      ->UseRealTime()                                                                \
-      ->Repetitions(3)                                                               \
-      ->ReportAggregatesOnly(true);                                                  \
-  BENCHMARK_CAPTURE(BM_SlamSequence, budget_##NAME, std::string(PRESET), true, 33.3) \
-      ->Arg(1)                                                                       \
-      ->Unit(benchmark::kMillisecond)                                                \
-      ->Iterations(1)                                                                \
-      ->UseRealTime()                                                                \
-      ->Repetitions(3)                                                               \
-      ->ReportAggregatesOnly(true)
+// One thread, one pass per repetition, medians of 3.
+void WholeSequenceSettings(benchmark::internal::Benchmark* b) {
+  b->Arg(1)->Unit(benchmark::kMillisecond)->Iterations(1)->UseRealTime()->Repetitions(3)->ReportAggregatesOnly(true);
+}
+#define PRISM_SLAM_PRESET_BENCHMARK(NAME, PRESET)                                                                  \
+  BENCHMARK_CAPTURE(BM_SlamSequence, preset_##NAME, std::string(PRESET), true, 0.0)->Apply(WholeSequenceSettings); \
+  BENCHMARK_CAPTURE(BM_SlamSequence, budget_##NAME, std::string(PRESET), true, 33.3)->Apply(WholeSequenceSettings)
 PRISM_SLAM_PRESET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
 PRISM_SLAM_PRESET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");
 PRISM_SLAM_PRESET_BENCHMARK(dragon_multicolor_sideways, "dragon-multicolor-sideways");
