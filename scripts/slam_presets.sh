@@ -6,6 +6,9 @@
 #   scripts/slam_presets.sh OUT [--seeds "1 2 3"] [--presets "p1 p2"] [--jobs N] [--frames N] [--keep-outputs]
 #                           [-- prism-slam args]
 #
+# --presets takes names, or "standard" (the 9 standard presets, the default), "extra" (the 150-frame
+# presets outside them: the uniform sphere's forward start, the robustness sphere) or "all" (both).
+#
 # Sequences are rendered once into $SEQ_CACHE (default /tmp/prism-presets) and reused. Each run writes
 # OUT/<preset>-<seed>/ (prism-slam's outputs) and OUT/results.tsv; the table is printed at the end.
 # The keyframe depth maps and semidense.ply (about 50 MB per run at 512x512) are deleted once a run is
@@ -16,14 +19,16 @@ cd "$(dirname "$0")/.."
 BUILD_DIR=${BUILD_DIR:-build}
 SEQ_CACHE=${SEQ_CACHE:-/tmp/prism-presets}
 if [ $# -lt 1 ]; then
-  sed -n '2,12p' "$0"
+  sed -n '2,16p' "$0"
   exit 2
 fi
 OUT=$1
 shift
 SEEDS="1 2 3 4 5 6"
-PRESETS="bunny-multicolor-forward sphere-multicolor-sideways dragon-multicolor-sideways sphere-uniform-sideways \
+STANDARD="bunny-multicolor-forward sphere-multicolor-sideways dragon-multicolor-sideways sphere-uniform-sideways \
 relief-uniform-sideways boxes-multicolor-forward bunny-uniform-sideways armadillo-textured-forward torus-textured-forward"
+EXTRA="sphere-uniform-forward sphere-robust-sideways"
+PRESETS=$STANDARD
 JOBS=2
 FRAMES=150
 KEEP_OUTPUTS=0
@@ -39,6 +44,11 @@ while [ $# -gt 0 ]; do
   esac
 done
 SLAM_ARGS=("$@")
+case "$PRESETS" in
+  standard) PRESETS=$STANDARD ;;
+  extra) PRESETS=$EXTRA ;;
+  all) PRESETS="$STANDARD $EXTRA" ;;
+esac
 mkdir -p "$OUT" "$SEQ_CACHE"
 BIN="$BUILD_DIR/bin"
 
