@@ -26,9 +26,12 @@ struct Rendered {
   std::vector<synth::RenderedFrame> frames;
 };
 
-bool Render(const std::string& preset, int frames, int supersampling, Rendered* out, std::string* why) {
+// As prism-synth --preset PRESET --frames FRAMES --seed SEED renders it (with supersampling).
+bool Render(const std::string& preset, int frames, int supersampling, Rendered* out, std::string* why,
+            uint32_t seed = 1) {
   synth::PresetOptions o;
   o.frames = frames;
+  o.seed = seed;
   StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, o);
   if (!setup.ok()) {
     *why = setup.status().ToString();
@@ -42,7 +45,7 @@ bool Render(const std::string& preset, int frames, int supersampling, Rendered* 
   pool.ParallelFor(0, frames, [&](std::ptrdiff_t i) {
     out->frames[i] =
         synth::RenderFrame(out->setup.scene, out->setup.rig, out->trajectory[i].world_from_camera, out->setup.render,
-                           /*noise_seed=*/1000003ull + static_cast<uint64_t>(i));  // as prism-synth --seed 1
+                           /*noise_seed=*/static_cast<uint64_t>(seed) * 1000003ull + static_cast<uint64_t>(i));
   });
   return true;
 }
@@ -357,6 +360,38 @@ TEST(SlamSystem, TheShadingCheckReportsADistortedReconstruction) {
   ASSERT_TRUE(metric.ok()) << metric.status();
   std::printf("uniform bunny, seed 1: ATE %.3f%% of path; keyframe pairs' shading scales spread by %.4f (%d pairs)\n",
               ate_percent, metric->pair_spread, metric->pairs);
+  if (ate_percent <= 1.0) {
+    EXPECT_TRUE(metric->consistent) << "pair spread " << metric->pair_spread;
+  }
+  if (ate_percent >= kDistortedAtePercent) {
+    EXPECT_FALSE(metric->consistent) << "pair spread " << metric->pair_spread;
+  }
+  EXPECT_TRUE(ate_percent <= 1.0 || ate_percent >= kDistortedAtePercent)
+      << "between the bar and the distorted case: the test says nothing; re-measure";
+}
+
+// The same check with the defaults, on a failure the start check lets through: the uniform sphere's
+// forward start (a preset outside the standard nine; README, forty-sixth round), seed 6. Its first six
+// keyframes' pairs spread by 0.151, under the start check's 0.16, and the arc that follows is tracked
+// at 0.69 of its true turn with 9 keyframes instead of 16-20 (prism-slam: 19.1% of path); at the end the
+// pairs spread by 0.61. An equivalence as above, so that a fix of the tracking keeps it meaningful.
+TEST(SlamSystem, TheShadingCheckReportsTheUniformSpheresForwardFailure) {
+  Rendered r;
+  std::string why;
+  if (!Render("sphere-uniform-forward", 150, 1, &r, &why, /*seed=*/6)) GTEST_SKIP() << "preset unavailable: " << why;
+  ThreadPool pool(2);
+  const SlamOptions options;
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
+  ASSERT_TRUE(slam.ok()) << slam.status();
+  std::vector<SlamKeyframe> keyframes;
+  ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
+  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
+  ASSERT_TRUE(ate.ok()) << ate.status();
+  const double ate_percent = PercentOfPath(*ate);
+  StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
+  ASSERT_TRUE(metric.ok()) << metric.status();
+  std::printf("uniform sphere, forward start, seed 6: ATE %.3f%% of path, %d keyframes; pairs spread by %.4f\n",
+              ate_percent, (*slam)->num_keyframes(), metric->pair_spread);
   if (ate_percent <= 1.0) {
     EXPECT_TRUE(metric->consistent) << "pair spread " << metric->pair_spread;
   }
