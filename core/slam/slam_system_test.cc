@@ -334,6 +334,27 @@ INSTANTIATE_TEST_SUITE_P(
 // round) replaces this start; it is off here so that the end-of-run check still sees it.
 constexpr double kDistortedAtePercent = 2.0;
 
+// A run as prism-slam runs it, its ATE (% of path) and the shading check at its end.
+struct ShadingCheckRun {
+  double ate_percent = 0;
+  int keyframes = 0;
+  MetricScaleEstimate metric;
+};
+
+void RunForShadingCheck(const Rendered& r, const SlamOptions& options, ThreadPool* pool, ShadingCheckRun* out) {
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, pool);
+  ASSERT_TRUE(slam.ok()) << slam.status();
+  std::vector<SlamKeyframe> keyframes;
+  ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
+  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
+  ASSERT_TRUE(ate.ok()) << ate.status();
+  out->ate_percent = PercentOfPath(*ate);
+  out->keyframes = (*slam)->num_keyframes();
+  StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
+  ASSERT_TRUE(metric.ok()) << metric.status();
+  out->metric = *metric;
+}
+
 TEST(SlamSystem, TheShadingCheckReportsADistortedReconstruction) {
   Rendered r;
   std::string why;
@@ -349,24 +370,17 @@ TEST(SlamSystem, TheShadingCheckReportsADistortedReconstruction) {
   // velocity carried over this start ends at 2.93% of path with a pair spread of 0.144, under the 0.16
   // limit: the check misses that milder distortion (README, thirty-eighth round).
   options.keep_velocity_across_keyframes = false;
-  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
-  ASSERT_TRUE(slam.ok()) << slam.status();
-  std::vector<SlamKeyframe> keyframes;
-  ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
-  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
-  ASSERT_TRUE(ate.ok()) << ate.status();
-  const double ate_percent = PercentOfPath(*ate);
-  StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
-  ASSERT_TRUE(metric.ok()) << metric.status();
+  ShadingCheckRun run;
+  ASSERT_NO_FATAL_FAILURE(RunForShadingCheck(r, options, &pool, &run));
   std::printf("uniform bunny, seed 1: ATE %.3f%% of path; keyframe pairs' shading scales spread by %.4f (%d pairs)\n",
-              ate_percent, metric->pair_spread, metric->pairs);
-  if (ate_percent <= 1.0) {
-    EXPECT_TRUE(metric->consistent) << "pair spread " << metric->pair_spread;
+              run.ate_percent, run.metric.pair_spread, run.metric.pairs);
+  if (run.ate_percent <= 1.0) {
+    EXPECT_TRUE(run.metric.consistent) << "pair spread " << run.metric.pair_spread;
   }
-  if (ate_percent >= kDistortedAtePercent) {
-    EXPECT_FALSE(metric->consistent) << "pair spread " << metric->pair_spread;
+  if (run.ate_percent >= kDistortedAtePercent) {
+    EXPECT_FALSE(run.metric.consistent) << "pair spread " << run.metric.pair_spread;
   }
-  EXPECT_TRUE(ate_percent <= 1.0 || ate_percent >= kDistortedAtePercent)
+  EXPECT_TRUE(run.ate_percent <= 1.0 || run.ate_percent >= kDistortedAtePercent)
       << "between the bar and the distorted case: the test says nothing; re-measure";
 }
 
@@ -390,25 +404,18 @@ TEST(SlamSystem, KeyframesByRotationKeepTheUniformSpheresForwardArc) {
     SCOPED_TRACE("keyframe_max_rotation_deg " + std::to_string(max_rotation_deg));
     SlamOptions options;
     options.keyframe_max_rotation_deg = max_rotation_deg;
-    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
-    ASSERT_TRUE(slam.ok()) << slam.status();
-    std::vector<SlamKeyframe> keyframes;
-    ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
-    StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
-    ASSERT_TRUE(ate.ok()) << ate.status();
-    const double ate_percent = PercentOfPath(*ate);
-    StatusOr<MetricScaleEstimate> metric = (*slam)->EstimateMetricScale();
-    ASSERT_TRUE(metric.ok()) << metric.status();
+    ShadingCheckRun run;
+    ASSERT_NO_FATAL_FAILURE(RunForShadingCheck(r, options, &pool, &run));
     std::printf(
         "uniform sphere, forward start, seed 6, keyframes by rotation at %.0f deg: ATE %.3f%% of path, %d "
         "keyframes; pairs spread by %.4f\n",
-        max_rotation_deg, ate_percent, (*slam)->num_keyframes(), metric->pair_spread);
+        max_rotation_deg, run.ate_percent, run.keyframes, run.metric.pair_spread);
     if (max_rotation_deg == SlamOptions().keyframe_max_rotation_deg) {
-      EXPECT_LE(ate_percent, kUniformSphereForwardMaxAtePercent);
-      EXPECT_GE((*slam)->num_keyframes(), kUniformSphereForwardMinKeyframes);
+      EXPECT_LE(run.ate_percent, kUniformSphereForwardMaxAtePercent);
+      EXPECT_GE(run.keyframes, kUniformSphereForwardMinKeyframes);
     }
-    if (ate_percent >= kDistortedAtePercent) {
-      EXPECT_FALSE(metric->consistent) << "pair spread " << metric->pair_spread;
+    if (run.ate_percent >= kDistortedAtePercent) {
+      EXPECT_FALSE(run.metric.consistent) << "pair spread " << run.metric.pair_spread;
     }
   }
 }
