@@ -390,7 +390,8 @@ TEST(SlamSystem, TheShadingCheckReportsADistortedReconstruction) {
 // distance test: one keyframe is tracked over 23 frames, 9 keyframes in all (16-20 on the other seeds),
 // 19.1% of path. Its first six keyframes' pairs spread by 0.151, under the start check's 0.16; at the end
 // by 0.61, and the shading check must report it (an equivalence as above, so that a fix of the tracking
-// keeps it meaningful). With the default of 10 deg: 17 keyframes and 1.53% of path (the other seeds
+// keeps it meaningful). With the default of 10 deg the first six keyframes spread by 2.54, the start
+// check starts again and keeps the second start: 17 keyframes and 1.53% of path (the other seeds
 // unchanged: 1.24-2.77%, they never turn 10 deg between keyframes).
 constexpr double kUniformSphereForwardMaxAtePercent = 2.0;
 constexpr int kUniformSphereForwardMinKeyframes = 14;
