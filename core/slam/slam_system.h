@@ -115,7 +115,7 @@ struct SlamOptions {
   // way, a raw-grey start of the uniform bunny that the check caught at 15 it misses at 10: the tests
   // TheStartCheckReplacesADistortedStart keep 15.) On the 54 standard runs 8
   // runs move (the dragon and the uniform bunny, whose keyframes were up to 21 deg apart), by at most
-  // 0.02 points of ATE, and the figures over the 54 stay the same (53 within 1% ATE, geometric mean
+  // 0.022 points of ATE, and the figures over the 54 stay the same (53 within 1% ATE, geometric mean
   // 0.139%; 48 within 3% depth, median 1.11%); KITTI 06 is the same to the digit (0.040%).
   double keyframe_max_rotation_deg = 10.0;
   // Initialisation: the first frame is a keyframe with random inverse depth (LSD-SLAM) which the depth
