@@ -14,6 +14,7 @@
 #include "core/slam/slam_config.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
+#include "core/synth/synthesize.h"
 #include "core/synth/trajectory.h"
 #include "core/util/thread_pool.h"
 
@@ -43,9 +44,8 @@ bool Render(const std::string& preset, int frames, int supersampling, Rendered* 
   out->frames.resize(frames);
   ThreadPool pool;
   pool.ParallelFor(0, frames, [&](std::ptrdiff_t i) {
-    out->frames[i] =
-        synth::RenderFrame(out->setup.scene, out->setup.rig, out->trajectory[i].world_from_camera, out->setup.render,
-                           /*noise_seed=*/static_cast<uint64_t>(seed) * 1000003ull + static_cast<uint64_t>(i));
+    out->frames[i] = synth::RenderFrame(out->setup.scene, out->setup.rig, out->trajectory[i].world_from_camera,
+                                        out->setup.render, synth::FrameNoiseSeed(seed, i));
   });
   return true;
 }

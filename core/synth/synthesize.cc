@@ -22,8 +22,8 @@ StatusOr<SynthesizeSummary> SynthesizeSequence(const SynthSetup& setup, uint32_t
   std::atomic<bool> failed{false};
   auto render = [&](std::ptrdiff_t i) {
     if (failed) return;
-    const RenderedFrame f = RenderFrame(setup.scene, setup.rig, traj[i].world_from_camera, setup.render,
-                                        static_cast<uint64_t>(seed) * 1000003ull + static_cast<uint64_t>(i));
+    const RenderedFrame f =
+        RenderFrame(setup.scene, setup.rig, traj[i].world_from_camera, setup.render, FrameNoiseSeed(seed, i));
     const Status s = writer.WriteFrame(traj[i].timestamp_s, f.rgb, f.depth, f.normals, f.mask);
     if (!s.ok()) {
       std::lock_guard<std::mutex> lock(error_mutex);

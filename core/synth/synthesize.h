@@ -2,6 +2,7 @@
 // scene.yaml (preset, seed, object centre and size, path length).
 #pragma once
 
+#include <cstdint>
 #include <string>
 
 #include "core/synth/presets.h"
@@ -19,6 +20,12 @@ struct SynthesizeSummary {
   double path_length_m = 0.0;
   double object_radius_m = 0.0;  // radius of the sphere bounding the object(s)
 };
+
+// The renderer's noise seed of frame `frame` of a sequence synthesised with `seed` (prism-synth --seed):
+// what SynthesizeSequence passes to RenderFrame, for code that renders the same frames in memory.
+inline uint64_t FrameNoiseSeed(uint32_t seed, int64_t frame) {
+  return static_cast<uint64_t>(seed) * 1000003ull + static_cast<uint64_t>(frame);
+}
 
 // Frames are rendered in parallel on `pool` (one frame per task) when given. Deterministic for the
 // setup's seed whatever the thread count.
