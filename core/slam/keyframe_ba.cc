@@ -411,27 +411,40 @@ StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& opti
       out->push_back({i, pt, px});
     }
   };
-  auto prefetch_ahead = [&](const ProjectedList& visible, size_t k, int t) {
-    if (k + kPrefetchAhead >= visible.size()) return;
-    const Projected& ahead = visible[k + kPrefetchAhead];
-    PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
-  };
   std::atomic<long long> image_samples{0};  // residuals whose image was read (DirectBaSummary::image_samples)
   // The image reads of target t's residuals `visible`, all at once: a short loop whose loads overlap
   // (inside the long loops after it each one waited for its sample; 12% of the adjustment's time,
-  // BM_KeyframeWindowAdjustment), prefetched kPrefetchAhead residuals ahead. The gradients with the
-  // values when `with_gradient`.
+  // BM_KeyframeWindowAdjustment), prefetched kPrefetchAhead residuals ahead, and in the order of their
+  // image rows (a counting sort). In point order each host's points sweep the whole target image, one
+  // sweep per host, and what one sweep read has left the cache (1 MB per image at 512x512) before the next
+  // sweep reads near it; the hosts' points often land near each other (their strongest gradients are the
+  // same edges), and row by row those reads follow each other. The window adjustment 155 -> 122 ms on the
+  // armadillo's benchmark window (medians of three alternating runs). Each residual's sample is written to
+  // its own slot, so the order changes no result. The gradients with the values when `with_gradient`.
   auto read_images = [&](const ProjectedList& visible, int t, bool with_gradient, std::vector<Sampled>* sampled) {
-    sampled->resize(visible.size());
-    for (size_t k = 0; k < visible.size(); ++k) {
-      prefetch_ahead(visible, k, t);
+    const size_t n = visible.size();
+    sampled->resize(n);
+    const int rows = limg->front().rows;
+    auto row_of = [&](size_t k) {
+      return static_cast<size_t>(std::clamp(static_cast<int>(visible[k].px.y()), 0, rows - 1));
+    };
+    std::vector<uint32_t> row_start(static_cast<size_t>(rows) + 1, 0), order(n);
+    for (size_t k = 0; k < n; ++k) ++row_start[row_of(k) + 1];
+    for (int r = 0; r < rows; ++r) row_start[static_cast<size_t>(r) + 1] += row_start[static_cast<size_t>(r)];
+    for (size_t k = 0; k < n; ++k) order[row_start[row_of(k)]++] = static_cast<uint32_t>(k);
+    for (size_t q = 0; q < n; ++q) {
+      if (q + kPrefetchAhead < n) {
+        const Projected& ahead = visible[order[q + kPrefetchAhead]];
+        PrefetchSample(image_of(*limg, ahead.point, t), ahead.px.x(), ahead.px.y());
+      }
+      const size_t k = order[q];
       const cv::Mat& image = image_of(*limg, visible[k].point, t);
       const Eigen::Vector2d& px = visible[k].px;
       Sampled& sk = (*sampled)[k];
       sk.ok = with_gradient ? SampleWithGradient(image, px.x(), px.y(), &sk.value, &sk.g)
                             : SampleValue(image, px.x(), px.y(), &sk.value);
     }
-    image_samples.fetch_add(static_cast<long long>(visible.size()), std::memory_order_relaxed);
+    image_samples.fetch_add(static_cast<long long>(n), std::memory_order_relaxed);
   };
 
   // With a pool: how many workers take targets in parallel, and each worker's scratch. Each target's
