@@ -459,6 +459,8 @@ int main(int argc, char** argv) {
        << ", \"depth_update\": " << 1000.0 * timings.depth_update / nf
        << ", \"keyframes\": " << 1000.0 * timings.keyframes / nf
        << ", \"keyframe_adjustment\": " << 1000.0 * timings.keyframe_adjustment / nf
+       << ", \"keyframe_adjustment_thread\": " << 1000.0 * timings.keyframe_adjustment_thread / nf
+       << ", \"keyframe_adjustment_wait\": " << 1000.0 * timings.keyframe_adjustment_wait / nf
        << ", \"loop_search\": " << 1000.0 * timings.loop_search / nf
        << ", \"relocalisation\": " << 1000.0 * timings.relocalisation / nf << "}"
        << ",\n  \"mapping_ms_per_tracked_frame\": "

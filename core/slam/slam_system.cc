@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <deque>
+#include <future>
 #include <limits>
 #include <sstream>
 
@@ -335,8 +336,27 @@ struct SlamSystem::Impl {
   }
   // After an adjustment: the newest keyframe's depth propagated again, along the adjusted pose.
   void RepropagateNewestKeyframe();
+  // A window adjustment: its problem, set up from keyframes first..num_keyframes-1, and its result
+  // (solved inline, or on its own thread with SlamOptions::keyframe_adjustment_async).
+  struct PendingAdjustment {
+    int first = 0;
+    int num_keyframes = 0;
+    bool at_finish = false, relit = false, mixed = false;
+    DirectBaProblem problem;
+    std::vector<float> initial_inverse_depth;  // of problem.points, before the adjustment
+    StatusOr<DirectBaSummary> summary = InternalError("keyframe adjustment not run");
+    double seconds = 0;      // its wall time on its thread
+    std::future<void> done;  // keyframe_adjustment_async
+  };
+  // The adjustment's result in the keyframes, edges and frames (and the re-propagation).
+  void ApplyAdjustment(PendingAdjustment* job);
+  // Waits for the adjustment running on its own thread, if any, and applies it.
+  void ApplyPendingAdjustment();
   // The pose of the most recent tracked frame (identity before any).
   Rigid3d LastGoodWorldFromCamera() const;
+  // The adjustment running on its own thread (keyframe_adjustment_async). Last member: destroyed first,
+  // its future waits for the thread.
+  std::unique_ptr<PendingAdjustment> pending_adjustment;
 };
 
 StatusOr<std::unique_ptr<SlamSystem::Impl>> SlamSystem::NewImpl(const RigCalibration& rig, const SlamOptions& options,
@@ -442,6 +462,7 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
       return;
     }
     const auto check_start = std::chrono::steady_clock::now();
+    impl_->ApplyPendingAdjustment();
     const std::vector<double> first = impl_->PairShadingScales(n);
     if (first.size() < 3) {
       PRISM_LOG(INFO) << "slam: start check: " << first.size() << " keyframe pairs gave a shading scale; not checked";
@@ -495,6 +516,7 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
     }
     return;
   }
+  c.retry->ApplyPendingAdjustment();
   const std::vector<double> again = c.retry->PairShadingScales(n);
   const double spread = again.size() >= 3 ? PairSpread(again) : std::numeric_limits<double>::infinity();
   start_check_report_.second_checked = true;
@@ -978,6 +1000,8 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
 
 Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
                                       const Rigid3d& frame_from_reference, const KeyframeDepth& source) {
+  // The adjustment started at the previous keyframe moves the reference keyframe: first apply it.
+  ApplyPendingAdjustment();
   // The tracker must accept it before it becomes the keyframe.
   PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, PropagateForTracking(rgb, source, frame_from_reference));
   // The last frame-to-frame motion (newest from previous tracked frame), for the next frame's guess.
@@ -1005,8 +1029,8 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
     keyframes[static_cast<size_t>(reference_kf)].next = keyframes.back().id;
   previous_depth.reset();
   previous_depth_kf = -1;
-  if (options.keyframe_adjustment && options.repropagate_after_adjustment && current_depth &&
-      &source == current_depth.get()) {
+  if (options.keyframe_adjustment && options.repropagate_after_adjustment && !options.keyframe_adjustment_async &&
+      current_depth && &source == current_depth.get()) {
     previous_depth = std::move(current_depth);
     previous_depth_kf = reference_kf;
   }
@@ -1273,6 +1297,7 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, bool mixed,
 }
 
 void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_options, bool at_finish) {
+  ApplyPendingAdjustment();
   const int n = static_cast<int>(keyframes.size());
   if (n - first < 3 || !current_depth) return;
   // Keyframes that left the window are not adjusted again until the final adjustment (which recomputes
@@ -1285,18 +1310,62 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   }
   const bool mixed = at_finish && options.final_adjustment_mixed && RelitMetresPerWorldUnit() > 0;
   const bool relit = mixed || (at_finish && options.final_adjustment_relit && RelitMetresPerWorldUnit() > 0);
-  DirectBaProblem problem;
+  auto job = std::make_unique<PendingAdjustment>();
+  job->first = first;
+  job->num_keyframes = n;
+  job->at_finish = at_finish;
+  job->relit = relit;
+  job->mixed = mixed;
+  DirectBaProblem& problem = job->problem;
   if (!BuildAdjustmentProblem(first, relit, mixed, relit_metres_per_world_unit,
                               mixed ? options.metric_scale_min_band_fraction : DirectBaRelit().min_band_fraction,
                               &problem))
     return;
-  const DirectBaOptions& used_options = relit && !mixed ? options.final_adjustment_relit_ba : ba_options;
-  std::vector<float> initial_inverse_depth;
-  initial_inverse_depth.reserve(problem.points.size());
-  for (const DirectBaPoint& p : problem.points) initial_inverse_depth.push_back(p.inverse_depth);
-  StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(used_options, &problem, pool);
+  const DirectBaOptions used_options = relit && !mixed ? options.final_adjustment_relit_ba : ba_options;
+  job->initial_inverse_depth.reserve(problem.points.size());
+  for (const DirectBaPoint& p : problem.points) job->initial_inverse_depth.push_back(p.inverse_depth);
+  if (options.keyframe_adjustment_async && !at_finish) {
+    // The problem holds its own copies (the images are shared, read-only): the thread touches nothing
+    // else. One thread, no pool: the result is the same to the bit as with the pool (keyframe_ba.h).
+    PendingAdjustment* p = job.get();
+    job->done = std::async(std::launch::async, [p, used_options] {
+      const auto start = std::chrono::steady_clock::now();
+      p->summary = AdjustKeyframeWindowDirect(used_options, &p->problem, nullptr);
+      p->seconds = SecondsSince(start);
+    });
+    pending_adjustment = std::move(job);
+    return;
+  }
+  job->summary = AdjustKeyframeWindowDirect(used_options, &problem, pool);
+  ApplyAdjustment(job.get());
+}
+
+void SlamSystem::Impl::ApplyPendingAdjustment() {
+  if (!pending_adjustment) return;
+  std::unique_ptr<PendingAdjustment> job = std::move(pending_adjustment);
+  {
+    const ScopedSeconds wait(&timings.keyframe_adjustment_wait);
+    job->done.get();  // rethrows what the thread threw
+  }
+  timings.keyframe_adjustment_thread += job->seconds;
+  ApplyAdjustment(job.get());
+}
+
+void SlamSystem::Impl::ApplyAdjustment(PendingAdjustment* job) {
+  const int first = job->first;
+  const int n = job->num_keyframes;
+  const bool at_finish = job->at_finish, relit = job->relit, mixed = job->mixed;
+  const DirectBaProblem& problem = job->problem;
+  const std::vector<float>& initial_inverse_depth = job->initial_inverse_depth;
+  // No keyframe is made while an adjustment is pending (MakeKeyframe applies it first).
+  if (static_cast<int>(keyframes.size()) != n) {
+    PRISM_LOG(WARNING) << "slam: keyframe adjustment over " << n << " keyframes dropped: there are now "
+                       << keyframes.size();
+    return;
+  }
   if (at_finish)
     for (Keyframe& kf : keyframes) kf.grey_j.release();
+  const StatusOr<DirectBaSummary>& summary = job->summary;
   if (relit && summary.ok()) {
     PRISM_LOG(INFO) << "slam: relit adjustment: " << relit_metres_per_world_unit << " -> "
                     << problem.relit.metres_per_world_unit << " metres per world unit";
@@ -1331,7 +1400,8 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
                      keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
   }
-  if (options.repropagate_after_adjustment && !at_finish) RepropagateNewestKeyframe();
+  if (options.repropagate_after_adjustment && !options.keyframe_adjustment_async && !at_finish)
+    RepropagateNewestKeyframe();
   // The frames of the oldest keyframe move too when its next keyframe moved (distribute_keyframe_corrections).
   const int first_moved = options.distribute_keyframe_corrections ? first : first_refitted;
   for (FrameRecord& f : frames)
@@ -1404,6 +1474,7 @@ void SlamSystem::Impl::RepropagateNewestKeyframe() {
 }
 
 bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, int* keyframe_index) {
+  ApplyPendingAdjustment();  // the keyframes' current poses
   // The last good pose, and the keyframes nearest to it (finished ones have their final depth).
   const Rigid3d last_world_from_camera = LastGoodWorldFromCamera();
   std::vector<std::pair<double, int>> candidates;
@@ -1435,8 +1506,13 @@ bool SlamSystem::Impl::Relocalise(const cv::Mat& rgb, Rigid3d* frame_from_kf, in
 std::vector<SlamKeyframe> SlamSystem::TakeFinishedKeyframes() {
   std::vector<SlamKeyframe> out;
   if (start_check_) return out;  // held until the start check is done
+  // With keyframe_adjustment_async, the keyframe finished when the running adjustment was started (the
+  // one before its newest) is held until that adjustment has been applied: handed out inline, it would
+  // have had it.
+  const int held_from = impl_->pending_adjustment ? impl_->pending_adjustment->num_keyframes - 2
+                                                  : static_cast<int>(impl_->keyframes.size());
   for (Impl::Keyframe& k : impl_->keyframes) {
-    if (!k.finished || k.handed_out) continue;
+    if (!k.finished || k.handed_out || k.id >= held_from) continue;
     SlamKeyframe s;
     s.id = k.id;
     s.frame_id = k.frame_id;
@@ -1456,6 +1532,7 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
                     << "start is kept";
     start_check_.reset();
   }
+  impl_->ApplyPendingAdjustment();
   if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
     impl_->current_depth->Regularise();
     impl_->FinishCurrent();
@@ -1468,6 +1545,7 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
 }
 
 void SlamSystem::AdjustAllKeyframes() {
+  impl_->ApplyPendingAdjustment();
   Impl& m = *impl_;
   if (m.final_adjustment_done || !m.CanAdjustAllKeyframes()) return;
   m.final_adjustment_done = true;
@@ -1475,6 +1553,7 @@ void SlamSystem::AdjustAllKeyframes() {
 }
 
 StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
+  impl_->ApplyPendingAdjustment();
   Impl& m = *impl_;
   const int n = static_cast<int>(m.keyframes.size());
   if (n < 3 || !m.current_depth || !m.keyframes.back().finished)
@@ -1523,6 +1602,7 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
 }
 
 StatusOr<ScaleDriftCorrection> SlamSystem::CorrectScaleDrift() {
+  impl_->ApplyPendingAdjustment();
   Impl& m = *impl_;
   const int n = static_cast<int>(m.keyframes.size());
   if (n < 3 || !m.keyframes.back().finished)
@@ -1635,6 +1715,7 @@ SlamTimings SlamSystem::timings() const { return impl_->timings; }
 
 void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int rounds,
                                       std::vector<SlamKeyframe>* keyframes) {
+  impl_->ApplyPendingAdjustment();
   Impl& m = *impl_;
   const int span = neighbours;
   if (span <= 0 || !(relative_sigma > 0) || keyframes == nullptr) return;

@@ -255,6 +255,22 @@ struct SlamOptions {
   // standard runs (9 presets x 3 seeds): median depth error 5.4 -> 4.3%, runs within 1% ATE 19 -> 20,
   // +1 ms per frame.
   bool repropagate_after_adjustment = true;
+  // The window adjustment on a thread of its own (the second core) instead of inside ProcessFrame: it is
+  // started on the frame that makes a keyframe and its result is applied when the next keyframe is made
+  // (ProcessFrame waits for it there if it has not finished), before Finish, the start check and a
+  // relocalisation, so the result does not depend on the timing. The newest keyframe is then not
+  // re-propagated (repropagate_after_adjustment is ignored: its depth has taken further stereo updates by
+  // the time the result arrives), and a newly finished keyframe is handed out (TakeFinishedKeyframes)
+  // once the adjustment that includes it has been applied. Trajectory() and KeyframePoses() show the
+  // adjustments applied so far. SlamTimings::keyframe_adjustment_thread has its time.
+  // Measured (forty-eighth round): the 54 standard runs give exactly the inline adjustment's results
+  // without the re-propagation (trajectories and keyframes byte-identical): 53 within 1% ATE (53 inline
+  // with it), geometric mean 0.153% (0.139%), 46 within 3% depth (48), median 1.16% (1.11%). In
+  // exchange the mapping core drops the adjustment: 14.9-23.9 ms per frame against 21.8-34.9 ms on the 9
+  // presets (slam_benchmark, SlamSequence/async_ against preset_), so tracking and mapping together fit
+  // in 33.3 ms on one core, with the adjustment's 4.6-11.1 ms per frame on the other; the slowest frame
+  // in 20 (the keyframes') 27-42 ms against 86-124 ms. Off gives the most accurate offline result.
+  bool keyframe_adjustment_async = true;
   // The oldest keyframe of an adjustment keeps its pose (it fixes the gauge), but its points' inverse
   // depths are adjusted like the others'. With this its depth unit is re-fitted to them as well (median
   // ratio) and the frames tracked on it follow; without it the first keyframe keeps the initialisation's
@@ -527,7 +543,13 @@ struct SlamTimings {
   double tracking = 0;
   double depth_update = 0;
   double keyframes = 0;
-  double keyframe_adjustment = 0;     // part of `keyframes`: the window adjustment and re-propagation
+  // Part of `keyframes`: the window adjustment and re-propagation (with
+  // SlamOptions::keyframe_adjustment_async: setting each adjustment up).
+  double keyframe_adjustment = 0;
+  // SlamOptions::keyframe_adjustment_async: the adjustments' wall time on their own thread (not part of
+  // `keyframes`), and the time ProcessFrame waited for one to finish (part of `keyframes`).
+  double keyframe_adjustment_thread = 0;
+  double keyframe_adjustment_wait = 0;
   double loop_search = 0;             // part of `keyframes` (or `relocalisation`): loop-closure alignments
   double relocalisation = 0;          // lost frames' searches among the keyframes
   int tracked_frames = 0;             // frames that reached the tracker

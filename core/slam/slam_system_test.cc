@@ -782,6 +782,104 @@ TEST(SlamSystem, AdjustsTheWindowAfterEveryNthKeyframe) {
   EXPECT_FALSE(SlamSystem::Create(r.setup.rig, options).ok());
 }
 
+// SlamOptions::keyframe_adjustment_async: the window adjustment on its own thread, applied when the next
+// keyframe is made, gives exactly what the inline adjustment gives without the re-propagation (the one
+// thing it leaves out): every frame's pose, every keyframe handed out (poses and depths) and the final
+// keyframe poses, to the bit, whatever the thread's timing. Each keyframe is handed out at most one
+// keyframe later than inline.
+TEST(SlamSystem, AsyncWindowAdjustmentEqualsTheInlineOneWithoutRepropagation) {
+  Rendered r;
+  std::string why;
+  constexpr int kFrames = 60;
+  if (!Render("bunny-multicolor-forward", kFrames, /*supersampling=*/1, &r, &why))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  struct Run {
+    std::vector<SlamFrameResult> live;        // as ProcessFrame returned them
+    std::vector<SlamKeyframe> keyframes;      // as handed out
+    std::vector<int64_t> handed_out_at;       // the frame after which each was handed out
+    std::vector<SlamFrameResult> trajectory;  // after Finish
+    std::vector<Sim3d> keyframe_poses;
+    SlamTimings timings;
+    int adjustments = 0;
+  };
+  Run runs[2];
+  for (const bool async : {false, true}) {
+    SlamOptions options;
+    options.keyframe_adjustment_async = async;
+    options.repropagate_after_adjustment = false;
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
+    ASSERT_TRUE(slam.ok()) << slam.status();
+    Run& run = runs[async];
+    for (int i = 0; i < kFrames; ++i) {
+      StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
+      ASSERT_TRUE(f.ok()) << f.status();
+      run.live.push_back(*f);
+      for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) {
+        run.keyframes.push_back(std::move(k));
+        run.handed_out_at.push_back(i);
+      }
+    }
+    for (SlamKeyframe& k : (*slam)->Finish()) {
+      run.keyframes.push_back(std::move(k));
+      run.handed_out_at.push_back(kFrames);
+    }
+    run.trajectory = (*slam)->Trajectory();
+    run.keyframe_poses = (*slam)->KeyframePoses();
+    run.timings = (*slam)->timings();
+    run.adjustments = (*slam)->num_keyframe_adjustments();
+  }
+  const Run& inline_run = runs[0];
+  const Run& async_run = runs[1];
+  std::printf(
+      "%zu keyframes, %d window adjustments; adjustment %.1f ms inline, %.1f ms on its thread (%.2f ms "
+      "waited for)\n",
+      async_run.keyframe_poses.size(), async_run.adjustments, 1000 * inline_run.timings.keyframe_adjustment,
+      1000 * async_run.timings.keyframe_adjustment_thread, 1000 * async_run.timings.keyframe_adjustment_wait);
+  ASSERT_GE(inline_run.adjustments, 3);
+  EXPECT_EQ(async_run.adjustments, inline_run.adjustments);
+  EXPECT_GT(async_run.timings.keyframe_adjustment_thread, 0.0);
+  EXPECT_EQ(inline_run.timings.keyframe_adjustment_thread, 0.0);
+
+  ASSERT_EQ(async_run.live.size(), inline_run.live.size());
+  for (size_t i = 0; i < inline_run.live.size(); ++i) {
+    EXPECT_EQ(async_run.live[i].state, inline_run.live[i].state) << "frame " << i;
+    EXPECT_EQ(async_run.live[i].keyframe_id, inline_run.live[i].keyframe_id) << "frame " << i;
+    EXPECT_EQ(async_run.live[i].new_keyframe, inline_run.live[i].new_keyframe) << "frame " << i;
+  }
+  const auto same_pose = [](const Rigid3d& a, const Rigid3d& b) {
+    return a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation;
+  };
+  const auto same_sim3 = [](const Sim3d& a, const Sim3d& b) {
+    return a.scale == b.scale && a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation;
+  };
+  ASSERT_EQ(async_run.trajectory.size(), inline_run.trajectory.size());
+  for (size_t i = 0; i < inline_run.trajectory.size(); ++i)
+    EXPECT_TRUE(same_pose(async_run.trajectory[i].world_from_camera, inline_run.trajectory[i].world_from_camera))
+        << "frame " << i;
+  ASSERT_EQ(async_run.keyframe_poses.size(), inline_run.keyframe_poses.size());
+  for (size_t k = 0; k < inline_run.keyframe_poses.size(); ++k)
+    EXPECT_TRUE(same_sim3(async_run.keyframe_poses[k], inline_run.keyframe_poses[k])) << "keyframe " << k;
+
+  ASSERT_EQ(async_run.keyframes.size(), inline_run.keyframes.size());
+  int handed_out_before_finish = 0;
+  for (size_t k = 0; k < inline_run.keyframes.size(); ++k) {
+    const SlamKeyframe& a = async_run.keyframes[k];
+    const SlamKeyframe& b = inline_run.keyframes[k];
+    EXPECT_EQ(a.id, b.id);
+    EXPECT_TRUE(same_sim3(a.world_from_keyframe, b.world_from_keyframe)) << "keyframe " << b.id;
+    EXPECT_EQ(cv::norm(a.depth.inverse_depth, b.depth.inverse_depth, cv::NORM_INF), 0.0) << "keyframe " << b.id;
+    EXPECT_GE(async_run.handed_out_at[k], inline_run.handed_out_at[k]);
+    handed_out_before_finish += async_run.handed_out_at[k] < kFrames;
+    // Held at most until the frame that makes the keyframe after the next one (or as long as inline: the
+    // start check holds the first ones).
+    if (k + 2 < inline_run.keyframes.size()) {
+      const int64_t later = std::max(inline_run.keyframes[k + 2].frame_id, inline_run.handed_out_at[k]);
+      EXPECT_LE(async_run.handed_out_at[k], later) << "keyframe " << b.id;
+    }
+  }
+  EXPECT_GE(handed_out_before_finish, 2);
+}
+
 // The first keyframe's depth against the truth: the tilt c of log(estimated / true inverse depth) =
 // a + b x + c y over the image (normalised coordinates, pixels within 20%), least squares.
 double FirstDepthTilt(const SlamKeyframe& k, const cv::Mat& true_depth, const PinholeCamera& camera) {
