@@ -354,6 +354,11 @@ struct SlamSystem::Impl {
   void ApplyPendingAdjustment();
   // The pose of the most recent tracked frame (identity before any).
   Rigid3d LastGoodWorldFromCamera() const;
+  // Set while the start check runs (SlamSystem::start_check_): the window adjustment then stays inline,
+  // with the re-propagation (see SlamOptions::keyframe_adjustment_async).
+  bool start_check_running = false;
+  // Whether the next window adjustment runs on its own thread.
+  bool AdjustAsync() const { return options.keyframe_adjustment_async && !start_check_running; }
   // The adjustment running on its own thread (keyframe_adjustment_async). Last member: destroyed first,
   // its future waits for the thread.
   std::unique_ptr<PendingAdjustment> pending_adjustment;
@@ -431,6 +436,7 @@ StatusOr<SlamFrameResult> SlamSystem::ProcessFrame(double timestamp, const cv::M
     return InvalidArgumentError(m.str());
   }
   impl_->skip_depth_update = skip_depth_update;
+  impl_->start_check_running = start_check_ != nullptr;
   StatusOr<SlamFrameResult> r = impl_->Process(timestamp, rgb);
   impl_->skip_depth_update = false;
   if (start_check_) StepStartCheck(timestamp, rgb, &r);
@@ -499,6 +505,7 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
       return;
     }
     c.retry = std::move(*retry);
+    c.retry->start_check_running = true;
     start_check_report_.retried = true;
     for (size_t i = 0; i + 1 < c.frames.size(); ++i) {
       StatusOr<SlamFrameResult> r = c.retry->Process(c.frames[i].timestamp, c.frames[i].rgb);
@@ -1029,8 +1036,8 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
     keyframes[static_cast<size_t>(reference_kf)].next = keyframes.back().id;
   previous_depth.reset();
   previous_depth_kf = -1;
-  if (options.keyframe_adjustment && options.repropagate_after_adjustment && !options.keyframe_adjustment_async &&
-      current_depth && &source == current_depth.get()) {
+  if (options.keyframe_adjustment && options.repropagate_after_adjustment && !AdjustAsync() && current_depth &&
+      &source == current_depth.get()) {
     previous_depth = std::move(current_depth);
     previous_depth_kf = reference_kf;
   }
@@ -1324,7 +1331,7 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   const DirectBaOptions used_options = relit && !mixed ? options.final_adjustment_relit_ba : ba_options;
   job->initial_inverse_depth.reserve(problem.points.size());
   for (const DirectBaPoint& p : problem.points) job->initial_inverse_depth.push_back(p.inverse_depth);
-  if (options.keyframe_adjustment_async && !at_finish) {
+  if (AdjustAsync() && !at_finish) {
     // The problem holds its own copies (the images are shared, read-only): the thread touches nothing
     // else. One thread, no pool: the result is the same to the bit as with the pool (keyframe_ba.h).
     PendingAdjustment* p = job.get();
@@ -1400,8 +1407,7 @@ void SlamSystem::Impl::ApplyAdjustment(PendingAdjustment* job) {
     e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
                      keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
   }
-  if (options.repropagate_after_adjustment && !options.keyframe_adjustment_async && !at_finish)
-    RepropagateNewestKeyframe();
+  if (options.repropagate_after_adjustment && !at_finish) RepropagateNewestKeyframe();
   // The frames of the oldest keyframe move too when its next keyframe moved (distribute_keyframe_corrections).
   const int first_moved = options.distribute_keyframe_corrections ? first : first_refitted;
   for (FrameRecord& f : frames)

@@ -807,6 +807,7 @@ TEST(SlamSystem, AsyncWindowAdjustmentEqualsTheInlineOneWithoutRepropagation) {
     SlamOptions options;
     options.keyframe_adjustment_async = async;
     options.repropagate_after_adjustment = false;
+    options.start_check_keyframes = 0;  // async from the first adjustment (inline while a check runs)
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
     ASSERT_TRUE(slam.ok()) << slam.status();
     Run& run = runs[async];
