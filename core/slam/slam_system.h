@@ -259,21 +259,22 @@ struct SlamOptions {
   // started on the frame that makes a keyframe and its result is applied when the next keyframe is made
   // (ProcessFrame waits for it there if it has not finished), before Finish, the start check and a
   // relocalisation, so the result does not depend on the timing. The newest keyframe is then not
-  // re-propagated (repropagate_after_adjustment is ignored: its depth has taken further stereo updates by
-  // the time the result arrives), and a newly finished keyframe is handed out (TakeFinishedKeyframes)
+  // re-propagated (repropagate_after_adjustment applies only during the start check, below: its depth has
+  // taken further stereo updates by the time the result arrives), and a newly finished keyframe is handed out (TakeFinishedKeyframes)
   // once the adjustment that includes it has been applied. Trajectory() and KeyframePoses() show the
   // adjustments applied so far. SlamTimings::keyframe_adjustment_thread has its time.
   // While the start check runs (its first start_check_keyframes keyframes) the adjustment stays inline,
-  // with the re-propagation: without it the torus's distorted start (seed 6) spread by 0.156 instead of
-  // 0.167 and passed the check's 0.16 (depth error 4.24% instead of 1.40%).
-  // Measured (forty-eighth round), async throughout: the 54 standard runs give exactly the inline
-  // adjustment's results without the re-propagation (trajectories and keyframes byte-identical): 53
-  // within 1% ATE (53 inline with it), geometric mean 0.153% (0.139%), 46 within 3% depth (48), median
-  // 1.16% (1.11%). In
-  // exchange the mapping core drops the adjustment: 14.9-23.9 ms per frame against 21.8-34.9 ms on the 9
-  // presets (slam_benchmark, SlamSequence/async_ against preset_), so tracking and mapping together fit
-  // in 33.3 ms on one core, with the adjustment's 4.6-11.1 ms per frame on the other; the slowest frame
-  // in 20 (the keyframes') 27-42 ms against 86-124 ms. Off gives the most accurate offline result.
+  // with the re-propagation: async from the start, the torus's distorted start (seed 6) spread by 0.156
+  // instead of 0.167 and passed the check's 0.16 (depth error 4.24% instead of 1.40%).
+  // Measured (forty-eighth round), the 54 standard runs: 50 within 1% ATE (53 inline; the uniform
+  // sphere's seeds 3, 5, 6 at 1.00-1.13%), geometric mean 0.153% (0.139%), 48 within 3% depth (48), median
+  // 1.17% (1.11%); held-out seeds 7-9 26 of 27 within 1% (26), 25 within 3% depth (25). Async from the
+  // start the 54 runs were exactly the inline adjustment's without the re-propagation (byte-identical
+  // trajectories and keyframes). In exchange the mapping core drops the adjustment after the check:
+  // 14.9-23.9 ms per frame against 21.8-34.9 ms on the 9 presets (slam_benchmark, async from the start),
+  // so tracking and mapping together fit in 33.3 ms on one core, with the adjustment's 4.6-11.1 ms per
+  // frame on the other; the 95th-percentile frame 27-42 ms against 86-124 ms. Off gives the most accurate
+  // offline result.
   bool keyframe_adjustment_async = true;
   // The oldest keyframe of an adjustment keeps its pose (it fixes the gauge), but its points' inverse
   // depths are adjusted like the others'. With this its depth unit is re-fitted to them as well (median
