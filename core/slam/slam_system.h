@@ -260,14 +260,13 @@ struct SlamOptions {
   // (ProcessFrame waits for it there if it has not finished), before Finish, the start check and a
   // relocalisation, so the result does not depend on the timing. The newest keyframe is then not
   // re-propagated (repropagate_after_adjustment applies only during the start check, below: its depth has
-  // taken further stereo updates by the time the result arrives), and a newly finished keyframe is handed out (TakeFinishedKeyframes)
-  // once the adjustment that includes it has been applied. Trajectory() and KeyframePoses() show the
-  // adjustments applied so far. SlamTimings::keyframe_adjustment_thread has its time.
-  // While the start check runs (its first start_check_keyframes keyframes) the adjustment stays inline,
-  // with the re-propagation: async from the start, the torus's distorted start (seed 6) spread by 0.156
-  // instead of 0.167 and passed the check's 0.16 (depth error 4.24% instead of 1.40%).
-  // Measured (forty-eighth round), the 54 standard runs: 50 within 1% ATE (53 inline; the uniform
-  // sphere's seeds 3, 5, 6 at 1.00-1.13%), geometric mean 0.153% (0.139%), 48 within 3% depth (48), median
+  // taken further stereo updates by the time the result arrives), and a newly finished keyframe is handed out
+  // (TakeFinishedKeyframes) once the adjustment that includes it has been applied. Trajectory() and KeyframePoses()
+  // show the adjustments applied so far. SlamTimings::keyframe_adjustment_thread has its time. While the start check
+  // runs (its first start_check_keyframes keyframes) the adjustment stays inline, with the re-propagation: async from
+  // the start, the torus's distorted start (seed 6) spread by 0.156 instead of 0.167 and passed the check's 0.16 (depth
+  // error 4.24% instead of 1.40%). Measured (forty-eighth round), the 54 standard runs: 50 within 1% ATE (53 inline;
+  // the uniform sphere's seeds 3, 5, 6 at 1.00-1.13%), geometric mean 0.153% (0.139%), 48 within 3% depth (48), median
   // 1.17% (1.11%); held-out seeds 7-9 26 of 27 within 1% (26), 25 within 3% depth (25). Async from the
   // start the 54 runs were exactly the inline adjustment's without the re-propagation (byte-identical
   // trajectories and keyframes). In exchange the mapping core drops the adjustment after the check:
