@@ -1715,7 +1715,10 @@ int SlamSystem::num_keyframes() const { return static_cast<int>(impl_->keyframes
 
 int SlamSystem::num_loop_closures() const { return impl_->loop_closures; }
 
-int SlamSystem::num_keyframe_adjustments() const { return impl_->keyframe_adjustments; }
+int SlamSystem::num_keyframe_adjustments() const {
+  // The one running on its own thread counts (it is applied before anything reads its result).
+  return impl_->keyframe_adjustments + (impl_->pending_adjustment ? 1 : 0);
+}
 
 SlamTimings SlamSystem::timings() const { return impl_->timings; }
 

@@ -650,7 +650,8 @@ class SlamSystem {
   std::vector<Sim3d> KeyframePoses() const;
   // Loop-closure edges added to the pose graph so far.
   int num_loop_closures() const;
-  // Keyframe-window adjustments applied so far (SlamOptions::keyframe_adjustment).
+  // Keyframe-window adjustments applied so far (SlamOptions::keyframe_adjustment), with the one running on
+  // its own thread (keyframe_adjustment_async).
   int num_keyframe_adjustments() const;
   // Where ProcessFrame's time went so far.
   SlamTimings timings() const;
