@@ -161,6 +161,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"start_check_max_pair_spread", &o.start_check_max_pair_spread});
   f.push_back({"start_check_retry_parallax_fraction", &o.start_check_retry_parallax_fraction});
   f.push_back({"start_check_max_frames", &o.start_check_max_frames});
+  f.push_back({"start_check_window_cell_px", &o.start_check_window_cell_px});
   AddDirectBa("final_adjustment_relit_ba.", o.final_adjustment_relit_ba, &f);
   return f;
 }

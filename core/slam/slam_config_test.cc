@@ -110,6 +110,7 @@ TEST(SlamConfigTest, BadInputIsRefusedWithItsLineAndLeavesTheOptionsUnchanged) {
       {"final_refinement_rounds = 11\n", "final_refinement_rounds must be in [1, 10]"},
       {"start_check_keyframes = 3\n", "start_check_keyframes must be 0 (off) or >= 4"},
       {"start_check_max_frames = 0\n", "start_check_max_frames must be >= 1"},
+      {"start_check_window_cell_px = 3\n", "start_check_window_cell_px must be >= 4"},
   };
   for (const Case& c : cases) {
     SlamOptions o;

@@ -175,6 +175,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError(
         "SlamOptions: start_check_max_pair_spread and start_check_retry_parallax_fraction must be > 0");
   if (start_check_max_frames < 1) return InvalidArgumentError("SlamOptions: start_check_max_frames must be >= 1");
+  if (start_check_window_cell_px < 4)
+    return InvalidArgumentError("SlamOptions: start_check_window_cell_px must be >= 4");
   if (!(metric_scale_min_band_fraction >= 0 && metric_scale_min_band_fraction < 1))
     return InvalidArgumentError("SlamOptions: metric_scale_min_band_fraction must be in [0, 1)");
   if (!(final_adjustment_mixed_relit_scale > 0))
@@ -241,6 +243,7 @@ struct SlamSystem::Impl {
     // final_depth, so they are selected once; cleared when final_depth is replaced.
     std::vector<DirectBaPoint> window_points;
     bool has_window_points = false;
+    int window_points_cell_px = 0;  // the cell size they were selected with
     void DropWindowPoints() {
       std::vector<DirectBaPoint>().swap(window_points);
       has_window_points = false;
@@ -359,6 +362,10 @@ struct SlamSystem::Impl {
   bool start_check_running = false;
   // Whether the next window adjustment runs on its own thread.
   bool AdjustAsync() const { return options.keyframe_adjustment_async && !start_check_running; }
+  // The window adjustment's cell size now (SlamOptions::start_check_window_cell_px while the check runs).
+  int WindowCellPx() const {
+    return start_check_running ? options.start_check_window_cell_px : options.keyframe_window_cell_px;
+  }
   // The adjustment running on its own thread (keyframe_adjustment_async). Last member: destroyed first,
   // its future waits for the thread.
   std::unique_ptr<PendingAdjustment> pending_adjustment;
@@ -1255,7 +1262,8 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, bool mixed,
     const cv::Mat& var = maps[static_cast<size_t>(k)].variance;
     if (d.empty()) continue;
     Keyframe& kf = keyframes[static_cast<size_t>(first + k)];
-    if (kf.finished && kf.has_window_points) {
+    const int cell_px = WindowCellPx();
+    if (kf.finished && kf.has_window_points && kf.window_points_cell_px == cell_px) {
       for (DirectBaPoint p : kf.window_points) {
         p.host = k;
         problem->points.push_back(p);
@@ -1265,13 +1273,14 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, bool mixed,
     const size_t begin = problem->points.size();
     const double max_sigma = options.tracking_max_relative_sigma;
     SelectCellPoints(
-        problem->grey_j[static_cast<size_t>(k)], d, k, options.keyframe_window_cell_px, 0.0f,
+        problem->grey_j[static_cast<size_t>(k)], d, k, cell_px, 0.0f,
         [&](int x, int y) { return var.empty() || std::sqrt(var.at<float>(y, x)) <= max_sigma * d.at<float>(y, x); },
         &problem->points);
     if (kf.finished) {
       kf.window_points.assign(problem->points.begin() + static_cast<std::ptrdiff_t>(begin), problem->points.end());
       for (DirectBaPoint& p : kf.window_points) p.host = 0;
       kf.has_window_points = true;
+      kf.window_points_cell_px = cell_px;
     }
   }
   if (static_cast<int>(problem->points.size()) < options.keyframe_window_min_points) return false;
