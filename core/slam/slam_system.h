@@ -228,10 +228,11 @@ struct SlamOptions {
   //
   // Cell size (fiftieth round): 12 px cells against 16 take about 1.8 times the points and 1.6-2.0 times
   // the adjustment's time, which the async adjustment's core has room for (see keyframe_adjustment_async).
-  // On the 54 standard runs, with the async adjustment: 53 within 1% ATE against 50 (geometric mean 0.140%
-  // against 0.153%; the uniform sphere's seeds 3, 5, 6 pass), 50 within 3% depth against 48 (median 1.11%
-  // against 1.17%); held-out seeds 7-9 27 of 27 within 1% (26), 26 within 3% depth (25). 20 px cells lost
-  // accuracy (forty-second round: 52 within 1% ATE, 45 within 3% depth, inline).
+  // On the 54 standard runs, with the async adjustment and 16 px cells while the start check runs
+  // (start_check_window_cell_px): 52 within 1% ATE against 50 (geometric mean 0.143% against 0.153%; the
+  // uniform sphere's seeds 3 and 5 pass), 48 within 3% depth (48; median 1.12% against 1.17%). 12 px in the
+  // check too: 53 / 0.140% / 50 / 1.11%, but the check then misses a distorted start (see there). 20 px
+  // cells lost accuracy (forty-second round: 52 within 1% ATE, 45 within 3% depth, inline).
   //
   // Window length (eighteenth round, 54 standard runs, the adjustment's cost cut by a quarter first):
   // 8 keyframes against 6 gave a better depth on 36 of 54 runs (median error 2.49 -> 2.29%, 30 -> 36
