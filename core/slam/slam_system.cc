@@ -242,11 +242,10 @@ struct SlamSystem::Impl {
     // The keyframe adjustment's points of a finished keyframe (host 0): they depend only on grey_j and
     // final_depth, so they are selected once; cleared when final_depth is replaced.
     std::vector<DirectBaPoint> window_points;
-    bool has_window_points = false;
-    int window_points_cell_px = 0;  // the cell size they were selected with
+    int window_points_cell_px = 0;  // the cell size they were selected with; 0: none selected
     void DropWindowPoints() {
       std::vector<DirectBaPoint>().swap(window_points);
-      has_window_points = false;
+      window_points_cell_px = 0;
     }
     bool finished = false;
     bool handed_out = false;
@@ -1257,13 +1256,13 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, bool mixed,
     maps.push_back(kf.finished ? kf.final_depth : current_depth->ToInverseDepthMap());
   }
   // Points: per cell, the strongest gradient with a converged inverse depth.
+  const int cell_px = WindowCellPx();
   for (int k = 0; k < n - first; ++k) {
     const cv::Mat& d = maps[static_cast<size_t>(k)].inverse_depth;
     const cv::Mat& var = maps[static_cast<size_t>(k)].variance;
     if (d.empty()) continue;
     Keyframe& kf = keyframes[static_cast<size_t>(first + k)];
-    const int cell_px = WindowCellPx();
-    if (kf.finished && kf.has_window_points && kf.window_points_cell_px == cell_px) {
+    if (kf.finished && kf.window_points_cell_px == cell_px) {
       for (DirectBaPoint p : kf.window_points) {
         p.host = k;
         problem->points.push_back(p);
@@ -1279,7 +1278,6 @@ bool SlamSystem::Impl::BuildAdjustmentProblem(int first, bool relit, bool mixed,
     if (kf.finished) {
       kf.window_points.assign(problem->points.begin() + static_cast<std::ptrdiff_t>(begin), problem->points.end());
       for (DirectBaPoint& p : kf.window_points) p.host = 0;
-      kf.has_window_points = true;
       kf.window_points_cell_px = cell_px;
     }
   }
