@@ -1544,6 +1544,7 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
     PRISM_LOG(INFO) << "slam: start check not done at Finish; the " << (start_check_->retry ? "first " : "")
                     << "start is kept";
     start_check_.reset();
+    impl_->start_check_running = false;  // the last keyframe's adjustments as after the check
   }
   impl_->ApplyPendingAdjustment();
   if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
