@@ -481,15 +481,18 @@ TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBou
 
 // The soak: rounds of kSessions concurrent prism-clients against one server, each client streaming the
 // sequence once, a new round as soon as the last one's sessions have ended, for kSoakS seconds. The
-// server's RSS is sampled every second, and once between rounds, after every session of the round has
-// ended. Every round goes through the same phases (its sessions start together and grow their maps
-// together), so a round's peak and the RSS it leaves behind are comparable from round to round, where
-// medians over fixed time windows are not: with sessions of about a minute each, a window catches them
-// at different phases and its median swung by 200-400 MiB (fiftieth round). A leak, or memory the
-// allocator keeps, raises both. "Flat within 10%": from the second round (the first warms the
-// allocator, caches and thread pools) to the last, the peak changes by less than 10% of the second
-// round's peak, and so does the RSS left between rounds. Every client must exit 0 with no frame errors
-// and no session may fail.
+// server's RSS is sampled every second, and between rounds, once every session of the round has ended
+// (the lowest of 10 samples over 5 s). Every round goes through the same phases (its sessions start
+// together and grow their maps together), so a round's peak and the RSS it leaves behind are comparable
+// from round to round, where medians over fixed time windows are not: with sessions of about a minute
+// each, a window catches them at different phases and its median swung by 200-400 MiB (fiftieth round).
+// A leak, or memory the allocator keeps, raises both. "Flat within 10%": from the first round to the
+// last, the peak changes by less than 10% of the first round's peak, and so does the RSS left between
+// rounds. (The first round is the baseline although it also warms the allocator, caches and thread
+// pools: its peak was 1-5% under the last round's on this machine and the RSS it left within the
+// rounds' spread; with the second round as the baseline a probe keeping 20 MiB per ended session, 160
+// MiB a round, passed one run of two.) Every client must exit 0 with no frame errors and no session may
+// fail.
 TEST_F(FaultTest, EightConcurrentSessionsForThreeMinutesKeepServerMemoryFlat) {
   constexpr int kSessions = 8;
   constexpr int kSoakS = 210, kMinRounds = 3;
@@ -541,8 +544,13 @@ TEST_F(FaultTest, EightConcurrentSessionsForThreeMinutesKeepServerMemoryFlat) {
       failures.push_back("round " + std::to_string(r + 1) + ": sessions still active 60 s after its clients ended");
       break;
     }
-    std::this_thread::sleep_for(std::chrono::seconds(1));
-    const long after_kib = server->RssKib();
+    // The lowest of 10 samples over 5 s: the ended sessions' threads and buffers go back over a few
+    // seconds, and a single sample moved by +-5% of the peak from round to round.
+    long after_kib = server->RssKib();
+    for (int i = 0; i < 10; ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(500));
+      after_kib = std::min(after_kib, server->RssKib());
+    }
     std::lock_guard<std::mutex> lock(mu);
     rounds.push_back({elapsed_s() - round_start, std::max(round_peak_kib, after_kib), after_kib});
     round_peak_kib = after_kib;
@@ -559,11 +567,11 @@ TEST_F(FaultTest, EightConcurrentSessionsForThreeMinutesKeepServerMemoryFlat) {
               << " MiB, after " << rounds[r].after_kib / 1024 << " MiB";
   for (const std::string& f : failures) ADD_FAILURE() << f;
   ASSERT_GE(rounds.size(), static_cast<size_t>(kMinRounds));
-  const Round& second = rounds[1];
+  const Round& first = rounds.front();
   const Round& last = rounds.back();
-  const double peak_change = static_cast<double>(last.peak_kib - second.peak_kib) / second.peak_kib;
-  const double after_change = static_cast<double>(last.after_kib - second.after_kib) / second.peak_kib;
-  std::cout << "; last round against the second, in % of the second's peak: peak " << 100.0 * peak_change << "%, after "
+  const double peak_change = static_cast<double>(last.peak_kib - first.peak_kib) / first.peak_kib;
+  const double after_change = static_cast<double>(last.after_kib - first.after_kib) / first.peak_kib;
+  std::cout << "; last round against the first, in % of the first's peak: peak " << 100.0 * peak_change << "%, after "
             << 100.0 * after_change << "%\n";
   if (kRssIsMeaningful) {
     EXPECT_LT(std::abs(peak_change), kMaxChangeOfPeak);
