@@ -584,8 +584,13 @@ struct Server::Impl {
     if (open.input_policy() == v1::INPUT_POLICY_LIVE) po.input_policy = OverflowPolicy::kDropOldest;
     if (open.input_policy() == v1::INPUT_POLICY_UPLOAD) po.input_policy = OverflowPolicy::kReject;
     // A live camera's SLAM behind its input skips depth updates (ServerOptions::skip_depth_update_backlog_live).
-    if (po.input_policy == OverflowPolicy::kDropOldest)
+    // Nor does its new keyframe wait for the SLAM's window adjustment
+    // (ServerOptions::slam_adjustment_max_wait_ms_live).
+    if (po.input_policy == OverflowPolicy::kDropOldest) {
       po.skip_depth_update_backlog = options.skip_depth_update_backlog_live;
+      if (options.slam_adjustment_max_wait_ms_live >= 0)
+        po.slam.keyframe_adjustment_max_wait_ms = options.slam_adjustment_max_wait_ms_live;
+    }
     // The keyframe clouds kept for the map's rebuild at the end take at most a quarter of the session's
     // memory limit (kKeptBytesPerPoint each); none without remap-at-end.
     po.dense.remap_max_points = po.remap_at_end

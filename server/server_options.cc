@@ -1,5 +1,6 @@
 #include "server/server_options.h"
 
+#include <cmath>
 #include <cstdlib>
 #include <fstream>
 #include <sstream>
@@ -47,6 +48,9 @@ const char* ServerOptionsHelp() {
   skip-depth-update-backlog N  when N frames wait for an upload session's SLAM, the next frame is
                           tracked without its stereo depth update (behind: poses first; default 0 = never)
   skip-depth-update-backlog-live N  the same for live sessions (default 2; 0 = never)
+  slam-adjustment-max-wait-live MS  a live session's new keyframe waits at most MS for the SLAM's window
+                          adjustment still running (default 0; negative: as the SLAM options say, by
+                          default as long as it takes)
   voxel-m M               map voxel edge, metres (default 0.002)
   remap-at-end true|false at a session's end, rebuild the map at the final keyframe poses and send it as
                           one chunk that replaces the map (default true; the keyframe clouds it needs
@@ -93,6 +97,8 @@ Status ServerOptions::Check() const {
   if (shutdown_deadline_ms < 0) return bad("shutdown_deadline_ms", std::to_string(shutdown_deadline_ms), ">= 0");
   if (skip_depth_update_backlog_live < 0 || skip_depth_update_backlog_live > 1024)
     return bad("skip_depth_update_backlog_live", std::to_string(skip_depth_update_backlog_live), "in [0, 1024]");
+  if (!std::isfinite(slam_adjustment_max_wait_ms_live))
+    return bad("slam_adjustment_max_wait_ms_live", std::to_string(slam_adjustment_max_wait_ms_live), "finite");
   if (!curve_keys.empty() && allowed_clients.empty())
     return bad("allowed_clients", "''", "a file of client public keys when curve_keys is set");
   if (curve_keys.empty() && !allowed_clients.empty())
@@ -162,6 +168,9 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   } else if (key == "skip-depth-update-backlog-live") {
     if (!is_int) return bad();
     o->skip_depth_update_backlog_live = static_cast<int>(i);
+  } else if (key == "slam-adjustment-max-wait-live") {
+    if (!is_double) return bad();
+    o->slam_adjustment_max_wait_ms_live = d;
   } else if (key == "keyframe-queue") {
     if (!is_int) return bad();
     o->pipeline.keyframe_queue_capacity = static_cast<int>(i);

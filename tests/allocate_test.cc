@@ -101,5 +101,15 @@ TEST(ServerOptionsTest, TheLiveBacklogMustBeInRange) {
   }
 }
 
+// The live sessions' wait for the SLAM's adjustment (slam-adjustment-max-wait-live) must be a finite
+// number of milliseconds.
+TEST(ServerOptionsTest, TheLiveAdjustmentWaitMustBeANumber) {
+  for (const char* bad : {"soon", "inf", "nan"}) {
+    const ProcessResult r = Execute(Bin("prism-server") + " --data-dir /tmp --slam-adjustment-max-wait-live " + bad);
+    EXPECT_EQ(r.exit_code, 2) << bad << ": " << r.out;
+    EXPECT_NE(r.out.find("adjustment"), std::string::npos) << bad << ": " << r.out;
+  }
+}
+
 }  // namespace
 }  // namespace prism

@@ -468,6 +468,8 @@ int main(int argc, char** argv) {
        << ",\n  \"tracking_ms_per_tracked_frame\": " << 1000.0 * timings.tracking / std::max(1, timings.tracked_frames)
        << ",\n  \"depth_updates\": " << timings.depth_updates
        << ",\n  \"depth_updates_over_budget\": " << timings.depth_updates_over_budget
+       << ",\n  \"keyframes_made_before_adjustment\": " << timings.keyframes_made_before_adjustment
+       << ",\n  \"adjustments_started_late\": " << timings.adjustments_started_late
        << ",\n  \"depth_pixels_searched\": " << timings.depth_pixels_searched
        << ",\n  \"depth_pixels_skipped\": " << timings.depth_pixels_skipped
        << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds

@@ -223,14 +223,15 @@ BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo
     ->ReportAggregatesOnly(true);
 
 void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment,
-                     double mapping_budget_ms = 0, bool async_adjustment = false, bool paced = false) {
+                     double mapping_budget_ms = 0, bool async_adjustment = false, bool paced = false,
+                     double max_wait_ms = -1) {
   const Frames* f = GetFrames(preset);
   if (!f) {
     state.SkipWithError("preset unavailable");
     return;
   }
   ThreadPool pool(static_cast<int>(state.range(0)));
-  int lost = 0, keyframes = 0;
+  int lost = 0, keyframes = 0, adjustments = 0;
   std::vector<double> frame_ms;  // of the last iteration
   SlamTimings timings;           // of the last iteration
   for (auto _ : state) {
@@ -239,6 +240,7 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
     options.keyframe_adjustment = keyframe_adjustment;
     options.mapping_budget_ms = mapping_budget_ms;
     options.keyframe_adjustment_async = async_adjustment;
+    options.keyframe_adjustment_max_wait_ms = max_wait_ms;
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(f->setup.rig, options, &pool);
     if (!slam.ok()) {
       state.SkipWithError(slam.status().ToString().c_str());
@@ -259,6 +261,7 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
       benchmark::DoNotOptimize((*slam)->TakeFinishedKeyframes());
     }
     keyframes = (*slam)->num_keyframes();
+    adjustments = (*slam)->num_keyframe_adjustments();
     timings = (*slam)->timings();
   }
   state.counters["ms_per_frame"] =
@@ -282,6 +285,8 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
     state.counters["adjustment_thread_ms"] = 1000.0 * timings.keyframe_adjustment_thread / tracked;
     state.counters["adjustment_wait_ms"] = 1000.0 * timings.keyframe_adjustment_wait / tracked;
     state.counters["tracking_core_ms"] = 1000.0 * (timings.tracking + timings.keyframe_adjustment_thread) / tracked;
+    state.counters["keyframes_before_adjustment"] = timings.keyframes_made_before_adjustment;
+    state.counters["window_adjustments"] = adjustments;
   }
   // Stereo updates made, per tracked frame (below 1 under a mapping budget; the first keyframe's frame
   // and those tracked during the initialisation have none).
@@ -327,6 +332,12 @@ BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sidewa
 // the frames handed in at 30 frames/s as a camera would (the others hand each frame in as soon as the
 // last one is done, which leaves the adjustment less time between keyframes than it has live): its
 // adjustment_wait_ms is the live one. Its time (real_time) is the sequence's length at 30 frames/s.
+// async_* and paced_* wait for the adjustment at the next keyframe
+// (SlamOptions::keyframe_adjustment_max_wait_ms = -1, the default).
+// bounded_*: paced_*, with keyframe_adjustment_max_wait_ms = 0, as prism-server's live sessions (a new keyframe goes on
+// without the adjustment still running; keyframes_before_adjustment counts those keyframes, and
+// window_adjustments the adjustments run): the tail of the frame times (p95_frame_ms, max_frame_ms)
+// without the waits.
 // One thread, one pass per repetition, medians of 3.
 void WholeSequenceSettings(benchmark::internal::Benchmark* b) {
   b->Arg(1)->Unit(benchmark::kMillisecond)->Iterations(1)->UseRealTime()->Repetitions(3)->ReportAggregatesOnly(true);
@@ -337,6 +348,8 @@ void WholeSequenceSettings(benchmark::internal::Benchmark* b) {
   BENCHMARK_CAPTURE(BM_SlamSequence, async_##NAME, std::string(PRESET), true, 0.0, true)                            \
       ->Apply(WholeSequenceSettings);                                                                               \
   BENCHMARK_CAPTURE(BM_SlamSequence, paced_##NAME, std::string(PRESET), true, 0.0, true, true)                      \
+      ->Apply(WholeSequenceSettings);                                                                               \
+  BENCHMARK_CAPTURE(BM_SlamSequence, bounded_##NAME, std::string(PRESET), true, 0.0, true, true, 0.0)               \
       ->Apply(WholeSequenceSettings)
 PRISM_SLAM_PRESET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
 PRISM_SLAM_PRESET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");

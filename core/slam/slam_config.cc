@@ -137,6 +137,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"keyframe_window_min_overlap", &o.keyframe_window_min_overlap});
   f.push_back({"repropagate_after_adjustment", &o.repropagate_after_adjustment});
   f.push_back({"keyframe_adjustment_async", &o.keyframe_adjustment_async});
+  f.push_back({"keyframe_adjustment_max_wait_ms", &o.keyframe_adjustment_max_wait_ms});
   f.push_back({"refit_oldest_keyframe_scale", &o.refit_oldest_keyframe_scale});
   f.push_back({"distribute_keyframe_corrections", &o.distribute_keyframe_corrections});
   f.push_back({"final_adjustment", &o.final_adjustment});

@@ -352,8 +352,20 @@ struct SlamSystem::Impl {
   };
   // The adjustment's result in the keyframes, edges and frames (and the re-propagation).
   void ApplyAdjustment(PendingAdjustment* job);
-  // Waits for the adjustment running on its own thread, if any, and applies it.
-  void ApplyPendingAdjustment();
+  // Waits for the adjustment running on its own thread, if any, and applies it. With `max_wait_ms` >= 0
+  // it waits at most that long: false when the adjustment is still running then (it stays pending).
+  bool ApplyPendingAdjustment(double max_wait_ms = -1);
+  // Every frame: applies the adjustment running on its thread if it has finished, and starts the window
+  // adjustment owed since a keyframe was made while it ran (SlamOptions::keyframe_adjustment_max_wait_ms).
+  void PollPendingAdjustment();
+  // The window adjustment over the newest keyframes (SlamOptions::keyframe_window).
+  void AdjustWindow() {
+    AdjustKeyframes(WindowStart(std::max(0, static_cast<int>(keyframes.size()) - options.keyframe_window)),
+                    options.keyframe_window_ba, /*at_finish=*/false);
+  }
+  // A keyframe was made while an adjustment ran on its thread: the window adjustment it would have
+  // started is owed (PollPendingAdjustment starts it once that one has been applied).
+  bool adjustment_owed = false;
   // The pose of the most recent tracked frame (identity before any).
   Rigid3d LastGoodWorldFromCamera() const;
   // Set while the start check runs (SlamSystem::start_check_): the window adjustment then stays inline,
@@ -990,15 +1002,20 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
 
   // New keyframe?
   const ScopedSeconds keyframe_timer(&timings.keyframes);
+  PollPendingAdjustment();
   if (needs_keyframe(current_depth->MeanInverseDepth())) {
     current_depth->Regularise();
     const Status made = MakeKeyframe(frame_id, timestamp, rgb, kf_index, tr.frame_from_keyframe, *current_depth);
     if (made.ok()) {
       frames.back().result.new_keyframe = true;
       const ScopedSeconds adjustment_timer(&timings.keyframe_adjustment);
-      if (options.keyframe_adjustment && (keyframes.size() - 1) % options.keyframe_adjustment_interval == 0)
-        AdjustKeyframes(WindowStart(std::max(0, static_cast<int>(keyframes.size()) - options.keyframe_window)),
-                        options.keyframe_window_ba, /*at_finish=*/false);
+      if (options.keyframe_adjustment && (keyframes.size() - 1) % options.keyframe_adjustment_interval == 0) {
+        if (pending_adjustment) {
+          adjustment_owed = true;  // MakeKeyframe went on without the running one
+        } else {
+          AdjustWindow();
+        }
+      }
     } else {
       // Keep tracking against the current keyframe; restore the tracker's copy.
       frames.back().result.message = "no new keyframe: " + std::string(made.message());
@@ -1013,8 +1030,10 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
 
 Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
                                       const Rigid3d& frame_from_reference, const KeyframeDepth& source) {
-  // The adjustment started at the previous keyframe moves the reference keyframe: first apply it.
-  ApplyPendingAdjustment();
+  // The adjustment started at the previous keyframe moves the reference keyframe: first apply it (or,
+  // with keyframe_adjustment_max_wait_ms, go on without it when it takes longer: ApplyAdjustment moves
+  // this keyframe with the reference keyframe then).
+  const bool adjusted = ApplyPendingAdjustment(options.keyframe_adjustment_max_wait_ms);
   // The tracker must accept it before it becomes the keyframe.
   PRISM_ASSIGN_OR_RETURN(KeyframeDepth kd, PropagateForTracking(rgb, source, frame_from_reference));
   // The last frame-to-frame motion (newest from previous tracked frame), for the next frame's guess.
@@ -1049,6 +1068,7 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   }
   current_depth = std::make_unique<KeyframeDepth>(std::move(kd));
   frames_since_keyframe = 0;
+  if (!adjusted) ++timings.keyframes_made_before_adjustment;
   if (options.loop_closure && keyframes.size() >= 2) {
     const ScopedSeconds loop_timer(&timings.loop_search);
     CloseLoops(static_cast<int>(keyframes.size()) - 2);
@@ -1145,6 +1165,9 @@ void SlamSystem::Impl::CloseLoops(int index) {
   }
   std::sort(candidates.begin(), candidates.end());
   if (static_cast<int>(candidates.size()) > options.loop_max_candidates) candidates.resize(options.loop_max_candidates);
+  // A candidate waits for the adjustment still running (keyframe_adjustment_max_wait_ms): the alignment
+  // and the pose graph start from the adjusted poses.
+  if (!candidates.empty()) ApplyPendingAdjustment();
   bool added = false;
   for (const auto& [score, j] : candidates) {
     Sim3d j_from_k;
@@ -1354,8 +1377,13 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
   ApplyAdjustment(job.get());
 }
 
-void SlamSystem::Impl::ApplyPendingAdjustment() {
-  if (!pending_adjustment) return;
+bool SlamSystem::Impl::ApplyPendingAdjustment(double max_wait_ms) {
+  if (!pending_adjustment) return true;
+  if (max_wait_ms >= 0) {
+    const ScopedSeconds wait(&timings.keyframe_adjustment_wait);
+    const auto bound = std::chrono::duration<double, std::milli>(max_wait_ms);
+    if (pending_adjustment->done.wait_for(bound) != std::future_status::ready) return false;
+  }
   std::unique_ptr<PendingAdjustment> job = std::move(pending_adjustment);
   {
     const ScopedSeconds wait(&timings.keyframe_adjustment_wait);
@@ -1363,6 +1391,18 @@ void SlamSystem::Impl::ApplyPendingAdjustment() {
   }
   timings.keyframe_adjustment_thread += job->seconds;
   ApplyAdjustment(job.get());
+  return true;
+}
+
+void SlamSystem::Impl::PollPendingAdjustment() {
+  if (pending_adjustment && pending_adjustment->done.wait_for(std::chrono::seconds(0)) == std::future_status::ready)
+    ApplyPendingAdjustment();
+  if (adjustment_owed && !pending_adjustment) {
+    adjustment_owed = false;
+    ++timings.adjustments_started_late;
+    const ScopedSeconds adjustment_timer(&timings.keyframe_adjustment);
+    AdjustWindow();
+  }
 }
 
 void SlamSystem::Impl::ApplyAdjustment(PendingAdjustment* job) {
@@ -1371,12 +1411,13 @@ void SlamSystem::Impl::ApplyAdjustment(PendingAdjustment* job) {
   const bool at_finish = job->at_finish, relit = job->relit, mixed = job->mixed;
   const DirectBaProblem& problem = job->problem;
   const std::vector<float>& initial_inverse_depth = job->initial_inverse_depth;
-  // No keyframe is made while an adjustment is pending (MakeKeyframe applies it first).
-  if (static_cast<int>(keyframes.size()) != n) {
+  // Keyframes made while the adjustment ran (keyframe_adjustment_max_wait_ms) follow its newest keyframe.
+  if (static_cast<int>(keyframes.size()) < n) {
     PRISM_LOG(WARNING) << "slam: keyframe adjustment over " << n << " keyframes dropped: there are now "
                        << keyframes.size();
     return;
   }
+  const Sim3d newest_before = keyframes[static_cast<size_t>(n - 1)].world_from_keyframe;
   if (at_finish)
     for (Keyframe& kf : keyframes) kf.grey_j.release();
   const StatusOr<DirectBaSummary>& summary = job->summary;
@@ -1408,6 +1449,10 @@ void SlamSystem::Impl::ApplyAdjustment(PendingAdjustment* job) {
     }
     keyframes[static_cast<size_t>(k)].world_from_keyframe = pose;
   }
+  // Made at the newest one's pose before the adjustment: moved as it moved.
+  const Sim3d newest_move = keyframes[static_cast<size_t>(n - 1)].world_from_keyframe * newest_before.Inverse();
+  for (size_t k = static_cast<size_t>(n); k < keyframes.size(); ++k)
+    keyframes[k].world_from_keyframe = newest_move * keyframes[k].world_from_keyframe;
   // The odometry edges follow (a later loop closure starts from the adjusted chain), as do the frames.
   for (PoseGraphEdge& e : graph_edges) {
     if (e.to - e.from != 1 || e.to < first_refitted) continue;
@@ -1547,6 +1592,12 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
     impl_->start_check_running = false;  // the last keyframe's adjustments as after the check
   }
   impl_->ApplyPendingAdjustment();
+  if (impl_->adjustment_owed) {  // keyframe_adjustment_max_wait_ms: the newest keyframe's window adjustment
+    impl_->adjustment_owed = false;
+    ++impl_->timings.adjustments_started_late;
+    impl_->AdjustWindow();
+    impl_->ApplyPendingAdjustment();
+  }
   if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
     impl_->current_depth->Regularise();
     impl_->FinishCurrent();
@@ -1725,7 +1776,7 @@ int SlamSystem::num_loop_closures() const { return impl_->loop_closures; }
 
 int SlamSystem::num_keyframe_adjustments() const {
   // The one running on its own thread counts (it is applied before anything reads its result).
-  return impl_->keyframe_adjustments + (impl_->pending_adjustment ? 1 : 0);
+  return impl_->keyframe_adjustments + (impl_->pending_adjustment ? 1 : 0) + (impl_->adjustment_owed ? 1 : 0);
 }
 
 SlamTimings SlamSystem::timings() const { return impl_->timings; }

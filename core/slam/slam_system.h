@@ -281,6 +281,23 @@ struct SlamOptions {
   // frame on the other; the 95th-percentile frame 27-42 ms against 86-124 ms. Off gives the most accurate
   // offline result.
   bool keyframe_adjustment_async = true;
+  // With keyframe_adjustment_async: how long a new keyframe waits for the adjustment still running on its
+  // thread before it goes on without it (negative: as long as it takes). Going on, the new keyframe is made
+  // at its reference keyframe's pose before the adjustment; when the adjustment finishes (looked at every
+  // frame) it is applied and every keyframe made since moves with the adjustment's newest keyframe, so
+  // their poses are those the wait would have given; the window adjustment the new keyframes would have
+  // started runs then, over the keyframes of that moment (once, however many were made meanwhile). A loop
+  // candidate or a relocalisation still waits, as does Finish. A frame then waits at most this long for the
+  // adjustment, where it waited up to its whole time, but the results depend on the thread's timing. With
+  // the default (-1) they do not: runs repeat to the bit (see keyframe_adjustment_async). prism-server's
+  // live sessions use 0 (ServerOptions::slam_adjustment_max_wait_ms_live). Measured (fifty-second round;
+  // README, "No wait for the adjustment"): 0 against -1, frames at 30 frames/s (slam_benchmark
+  // SlamSequence/bounded_ against paced_), the 95th-percentile frame 31-51 ms against 32-139 ms on the 9
+  // presets and the mapping 17-25 ms per frame against 17-35 ms; on the 54 standard runs (prism-slam,
+  // frames as fast as they come, 2 runs at once: 316 keyframes made while an adjustment ran, 0-16 per
+  // run) the same figures as -1 to the digits given: 52 within 1% ATE, geometric mean 0.143%, 48 within 3%
+  // depth, median 1.12%; each run's ATE within 0.05 points of the path of -1's.
+  double keyframe_adjustment_max_wait_ms = -1;
   // The oldest keyframe of an adjustment keeps its pose (it fixes the gauge), but its points' inverse
   // depths are adjusted like the others'. With this its depth unit is re-fitted to them as well (median
   // ratio) and the frames tracked on it follow; without it the first keyframe keeps the initialisation's
@@ -566,6 +583,10 @@ struct SlamTimings {
   // `keyframes`), and the time ProcessFrame waited for one to finish (part of `keyframes`).
   double keyframe_adjustment_thread = 0;
   double keyframe_adjustment_wait = 0;
+  // SlamOptions::keyframe_adjustment_max_wait_ms: keyframes made while an adjustment still ran (it was
+  // applied later), and window adjustments started between keyframes (after such a late one).
+  int keyframes_made_before_adjustment = 0;
+  int adjustments_started_late = 0;
   double loop_search = 0;             // part of `keyframes` (or `relocalisation`): loop-closure alignments
   double relocalisation = 0;          // lost frames' searches among the keyframes
   int tracked_frames = 0;             // frames that reached the tracker
@@ -663,7 +684,7 @@ class SlamSystem {
   // Loop-closure edges added to the pose graph so far.
   int num_loop_closures() const;
   // Keyframe-window adjustments applied so far (SlamOptions::keyframe_adjustment), with the one running on
-  // its own thread (keyframe_adjustment_async).
+  // its own thread (keyframe_adjustment_async) and the one owed (keyframe_adjustment_max_wait_ms).
   int num_keyframe_adjustments() const;
   // Where ProcessFrame's time went so far.
   SlamTimings timings() const;

@@ -818,6 +818,7 @@ TEST(SlamSystem, AsyncWindowAdjustmentEqualsTheInlineOneWithoutRepropagation) {
   for (const bool async : {false, true}) {
     SlamOptions options;
     options.keyframe_adjustment_async = async;
+    options.keyframe_adjustment_max_wait_ms = -1;  // applied at the next keyframe, whatever the timing
     options.repropagate_after_adjustment = false;
     options.start_check_keyframes = 0;  // async from the first adjustment (inline while a check runs)
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
@@ -902,6 +903,63 @@ TEST(SlamSystem, AsyncWindowAdjustmentEqualsTheInlineOneWithoutRepropagation) {
     }
   }
   EXPECT_GE(handed_out_before_finish, 2);
+}
+
+// SlamOptions::keyframe_adjustment_max_wait_ms = 0: a new keyframe never waits for the adjustment on its
+// thread. With 8 px cells the adjustment takes several keyframes' time here, so keyframes are made while
+// one runs, it is applied between keyframes and the owed one starts then. Every keyframe is still handed
+// out once, in order, every frame tracked, and the trajectory within the bar and close to the one that
+// waits (the same cells): keyframes made meanwhile move with the adjusted one.
+constexpr double kNoWaitMaxAtePercent = 1.0;
+constexpr double kNoWaitAteSlackPercent = 0.15;  // against waiting, as kRoundsAteSlackPercent
+TEST(SlamSystem, KeyframesMadeWhileTheAdjustmentRunsFollowItWhenItIsApplied) {
+  Rendered r;
+  std::string why;
+  constexpr int kFrames = 60;
+  if (!Render("bunny-multicolor-forward", kFrames, /*supersampling=*/1, &r, &why))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  double ate_percent[2] = {0, 0};
+  for (const double max_wait_ms : {-1.0, 0.0}) {
+    SlamOptions options;
+    options.keyframe_window_cell_px = 8;
+    options.start_check_keyframes = 0;  // async from the first adjustment
+    options.keyframe_adjustment_max_wait_ms = max_wait_ms;
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
+    ASSERT_TRUE(slam.ok()) << slam.status();
+    std::vector<int> handed_out;
+    for (int i = 0; i < kFrames; ++i) {
+      StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
+      ASSERT_TRUE(f.ok()) << f.status();
+      EXPECT_NE(f->state, SlamState::kLost) << "frame " << i << ": " << f->message;
+      for (const SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) handed_out.push_back(k.id);
+    }
+    for (const SlamKeyframe& k : (*slam)->Finish()) handed_out.push_back(k.id);
+    const SlamTimings t = (*slam)->timings();
+    const int keyframes = (*slam)->num_keyframes();
+    StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
+    ASSERT_TRUE(ate.ok()) << ate.status();
+    const bool waits = max_wait_ms < 0;
+    ate_percent[waits ? 0 : 1] = PercentOfPath(*ate);
+    std::printf(
+        "max wait %.0f ms: %d keyframes, %d window adjustments, %d keyframes made while one ran, %d started "
+        "late; waited %.1f ms in all; ATE %.3f%% of the path\n",
+        max_wait_ms, keyframes, (*slam)->num_keyframe_adjustments(), t.keyframes_made_before_adjustment,
+        t.adjustments_started_late, 1000 * t.keyframe_adjustment_wait, PercentOfPath(*ate));
+    ASSERT_GE(keyframes, 5);
+    ASSERT_EQ(static_cast<int>(handed_out.size()), keyframes);
+    for (int k = 0; k < keyframes; ++k) EXPECT_EQ(handed_out[static_cast<size_t>(k)], k);
+    EXPECT_GE((*slam)->num_keyframe_adjustments(), 2);
+    if (waits) {
+      EXPECT_EQ(t.keyframes_made_before_adjustment, 0);
+      EXPECT_EQ(t.adjustments_started_late, 0);
+    } else {
+      EXPECT_GE(t.keyframes_made_before_adjustment, 1) << "no keyframe was made while an adjustment ran";
+      EXPECT_GE(t.adjustments_started_late, 1);
+      EXPECT_LT((*slam)->num_keyframe_adjustments(), keyframes - 1);
+    }
+  }
+  EXPECT_LE(ate_percent[1], kNoWaitMaxAtePercent);
+  EXPECT_LE(ate_percent[1], ate_percent[0] + kNoWaitAteSlackPercent);
 }
 
 // The first keyframe's depth against the truth: the tilt c of log(estimated / true inverse depth) =
