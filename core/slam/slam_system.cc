@@ -366,6 +366,12 @@ struct SlamSystem::Impl {
   // A keyframe was made while an adjustment ran on its thread: the window adjustment it would have
   // started is owed (PollPendingAdjustment starts it once that one has been applied).
   bool adjustment_owed = false;
+  // Starts the owed window adjustment.
+  void StartOwedAdjustment() {
+    adjustment_owed = false;
+    ++timings.adjustments_started_late;
+    AdjustWindow();
+  }
   // The pose of the most recent tracked frame (identity before any).
   Rigid3d LastGoodWorldFromCamera() const;
   // Set while the start check runs (SlamSystem::start_check_): the window adjustment then stays inline,
@@ -1398,10 +1404,8 @@ void SlamSystem::Impl::PollPendingAdjustment() {
   if (pending_adjustment && pending_adjustment->done.wait_for(std::chrono::seconds(0)) == std::future_status::ready)
     ApplyPendingAdjustment();
   if (adjustment_owed && !pending_adjustment) {
-    adjustment_owed = false;
-    ++timings.adjustments_started_late;
     const ScopedSeconds adjustment_timer(&timings.keyframe_adjustment);
-    AdjustWindow();
+    StartOwedAdjustment();
   }
 }
 
@@ -1593,9 +1597,7 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
   }
   impl_->ApplyPendingAdjustment();
   if (impl_->adjustment_owed) {  // keyframe_adjustment_max_wait_ms: the newest keyframe's window adjustment
-    impl_->adjustment_owed = false;
-    ++impl_->timings.adjustments_started_late;
-    impl_->AdjustWindow();
+    impl_->StartOwedAdjustment();
     impl_->ApplyPendingAdjustment();
   }
   if (impl_->current_depth && !impl_->keyframes.empty() && !impl_->keyframes.back().finished) {
