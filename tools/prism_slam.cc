@@ -115,7 +115,7 @@ std::string StartCheckJson(const StartCheckReport& r) {
     << ", \"passed\": " << (r.passed ? "true" : "false") << ", \"retried\": " << (r.retried ? "true" : "false")
     << ", \"second_checked\": " << (r.second_checked ? "true" : "false")
     << ", \"second_spread\": " << number(r.second_spread) << ", \"second_kept\": " << (r.second_kept ? "true" : "false")
-    << ", \"ms\": " << 1000 * r.seconds << "}";
+    << ", \"ms\": " << 1000 * r.seconds << ", \"thread_ms\": " << 1000 * r.thread_seconds << "}";
   return j.str();
 }
 

@@ -224,7 +224,7 @@ BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo
 
 void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment,
                      double mapping_budget_ms = 0, bool async_adjustment = false, bool paced = false,
-                     double max_wait_ms = -1) {
+                     double max_wait_ms = -1, bool start_check_async = true) {
   const Frames* f = GetFrames(preset);
   if (!f) {
     state.SkipWithError("preset unavailable");
@@ -234,6 +234,7 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
   int lost = 0, keyframes = 0, adjustments = 0;
   std::vector<double> frame_ms;  // of the last iteration
   SlamTimings timings;           // of the last iteration
+  StartCheckReport check;        // of the last iteration
   for (auto _ : state) {
     frame_ms.clear();
     SlamOptions options;
@@ -241,6 +242,7 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
     options.mapping_budget_ms = mapping_budget_ms;
     options.keyframe_adjustment_async = async_adjustment;
     options.keyframe_adjustment_max_wait_ms = max_wait_ms;
+    options.start_check_async = start_check_async;
     StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(f->setup.rig, options, &pool);
     if (!slam.ok()) {
       state.SkipWithError(slam.status().ToString().c_str());
@@ -263,11 +265,15 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
     keyframes = (*slam)->num_keyframes();
     adjustments = (*slam)->num_keyframe_adjustments();
     timings = (*slam)->timings();
+    check = (*slam)->start_check();
   }
   state.counters["ms_per_frame"] =
       benchmark::Counter(static_cast<double>(f->frames.size()) * state.iterations(),
                          benchmark::Counter::kIsRate | benchmark::Counter::kInvert, benchmark::Counter::kIs1000);
   // The spread over the frames: keyframes (propagation, adjustment) are the slow ones.
+  if (!frame_ms.empty())
+    state.counters["max_frame_at"] =
+        static_cast<double>(std::max_element(frame_ms.begin(), frame_ms.end()) - frame_ms.begin());
   std::sort(frame_ms.begin(), frame_ms.end());
   if (!frame_ms.empty()) {
     state.counters["p50_frame_ms"] = frame_ms[frame_ms.size() / 2];
@@ -291,6 +297,9 @@ void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool ke
   // Stereo updates made, per tracked frame (below 1 under a mapping budget; the first keyframe's frame
   // and those tracked during the initialisation have none).
   state.counters["updates_per_frame"] = timings.depth_updates / tracked;
+  // The start check's time inside the frames (StartCheckReport::seconds) and on its own thread.
+  state.counters["start_check_frame_ms"] = 1000.0 * check.seconds;
+  state.counters["start_check_thread_ms"] = 1000.0 * check.thread_seconds;
   state.counters["lost_frames"] = lost;
   state.counters["keyframes"] = keyframes;
 }
@@ -337,7 +346,9 @@ BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sidewa
 // bounded_*: paced_*, with keyframe_adjustment_max_wait_ms = 0, as prism-server's live sessions (a new keyframe goes on
 // without the adjustment still running; keyframes_before_adjustment counts those keyframes, and
 // window_adjustments the adjustments run): the tail of the frame times (p95_frame_ms, max_frame_ms)
-// without the waits.
+// without the waits. These run the start check's pair scales on their own thread (SlamOptions::start_check_async,
+// the default; the other cases too); bounded_inline_check_*: bounded_* with them inside the frame that brings the
+// sixth keyframe, as before the fifty-third round (start_check_frame_ms is then the pause).
 // One thread, one pass per repetition, medians of 3.
 void WholeSequenceSettings(benchmark::internal::Benchmark* b) {
   b->Arg(1)->Unit(benchmark::kMillisecond)->Iterations(1)->UseRealTime()->Repetitions(3)->ReportAggregatesOnly(true);
@@ -350,6 +361,9 @@ void WholeSequenceSettings(benchmark::internal::Benchmark* b) {
   BENCHMARK_CAPTURE(BM_SlamSequence, paced_##NAME, std::string(PRESET), true, 0.0, true, true)                      \
       ->Apply(WholeSequenceSettings);                                                                               \
   BENCHMARK_CAPTURE(BM_SlamSequence, bounded_##NAME, std::string(PRESET), true, 0.0, true, true, 0.0)               \
+      ->Apply(WholeSequenceSettings);                                                                               \
+  BENCHMARK_CAPTURE(BM_SlamSequence, bounded_inline_check_##NAME, std::string(PRESET), true, 0.0, true, true, 0.0,  \
+                    false)                                                                                          \
       ->Apply(WholeSequenceSettings)
 PRISM_SLAM_PRESET_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
 PRISM_SLAM_PRESET_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");

@@ -163,6 +163,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"start_check_retry_parallax_fraction", &o.start_check_retry_parallax_fraction});
   f.push_back({"start_check_max_frames", &o.start_check_max_frames});
   f.push_back({"start_check_window_cell_px", &o.start_check_window_cell_px});
+  f.push_back({"start_check_async", &o.start_check_async});
   AddDirectBa("final_adjustment_relit_ba.", o.final_adjustment_relit_ba, &f);
   return f;
 }

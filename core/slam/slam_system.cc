@@ -108,6 +108,28 @@ double PairSpread(std::vector<double> estimates) {
   return (estimates[std::min((3 * n) / 4, n - 1)] - estimates[n / 4]) / median;
 }
 
+// What one keyframe pair's shading scale reads: the older keyframe's image, inverse depth and pose, the
+// newer one's image and pose.
+struct ShadingPair {
+  int older = 0;
+  cv::Mat older_rgb, older_inverse_depth, newer_rgb;
+  Sim3d world_from_older, world_from_newer;
+};
+
+// Each pair's shading scale (metres per world unit) with its older keyframe's index.
+std::vector<std::pair<int, double>> PairScales(const RigCalibration& rig, const std::vector<ShadingPair>& pairs) {
+  std::vector<std::pair<int, double>> estimates;
+  const ShadingScaleOptions so;
+  for (const ShadingPair& p : pairs) {
+    const std::vector<ShadingScaleFrame> frames = {
+        {p.newer_rgb, BFromAInUnitsOfA(p.world_from_older, p.world_from_newer)}};
+    StatusOr<ShadingScaleResult> r = EstimateShadingScale(rig, p.older_rgb, p.older_inverse_depth, frames, so);
+    if (!r.ok()) continue;
+    estimates.emplace_back(p.older, r->metres_per_unit / p.world_from_older.scale);
+  }
+  return estimates;
+}
+
 }  // namespace
 
 Status SlamOptions::Check() const {
@@ -225,6 +247,26 @@ struct SlamSystem::Impl {
   std::vector<double> PairShadingScales(size_t num_keyframes) const;
   // The same with each pair's older keyframe index.
   std::vector<std::pair<int, double>> IndexedPairShadingScales(size_t num_keyframes) const;
+  // The consecutive finished pairs among the first num_keyframes. With `own_depth` the inverse depths
+  // are copies (the images are shared: a keyframe's image is never written after it is made).
+  std::vector<ShadingPair> ShadingPairs(size_t num_keyframes, bool own_depth) const;
+  // The start check's pair shading scales on their own thread (SlamOptions::start_check_async): started
+  // by SlamSystem::StepStartCheck on a copy of the pairs, taken by it once done. The next keyframe waits
+  // for them (MakeKeyframe): whether the check closes decides how its window adjustment runs.
+  struct PendingStartCheck {
+    std::vector<double> scales;
+    double thread_seconds = 0;  // on its thread
+    double wait_seconds = 0;    // the keyframe's wait for it
+    std::future<void> done;
+  };
+  std::unique_ptr<PendingStartCheck> pending_start_check;
+  // Starts pending_start_check over the first num_keyframes.
+  void StartPairShadingScales(size_t num_keyframes);
+  // Waits for pending_start_check (it stays pending, for StepStartCheck to take).
+  void WaitForStartCheck();
+  // Whether the start check closes with these pair scales (it passes, gives too few pairs, or a second
+  // start would have the same baseline), as StepStartCheck decides.
+  bool StartCheckCloses(const std::vector<double>& scales) const;
   // SlamSystem::ProcessFrame on this state.
   StatusOr<SlamFrameResult> Process(double timestamp, const cv::Mat& rgb);
   SlamTimings timings;
@@ -432,6 +474,7 @@ struct SlamSystem::StartCheck {
     cv::Mat rgb;
   };
   std::vector<Frame> frames;    // every frame so far
+  size_t check_frame = 0;       // the index of the frame the first start was checked at
   std::unique_ptr<Impl> retry;  // the second start, once the first failed the check
 };
 
@@ -492,8 +535,28 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
       return;
     }
     const auto check_start = std::chrono::steady_clock::now();
-    impl_->ApplyPendingAdjustment();
-    const std::vector<double> first = impl_->PairShadingScales(n);
+    std::vector<double> first;
+    if (o.start_check_async) {
+      // The pair scales run on their own thread from this frame on; taken at the first frame after they
+      // are done (the next keyframe waits for them).
+      Impl::PendingStartCheck* pending = impl_->pending_start_check.get();
+      if (pending == nullptr) {
+        impl_->ApplyPendingAdjustment();
+        impl_->StartPairShadingScales(n);
+        c.check_frame = c.frames.size() - 1;
+        return;
+      }
+      if (pending->done.wait_for(std::chrono::seconds(0)) != std::future_status::ready) return;
+      pending->done.get();
+      first = std::move(pending->scales);
+      start_check_report_.thread_seconds = pending->thread_seconds;
+      start_check_report_.seconds += pending->wait_seconds;
+      impl_->pending_start_check.reset();
+    } else {
+      impl_->ApplyPendingAdjustment();
+      first = impl_->PairShadingScales(n);
+      c.check_frame = c.frames.size() - 1;
+    }
     if (first.size() < 3) {
       PRISM_LOG(INFO) << "slam: start check: " << first.size() << " keyframe pairs gave a shading scale; not checked";
       start_check_.reset();
@@ -531,38 +594,64 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
     c.retry = std::move(*retry);
     c.retry->start_check_running = true;
     start_check_report_.retried = true;
-    for (size_t i = 0; i + 1 < c.frames.size(); ++i) {
+    // The second start runs over the frames up to the one the first was checked at, at once (inline that
+    // is this frame; on its thread an earlier one), then frame by frame, checked after each as if it had
+    // run alongside the first from the check's frame on.
+    for (size_t i = 0; i < c.check_frame; ++i) {
       StatusOr<SlamFrameResult> r = c.retry->Process(c.frames[i].timestamp, c.frames[i].rgb);
       if (!r.ok()) {
         PRISM_LOG(WARNING) << "slam: start check: second start: " << r.status();
       }
     }
-  }
-  StatusOr<SlamFrameResult> second = c.retry->Process(timestamp, rgb);
-  if (c.retry->keyframes.size() < n) {
-    if (static_cast<int>(c.frames.size()) >= o.start_check_max_frames) {
-      PRISM_LOG(WARNING) << "slam: start check: the second start has fewer than " << n << " keyframes after "
-                         << c.frames.size() << " frames; the first start is kept";
+    for (size_t i = c.check_frame; i < c.frames.size(); ++i) {
+      StatusOr<SlamFrameResult> second = c.retry->Process(c.frames[i].timestamp, c.frames[i].rgb);
+      if (!StepSecondStart(i, &second)) continue;
+      // Closed at frame i. Kept, the second start goes on over the frames after it (as the only start, as
+      // if it had been kept there); the caller gets this frame's result from it.
+      if (start_check_report_.second_kept) {
+        for (size_t j = i + 1; j < c.frames.size(); ++j)
+          second = impl_->Process(c.frames[j].timestamp, c.frames[j].rgb);
+        *result = std::move(second);
+      }
       start_check_.reset();
+      return;
     }
     return;
+  }
+  StatusOr<SlamFrameResult> second = c.retry->Process(timestamp, rgb);
+  if (!StepSecondStart(c.frames.size() - 1, &second)) return;
+  if (start_check_report_.second_kept) *result = std::move(second);
+  start_check_.reset();
+}
+
+bool SlamSystem::StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second) {
+  StartCheck& c = *start_check_;
+  const SlamOptions o = impl_->options;  // a copy: impl_ may be replaced below
+  const size_t n = static_cast<size_t>(o.start_check_keyframes);
+  if (c.retry->keyframes.size() < n) {
+    if (static_cast<int>(frame + 1) >= o.start_check_max_frames) {
+      PRISM_LOG(WARNING) << "slam: start check: the second start has fewer than " << n << " keyframes after "
+                         << frame + 1 << " frames; the first start is kept";
+      return true;
+    }
+    return false;
   }
   c.retry->ApplyPendingAdjustment();
   const std::vector<double> again = c.retry->PairShadingScales(n);
   const double spread = again.size() >= 3 ? PairSpread(again) : std::numeric_limits<double>::infinity();
   start_check_report_.second_checked = true;
   start_check_report_.second_spread = spread;
-  if (spread < start_check_report_.first_spread && second.ok()) {
+  if (spread < start_check_report_.first_spread && second->ok()) {
     PRISM_LOG(WARNING) << "slam: start check: the second start is kept (pair spread " << spread << " against "
                        << start_check_report_.first_spread << ")";
     impl_ = std::move(c.retry);
+    impl_->start_check_running = false;
     start_check_report_.second_kept = true;
-    *result = std::move(second);
   } else {
     PRISM_LOG(WARNING) << "slam: start check: the first start is kept (pair spread " << start_check_report_.first_spread
                        << " against " << spread << " for the second)";
   }
-  start_check_.reset();
+  return true;
 }
 
 void SlamSystem::Impl::ResetInit(int64_t frame_id, double timestamp, const cv::Mat& rgb) {
@@ -1036,6 +1125,12 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
 
 Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
                                       const Rigid3d& frame_from_reference, const KeyframeDepth& source) {
+  // The start check's pair scales, on their thread (start_check_async), decide how this keyframe's window
+  // adjustment runs (inline with 16 px cells while the check is open): as if they had been taken inline.
+  if (pending_start_check) {
+    WaitForStartCheck();
+    if (StartCheckCloses(pending_start_check->scales)) start_check_running = false;
+  }
   // The adjustment started at the previous keyframe moves the reference keyframe: first apply it (or,
   // with keyframe_adjustment_max_wait_ms, go on without it when it takes longer: ApplyAdjustment moves
   // this keyframe with the reference keyframe then).
@@ -1227,21 +1322,52 @@ int SlamSystem::Impl::WindowStart(int first) const {
   return first;
 }
 
-std::vector<std::pair<int, double>> SlamSystem::Impl::IndexedPairShadingScales(size_t num_keyframes) const {
-  std::vector<std::pair<int, double>> estimates;
-  if (!AllPointLights(rig)) return estimates;
-  ShadingScaleOptions so;
+std::vector<ShadingPair> SlamSystem::Impl::ShadingPairs(size_t num_keyframes, bool own_depth) const {
+  std::vector<ShadingPair> pairs;
   for (size_t k = 0; k + 1 < std::min(num_keyframes, keyframes.size()); ++k) {
     const Keyframe& a = keyframes[k];
     const Keyframe& b = keyframes[k + 1];
     if (!a.finished || a.final_depth.inverse_depth.empty()) continue;
-    const std::vector<ShadingScaleFrame> frames = {
-        {b.rgb, BFromAInUnitsOfA(a.world_from_keyframe, b.world_from_keyframe)}};
-    StatusOr<ShadingScaleResult> r = EstimateShadingScale(rig, a.rgb, a.final_depth.inverse_depth, frames, so);
-    if (!r.ok()) continue;
-    estimates.emplace_back(static_cast<int>(k), r->metres_per_unit / a.world_from_keyframe.scale);
+    ShadingPair p;
+    p.older = static_cast<int>(k);
+    p.older_rgb = a.rgb;
+    p.older_inverse_depth = own_depth ? a.final_depth.inverse_depth.clone() : a.final_depth.inverse_depth;
+    p.newer_rgb = b.rgb;
+    p.world_from_older = a.world_from_keyframe;
+    p.world_from_newer = b.world_from_keyframe;
+    pairs.push_back(std::move(p));
   }
-  return estimates;
+  return pairs;
+}
+
+std::vector<std::pair<int, double>> SlamSystem::Impl::IndexedPairShadingScales(size_t num_keyframes) const {
+  if (!AllPointLights(rig)) return {};
+  return PairScales(rig, ShadingPairs(num_keyframes, /*own_depth=*/false));
+}
+
+void SlamSystem::Impl::StartPairShadingScales(size_t num_keyframes) {
+  auto job = std::make_unique<PendingStartCheck>();
+  PendingStartCheck* p = job.get();
+  // The thread reads its own copies and the rig (a copy too): nothing the frames change.
+  job->done = std::async(std::launch::async, [p, rig = rig, pairs = ShadingPairs(num_keyframes, true)] {
+    const auto start = std::chrono::steady_clock::now();
+    if (AllPointLights(rig))
+      for (const auto& [k, scale] : PairScales(rig, pairs)) p->scales.push_back(scale);
+    p->thread_seconds = SecondsSince(start);
+  });
+  pending_start_check = std::move(job);
+}
+
+void SlamSystem::Impl::WaitForStartCheck() {
+  if (!pending_start_check) return;
+  const auto start = std::chrono::steady_clock::now();
+  pending_start_check->done.wait();
+  pending_start_check->wait_seconds += SecondsSince(start);
+}
+
+bool SlamSystem::Impl::StartCheckCloses(const std::vector<double>& scales) const {
+  return scales.size() < 3 || PairSpread(scales) <= options.start_check_max_pair_spread ||
+         init_parallax_px >= options.start_check_retry_parallax_fraction * rig.camera.width;
 }
 
 std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) const {
@@ -1589,6 +1715,23 @@ std::vector<SlamKeyframe> SlamSystem::TakeFinishedKeyframes() {
 }
 
 std::vector<SlamKeyframe> SlamSystem::Finish() {
+  if (start_check_ && impl_->pending_start_check) {
+    // The pair scales still on their thread (start_check_async): reported; no second start can run now.
+    const ScopedSeconds timer(&start_check_report_.seconds);
+    impl_->pending_start_check->done.get();
+    const std::vector<double> first = std::move(impl_->pending_start_check->scales);
+    start_check_report_.thread_seconds = impl_->pending_start_check->thread_seconds;
+    start_check_report_.seconds += impl_->pending_start_check->wait_seconds;
+    impl_->pending_start_check.reset();
+    if (first.size() >= 3) {
+      start_check_report_.checked = true;
+      start_check_report_.first_spread = PairSpread(first);
+      start_check_report_.passed = start_check_report_.first_spread <= impl_->options.start_check_max_pair_spread;
+    }
+    PRISM_LOG(INFO) << "slam: start check at Finish: " << first.size() << " keyframe pairs gave a shading scale"
+                    << (start_check_report_.checked ? ", spread " + std::to_string(start_check_report_.first_spread)
+                                                    : std::string());
+  }
   if (start_check_) {
     PRISM_LOG(INFO) << "slam: start check not done at Finish; the " << (start_check_->retry ? "first " : "")
                     << "start is kept";

@@ -556,6 +556,94 @@ TEST(SlamSystem, TheStartCheckReplacesADistortedStart) {
   EXPECT_LE(ate_percent, kStartCheckAtePercent);
 }
 
+// SlamOptions::start_check_async: the first start's pair shading scales on their own thread give the same
+// run to the bit as inline, on a start that passes the check and on one that fails it (the second start
+// kept; as in TheStartCheckReplacesADistortedStart). Only the frame the check closes at may move (later).
+TEST(SlamSystem, TheStartCheckOnItsThreadGivesTheSameRun) {
+  Rendered r;
+  std::string why;
+  if (!Render("bunny-uniform-sideways", 150, 1, &r, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ThreadPool pool(2);
+  for (const bool distorted : {false, true}) {
+    SCOPED_TRACE(distorted ? "a distorted start" : "a good start");
+    struct Run {
+      std::vector<SlamFrameResult> trajectory;
+      std::vector<Sim3d> keyframe_poses;
+      std::vector<SlamKeyframe> keyframes;
+      StartCheckReport check;
+      int first_handed_out = -1;
+    };
+    Run runs[2];
+    for (const bool async : {false, true}) {
+      SlamOptions options;
+      options.start_check_async = async;
+      if (distorted) {  // as in TheStartCheckReplacesADistortedStart
+        options.init_track_normalised = false;
+        options.init_min_feature_local_mean = 0;
+        options.keyframe_max_rotation_deg = 15;
+      }
+      StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
+      ASSERT_TRUE(slam.ok()) << slam.status();
+      Run& run = runs[async];
+      for (int i = 0; i < 150; ++i) {
+        StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
+        ASSERT_TRUE(f.ok()) << f.status();
+        for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) {
+          if (run.first_handed_out < 0) run.first_handed_out = i;
+          run.keyframes.push_back(std::move(k));
+        }
+      }
+      run.check = (*slam)->start_check();
+      for (SlamKeyframe& k : (*slam)->Finish()) run.keyframes.push_back(std::move(k));
+      run.trajectory = (*slam)->Trajectory();
+      run.keyframe_poses = (*slam)->KeyframePoses();
+    }
+    const Run& inline_run = runs[0];
+    const Run& async_run = runs[1];
+    std::printf(
+        "%s: first spread %.4f, second kept %d; check inline %.1f ms in the frames, on its thread %.1f ms in "
+        "the frames and %.1f ms on the thread; keyframes handed out from frame %d inline, %d on the thread\n",
+        distorted ? "distorted start" : "good start", async_run.check.first_spread, async_run.check.second_kept ? 1 : 0,
+        1000 * inline_run.check.seconds, 1000 * async_run.check.seconds, 1000 * async_run.check.thread_seconds,
+        inline_run.first_handed_out, async_run.first_handed_out);
+    ASSERT_TRUE(inline_run.check.checked);
+    EXPECT_EQ(inline_run.check.passed, !distorted);
+    EXPECT_EQ(inline_run.check.second_kept, distorted);
+    EXPECT_TRUE(async_run.check.checked);
+    EXPECT_TRUE(async_run.check.done);
+    EXPECT_EQ(async_run.check.first_spread, inline_run.check.first_spread);
+    EXPECT_EQ(async_run.check.passed, inline_run.check.passed);
+    EXPECT_EQ(async_run.check.retried, inline_run.check.retried);
+    EXPECT_EQ(async_run.check.second_spread, inline_run.check.second_spread);
+    EXPECT_EQ(async_run.check.second_kept, inline_run.check.second_kept);
+    EXPECT_EQ(inline_run.check.thread_seconds, 0.0);
+    EXPECT_GT(async_run.check.thread_seconds, 0.0);
+    EXPECT_GE(async_run.first_handed_out, inline_run.first_handed_out);
+
+    ASSERT_EQ(async_run.trajectory.size(), inline_run.trajectory.size());
+    for (size_t i = 0; i < inline_run.trajectory.size(); ++i) {
+      const Rigid3d& a = async_run.trajectory[i].world_from_camera;
+      const Rigid3d& b = inline_run.trajectory[i].world_from_camera;
+      EXPECT_TRUE(a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation) << "frame " << i;
+    }
+    ASSERT_EQ(async_run.keyframe_poses.size(), inline_run.keyframe_poses.size());
+    for (size_t k = 0; k < inline_run.keyframe_poses.size(); ++k) {
+      const Sim3d& a = async_run.keyframe_poses[k];
+      const Sim3d& b = inline_run.keyframe_poses[k];
+      EXPECT_TRUE(a.scale == b.scale && a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation)
+          << "keyframe " << k;
+    }
+    ASSERT_EQ(async_run.keyframes.size(), inline_run.keyframes.size());
+    for (size_t k = 0; k < inline_run.keyframes.size(); ++k) {
+      EXPECT_EQ(async_run.keyframes[k].id, inline_run.keyframes[k].id);
+      EXPECT_EQ(cv::norm(async_run.keyframes[k].depth.inverse_depth, inline_run.keyframes[k].depth.inverse_depth,
+                         cv::NORM_INF),
+                0.0)
+          << "keyframe " << k;
+    }
+  }
+}
+
 TEST(SlamSystem, RejectsBadInputAndReportsStates) {
   const RigCalibration rig = synth::MakeDefaultRig(128, 96);
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(rig, SlamOptions());
