@@ -488,7 +488,8 @@ struct SlamOptions {
   // the first is kept, a keyframe the first made after the frame the second was checked at but before the
   // pair scales were taken was adjusted as while the check is open. The second start's check stays inline.
   // On the benchmark's 9 presets at 30 frames/s (README, fifty-third round) the next keyframe still
-  // waits for the thread, so the pause shrinks (to 36-227 ms from 154-319 ms) rather than vanishes.
+  // waits for the thread, so the pause shrinks (to 36-227 ms from 154-319 ms; in a second benchmark
+  // invocation to 36-217 ms from 164-271 ms) rather than vanishes.
   bool start_check_async = true;
   DirectBaOptions final_adjustment_relit_ba = [] {
     DirectBaOptions b;
