@@ -547,11 +547,7 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
         return;
       }
       if (pending->done.wait_for(std::chrono::seconds(0)) != std::future_status::ready) return;
-      pending->done.get();
-      first = std::move(pending->scales);
-      start_check_report_.thread_seconds = pending->thread_seconds;
-      start_check_report_.seconds += pending->wait_seconds;
-      impl_->pending_start_check.reset();
+      first = TakeStartCheckScales();
     } else {
       impl_->ApplyPendingAdjustment();
       first = impl_->PairShadingScales(n);
@@ -622,6 +618,14 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
   if (!StepSecondStart(c.frames.size() - 1, &second)) return;
   if (start_check_report_.second_kept) *result = std::move(second);
   start_check_.reset();
+}
+
+std::vector<double> SlamSystem::TakeStartCheckScales() {
+  std::unique_ptr<Impl::PendingStartCheck> pending = std::move(impl_->pending_start_check);
+  pending->done.get();  // waits; rethrows what the thread threw
+  start_check_report_.thread_seconds = pending->thread_seconds;
+  start_check_report_.seconds += pending->wait_seconds;
+  return std::move(pending->scales);
 }
 
 bool SlamSystem::StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second) {
@@ -1718,11 +1722,7 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
   if (start_check_ && impl_->pending_start_check) {
     // The pair scales still on their thread (start_check_async): reported; no second start can run now.
     const ScopedSeconds timer(&start_check_report_.seconds);
-    impl_->pending_start_check->done.get();
-    const std::vector<double> first = std::move(impl_->pending_start_check->scales);
-    start_check_report_.thread_seconds = impl_->pending_start_check->thread_seconds;
-    start_check_report_.seconds += impl_->pending_start_check->wait_seconds;
-    impl_->pending_start_check.reset();
+    const std::vector<double> first = TakeStartCheckScales();
     if (first.size() >= 3) {
       start_check_report_.checked = true;
       start_check_report_.first_spread = PairSpread(first);

@@ -722,6 +722,9 @@ class SlamSystem {
   // The second start's check after it has processed frame `frame` (its result `second`): true when the
   // check closes there (impl_ is then the start kept).
   bool StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second);
+  // The pair scales of the start check on its thread (start_check_async; waits for them), with their times
+  // in the report.
+  std::vector<double> TakeStartCheckScales();
   std::unique_ptr<Impl> impl_;
   std::unique_ptr<StartCheck> start_check_;  // while the start check is open
   StartCheckReport start_check_report_;

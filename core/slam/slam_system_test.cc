@@ -85,6 +85,24 @@ StatusOr<AteResult> Sim3Ate(const Trajectory& truth, const Trajectory& estimate)
 }
 double PercentOfPath(const AteResult& ate) { return 100 * ate.error_m.rmse / ate.trajectory_length_m; }
 
+bool SamePose(const Rigid3d& a, const Rigid3d& b) {
+  return a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation;
+}
+bool SameSim3(const Sim3d& a, const Sim3d& b) {
+  return a.scale == b.scale && a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation;
+}
+
+// Two runs' trajectories (after Finish) and keyframe poses are the same to the bit.
+void ExpectSamePoses(const std::vector<SlamFrameResult>& a_trajectory, const std::vector<Sim3d>& a_keyframes,
+                     const std::vector<SlamFrameResult>& b_trajectory, const std::vector<Sim3d>& b_keyframes) {
+  ASSERT_EQ(a_trajectory.size(), b_trajectory.size());
+  for (size_t i = 0; i < b_trajectory.size(); ++i)
+    EXPECT_TRUE(SamePose(a_trajectory[i].world_from_camera, b_trajectory[i].world_from_camera)) << "frame " << i;
+  ASSERT_EQ(a_keyframes.size(), b_keyframes.size());
+  for (size_t k = 0; k < b_keyframes.size(); ++k)
+    EXPECT_TRUE(SameSim3(a_keyframes[k], b_keyframes[k])) << "keyframe " << k;
+}
+
 struct SlamCase {
   std::string preset;
   int frames;
@@ -620,19 +638,8 @@ TEST(SlamSystem, TheStartCheckOnItsThreadGivesTheSameRun) {
     EXPECT_GT(async_run.check.thread_seconds, 0.0);
     EXPECT_GE(async_run.first_handed_out, inline_run.first_handed_out);
 
-    ASSERT_EQ(async_run.trajectory.size(), inline_run.trajectory.size());
-    for (size_t i = 0; i < inline_run.trajectory.size(); ++i) {
-      const Rigid3d& a = async_run.trajectory[i].world_from_camera;
-      const Rigid3d& b = inline_run.trajectory[i].world_from_camera;
-      EXPECT_TRUE(a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation) << "frame " << i;
-    }
-    ASSERT_EQ(async_run.keyframe_poses.size(), inline_run.keyframe_poses.size());
-    for (size_t k = 0; k < inline_run.keyframe_poses.size(); ++k) {
-      const Sim3d& a = async_run.keyframe_poses[k];
-      const Sim3d& b = inline_run.keyframe_poses[k];
-      EXPECT_TRUE(a.scale == b.scale && a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation)
-          << "keyframe " << k;
-    }
+    ASSERT_NO_FATAL_FAILURE(ExpectSamePoses(async_run.trajectory, async_run.keyframe_poses, inline_run.trajectory,
+                                            inline_run.keyframe_poses));
     ASSERT_EQ(async_run.keyframes.size(), inline_run.keyframes.size());
     for (size_t k = 0; k < inline_run.keyframes.size(); ++k) {
       EXPECT_EQ(async_run.keyframes[k].id, inline_run.keyframes[k].id);
@@ -951,9 +958,6 @@ TEST(SlamSystem, AsyncWindowAdjustmentEqualsTheInlineOneWithoutRepropagation) {
   EXPECT_GT(async_run.timings.keyframe_adjustment_thread, 0.0);
   EXPECT_EQ(inline_run.timings.keyframe_adjustment_thread, 0.0);
 
-  const auto same_pose = [](const Rigid3d& a, const Rigid3d& b) {
-    return a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation;
-  };
   ASSERT_EQ(async_run.live.size(), inline_run.live.size());
   for (size_t i = 0; i < inline_run.live.size(); ++i) {
     EXPECT_EQ(async_run.live[i].state, inline_run.live[i].state) << "frame " << i;
@@ -962,16 +966,8 @@ TEST(SlamSystem, AsyncWindowAdjustmentEqualsTheInlineOneWithoutRepropagation) {
   }
   // The frame after the blank one is relocalised (tracked again).
   EXPECT_EQ(async_run.live[kBlankAfter + 2].state, SlamState::kTracking) << async_run.live[kBlankAfter + 2].message;
-  const auto same_sim3 = [](const Sim3d& a, const Sim3d& b) {
-    return a.scale == b.scale && a.rotation.coeffs() == b.rotation.coeffs() && a.translation == b.translation;
-  };
-  ASSERT_EQ(async_run.trajectory.size(), inline_run.trajectory.size());
-  for (size_t i = 0; i < inline_run.trajectory.size(); ++i)
-    EXPECT_TRUE(same_pose(async_run.trajectory[i].world_from_camera, inline_run.trajectory[i].world_from_camera))
-        << "frame " << i;
-  ASSERT_EQ(async_run.keyframe_poses.size(), inline_run.keyframe_poses.size());
-  for (size_t k = 0; k < inline_run.keyframe_poses.size(); ++k)
-    EXPECT_TRUE(same_sim3(async_run.keyframe_poses[k], inline_run.keyframe_poses[k])) << "keyframe " << k;
+  ASSERT_NO_FATAL_FAILURE(ExpectSamePoses(async_run.trajectory, async_run.keyframe_poses, inline_run.trajectory,
+                                          inline_run.keyframe_poses));
 
   ASSERT_EQ(async_run.keyframes.size(), inline_run.keyframes.size());
   int handed_out_before_finish = 0;
@@ -979,7 +975,7 @@ TEST(SlamSystem, AsyncWindowAdjustmentEqualsTheInlineOneWithoutRepropagation) {
     const SlamKeyframe& a = async_run.keyframes[k];
     const SlamKeyframe& b = inline_run.keyframes[k];
     EXPECT_EQ(a.id, b.id);
-    EXPECT_TRUE(same_sim3(a.world_from_keyframe, b.world_from_keyframe)) << "keyframe " << b.id;
+    EXPECT_TRUE(SameSim3(a.world_from_keyframe, b.world_from_keyframe)) << "keyframe " << b.id;
     EXPECT_EQ(cv::norm(a.depth.inverse_depth, b.depth.inverse_depth, cv::NORM_INF), 0.0) << "keyframe " << b.id;
     EXPECT_GE(async_run.handed_out_at[k], inline_run.handed_out_at[k]);
     handed_out_before_finish += async_run.handed_out_at[k] < kFrames;
