@@ -184,7 +184,7 @@ class KeyframeDepth {
   };
   KeyframeDepth() = default;
   void UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid3d& frame_from_keyframe, double mean_idepth,
-                  DepthUpdateStats* stats);
+                  DepthUpdateStats* out_stats);
   double ComputeMeanInverseDepth() const;
 
   PinholeCamera camera_;

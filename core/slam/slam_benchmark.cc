@@ -375,6 +375,69 @@ PRISM_SLAM_PRESET_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
 PRISM_SLAM_PRESET_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
 PRISM_SLAM_PRESET_BENCHMARK(torus_textured_forward, "torus-textured-forward");
 
+// The initialisation's pause (SlamOptions::init_threads, the argument): the frames up to the first tracked
+// one, on one core as in the bounded_* cases (the SLAM's pool has one thread). init_frame_ms is the frame
+// that completes the initialisation (it tracks the buffered frames twice and refines the first keyframe's
+// depth with each: the slowest frame of a run), initialisation_ms all the frames before the first keyframe
+// (timings.initialisation, which includes it), buffered_frames how many it tracked.
+void BM_SlamInitialisation(benchmark::State& state, const std::string& preset) {
+  const Frames* f = GetFrames(preset);
+  if (!f) {
+    state.SkipWithError("preset unavailable");
+    return;
+  }
+  ThreadPool pool(1);
+  double init_frame_ms = 0, initialisation_ms = 0;
+  int buffered = 0;
+  for (auto _ : state) {
+    SlamOptions options;
+    options.init_threads = static_cast<int>(state.range(0));
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(f->setup.rig, options, &pool);
+    if (!slam.ok()) {
+      state.SkipWithError(slam.status().ToString().c_str());
+      return;
+    }
+    bool initialised = false;
+    for (size_t i = 0; i < f->frames.size() && !initialised; ++i) {
+      const auto t0 = std::chrono::steady_clock::now();
+      StatusOr<SlamFrameResult> r = (*slam)->ProcessFrame(f->trajectory[i].timestamp_s, f->frames[i].rgb);
+      const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+      if (!r.ok()) {
+        state.SkipWithError(r.status().ToString().c_str());
+        return;
+      }
+      if (r->state == SlamState::kTracking) {
+        initialised = true;
+        init_frame_ms = ms;
+        buffered = static_cast<int>(i);
+      }
+    }
+    if (!initialised) {
+      state.SkipWithError("not initialised");
+      return;
+    }
+    initialisation_ms = 1000.0 * (*slam)->timings().initialisation;
+  }
+  state.counters["init_frame_ms"] = init_frame_ms;
+  state.counters["initialisation_ms"] = initialisation_ms;
+  state.counters["buffered_frames"] = buffered;
+}
+void InitialisationSettings(benchmark::internal::Benchmark* b) {
+  b->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond)->Iterations(1)->UseRealTime()->Repetitions(5);
+  b->ReportAggregatesOnly(true);
+}
+#define PRISM_SLAM_INIT_BENCHMARK(NAME, PRESET) \
+  BENCHMARK_CAPTURE(BM_SlamInitialisation, NAME, std::string(PRESET))->Apply(InitialisationSettings)
+PRISM_SLAM_INIT_BENCHMARK(bunny_multicolor_forward, "bunny-multicolor-forward");
+PRISM_SLAM_INIT_BENCHMARK(sphere_multicolor_sideways, "sphere-multicolor-sideways");
+PRISM_SLAM_INIT_BENCHMARK(dragon_multicolor_sideways, "dragon-multicolor-sideways");
+PRISM_SLAM_INIT_BENCHMARK(sphere_uniform_sideways, "sphere-uniform-sideways");
+PRISM_SLAM_INIT_BENCHMARK(relief_uniform_sideways, "relief-uniform-sideways");
+PRISM_SLAM_INIT_BENCHMARK(boxes_multicolor_forward, "boxes-multicolor-forward");
+PRISM_SLAM_INIT_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
+PRISM_SLAM_INIT_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
+PRISM_SLAM_INIT_BENCHMARK(torus_textured_forward, "torus-textured-forward");
+
 }  // namespace
 }  // namespace prism
 

@@ -106,6 +106,7 @@ TEST(SlamConfigTest, BadInputIsRefusedWithItsLineAndLeavesTheOptionsUnchanged) {
       {"keyframe_window_min_overlap = 1.5\n", "keyframe_window_min_overlap must be in [0, 1]"},
       {"init_min_frames = 20\ninit_max_frames = 10\n", "init_max_frames must be >= init_min_frames"},
       {"init_rounds = 0\n", "init_rounds must be in [1, 10]"},
+      {"init_threads = 0\n", "init_threads must be in [1, 64]"},
       {"final_refinement_neighbours = 6\n", "final_refinement_neighbours must be in [0, 5]"},
       {"final_refinement_rounds = 11\n", "final_refinement_rounds must be in [1, 10]"},
       {"start_check_keyframes = 3\n", "start_check_keyframes must be 0 (off) or >= 4"},

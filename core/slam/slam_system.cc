@@ -144,6 +144,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: keyframe_max_rotation_deg must be > 0");
   if (init_min_frames < 2) return InvalidArgumentError("SlamOptions: init_min_frames must be >= 2");
   if (init_rounds < 1 || init_rounds > 10) return InvalidArgumentError("SlamOptions: init_rounds must be in [1, 10]");
+  if (init_threads < 1 || init_threads > 64)
+    return InvalidArgumentError("SlamOptions: init_threads must be in [1, 64]");
   if (!(init_min_parallax_fraction > 0))
     return InvalidArgumentError("SlamOptions: init_min_parallax_fraction must be > 0");
   if (init_max_frames < init_min_frames)
@@ -810,6 +812,27 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   auto depth = std::make_unique<KeyframeDepth>(std::move(kd).value());
   depth->Seed(dense, 0.25, 1);
 
+  // The buffered frames' normalised images J and depth updates below run on options.init_threads threads
+  // when the SLAM's own pool has fewer: before the first keyframe nothing else runs beside the tracking
+  // (the window adjustment and the start check come later), and both are the same to the bit on any
+  // number of threads (KeyframeDepth::Update splits by rows).
+  std::unique_ptr<ThreadPool> own_pool;
+  ThreadPool* init_pool = pool;
+  if (options.init_threads > (pool ? pool->num_threads() : 1)) {
+    own_pool = std::make_unique<ThreadPool>(options.init_threads);
+    init_pool = own_pool.get();
+  }
+  std::vector<cv::Mat> init_j(init_frames.size());  // frame 0's is not needed (the keyframe)
+  const auto make_j = [&](std::ptrdiff_t i) {
+    cv::Mat mean;
+    if (i > 0) KeyframeDepth::NormalisedGrey(init_frames[static_cast<size_t>(i)].rgb, options.depth, &init_j[i], &mean);
+  };
+  if (init_pool) {
+    init_pool->ParallelFor(0, static_cast<std::ptrdiff_t>(init_frames.size()), make_j);
+  } else {
+    for (size_t i = 0; i < init_frames.size(); ++i) make_j(static_cast<std::ptrdiff_t>(i));
+  }
+
   // Track the buffered frames against the first one and refine its depth by stereo with each (two
   // passes: the second re-tracks on the refined depth).
   std::vector<Rigid3d> poses(init_frames.size());
@@ -829,11 +852,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
       auto redo = std::make_unique<KeyframeDepth>(std::move(fresh).value());
       redo->Seed(dense, 0.25, 1);
       redo->Seed(depth->ToInverseDepthMap(1, 0.5).inverse_depth, 0.25, 1);
-      for (size_t i = 1; i < init_frames.size(); ++i) {
-        cv::Mat j, mean;
-        KeyframeDepth::NormalisedGrey(init_frames[i].rgb, options.depth, &j, &mean);
-        redo->Update(j, poses[i], pool);
-      }
+      for (size_t i = 1; i < init_frames.size(); ++i) redo->Update(init_j[i], poses[i], init_pool);
       redo->Regularise();
       depth = std::move(redo);
     }
@@ -871,9 +890,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
       prev2 = prev;
       prev = poses[i];
       if (pass == 0) {
-        cv::Mat j, mean;
-        KeyframeDepth::NormalisedGrey(init_frames[i].rgb, options.depth, &j, &mean);
-        depth->Update(j, poses[i], pool);
+        depth->Update(init_j[i], poses[i], init_pool);
         // Keep the tracker's copy of the refined depth fresh, as during tracking (on the rough first depth
         // the residuals grew from frame to frame until one frame jumped).
         if (i % static_cast<size_t>(options.tracker_refresh_frames) == 0 && i + 1 < init_frames.size()) {

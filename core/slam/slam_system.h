@@ -154,6 +154,11 @@ struct SlamOptions {
   // Each further round estimates the depth again (from the seed and the last depth, at 25% relative
   // sigma) by stereo with every buffered frame at the last poses, and tracks the frames again on it.
   int init_rounds = 1;
+  // Threads for the first keyframe's depth updates with the buffered frames and for their normalised
+  // images, in [1, 64], when the pool handed to SlamSystem::Create has fewer (none counts as one). Before
+  // the first keyframe the second core is idle (the window adjustment and the start check come later);
+  // the results are the same to the bit on any number. 1 = on the SLAM's own threads.
+  int init_threads = 2;
   // High-gradient pixels of a new keyframe that received no propagated depth are seeded at the mean
   // inverse depth with this relative standard deviation and searched along their whole epipolar
   // segment, > 0.

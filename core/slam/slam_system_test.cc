@@ -651,6 +651,71 @@ TEST(SlamSystem, TheStartCheckOnItsThreadGivesTheSameRun) {
   }
 }
 
+// SlamOptions::init_threads: the first keyframe's depth updates with the buffered frames (and their
+// normalised images) on a pool of their own, on the SLAM's pool, or on its one thread give the same start
+// to the bit: every frame's pose and the keyframes' depth. Also with a second refinement round
+// (init_rounds = 2), which estimates the depth again from the seed.
+TEST(SlamSystem, TheInitialisationOnTwoThreadsGivesTheSameStart) {
+  Rendered r;
+  std::string why;
+  constexpr int kFrames = 24;  // initialised at frame 9
+  if (!Render("bunny-uniform-sideways", kFrames, 1, &r, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ThreadPool pool(2);
+  for (const int rounds : {1, 2}) {
+    SCOPED_TRACE("init_rounds " + std::to_string(rounds));
+    struct Run {
+      std::vector<SlamFrameResult> trajectory;
+      std::vector<Sim3d> keyframe_poses;
+      std::vector<SlamKeyframe> keyframes;
+      double initialisation_s = 0;
+    };
+    // One thread; a pool of init_threads' own; the SLAM's pool of 2 (init_threads 1: it has enough).
+    const struct {
+      int init_threads;
+      ThreadPool* pool;
+      const char* what;
+    } kinds[] = {{1, nullptr, "one thread"}, {2, nullptr, "its own 2 threads"}, {1, &pool, "the SLAM's pool"}};
+    std::vector<Run> runs;
+    for (const auto& kind : kinds) {
+      SlamOptions options;
+      options.init_rounds = rounds;
+      options.init_threads = kind.init_threads;
+      StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, kind.pool);
+      ASSERT_TRUE(slam.ok()) << slam.status();
+      Run run;
+      int tracked = 0;
+      for (int i = 0; i < kFrames; ++i) {
+        StatusOr<SlamFrameResult> f = (*slam)->ProcessFrame(r.trajectory[i].timestamp_s, r.frames[i].rgb);
+        ASSERT_TRUE(f.ok()) << f.status();
+        tracked += f->state == SlamState::kTracking;
+        for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) run.keyframes.push_back(std::move(k));
+      }
+      ASSERT_GT(tracked, 0) << kind.what << ": not initialised within " << kFrames << " frames";
+      run.initialisation_s = (*slam)->timings().initialisation;
+      for (SlamKeyframe& k : (*slam)->Finish()) run.keyframes.push_back(std::move(k));
+      run.trajectory = (*slam)->Trajectory();
+      run.keyframe_poses = (*slam)->KeyframePoses();
+      std::printf("init_rounds %d, %s: initialisation %.1f ms, %zu keyframes\n", rounds, kind.what,
+                  1000 * run.initialisation_s, run.keyframes.size());
+      runs.push_back(std::move(run));
+    }
+    for (size_t k = 1; k < runs.size(); ++k) {
+      SCOPED_TRACE(kinds[k].what);
+      ASSERT_NO_FATAL_FAILURE(
+          ExpectSamePoses(runs[k].trajectory, runs[k].keyframe_poses, runs[0].trajectory, runs[0].keyframe_poses));
+      ASSERT_EQ(runs[k].keyframes.size(), runs[0].keyframes.size());
+      for (size_t i = 0; i < runs[0].keyframes.size(); ++i) {
+        EXPECT_EQ(
+            cv::norm(runs[k].keyframes[i].depth.inverse_depth, runs[0].keyframes[i].depth.inverse_depth, cv::NORM_INF),
+            0.0)
+            << "keyframe " << i;
+        EXPECT_EQ(cv::norm(runs[k].keyframes[i].depth.variance, runs[0].keyframes[i].depth.variance, cv::NORM_INF), 0.0)
+            << "keyframe " << i;
+      }
+    }
+  }
+}
+
 TEST(SlamSystem, RejectsBadInputAndReportsStates) {
   const RigCalibration rig = synth::MakeDefaultRig(128, 96);
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(rig, SlamOptions());
