@@ -1,6 +1,7 @@
 #include "core/slam/shading_scale.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <sstream>
@@ -192,9 +193,13 @@ StatusOr<ShadingScaleResult> EstimateShadingScale(const RigCalibration& rig, con
   for (const ShadingScaleFrame& f : frames) poses.push_back(f.frame_from_keyframe);
 
   const double h = 1e-4;  // log k step for the numerical derivative
+  // Each point's m at k (what the residuals read); m at k exp(+-h) only where the derivative is taken
+  // (set_scale_derivative, once per linearisation: the scan and the trial steps do not need it).
   auto set_scale = [&](double k) {
+    for (ScalePoint& p : points) p.m = ImpliedNormal(rig, k * p.x, p.bands);
+  };
+  auto set_scale_derivative = [&](double k) {
     for (ScalePoint& p : points) {
-      p.m = ImpliedNormal(rig, k * p.x, p.bands);
       p.m_plus = ImpliedNormal(rig, k * std::exp(h) * p.x, p.bands);
       p.m_minus = ImpliedNormal(rig, k * std::exp(-h) * p.x, p.bands);
     }
@@ -259,12 +264,25 @@ StatusOr<ShadingScaleResult> EstimateShadingScale(const RigCalibration& rig, con
   };
   double cost = evaluate(k, poses);
   double lambda = 1e-3;
+  // The prediction's numerical pose derivative perturbs every residual by the same six small motions
+  // (translation steps, then rotations about the axes): made once here.
+  const double e = 1e-6;
+  std::array<Eigen::Matrix3d, 6> perturb_rotation;
+  std::array<Eigen::Vector3d, 6> perturb_translation;
+  for (int j = 0; j < 6; ++j) {
+    Vector6d d = Vector6d::Zero();
+    d[j] = e;
+    perturb_rotation[j] = ExpSo3(d.tail<3>()).toRotationMatrix();
+    perturb_translation[j] = d.head<3>();
+  }
+  const double exp_h = std::exp(h), exp_minus_h = std::exp(-h);
   Eigen::MatrixXd hessian(dim, dim);
   Eigen::VectorXd gradient(dim);
   int iterations = 0;
   for (; iterations < options.max_iterations; ++iterations) {
     hessian.setZero();
     gradient.setZero();
+    set_scale_derivative(k);
     for (int f = 0; f < nf; ++f) {
       const Eigen::Matrix3d r = poses[f].RotationMatrix();
       for (const ScalePoint& p : points) {
@@ -288,18 +306,14 @@ StatusOr<ShadingScaleResult> EstimateShadingScale(const RigCalibration& rig, con
         jac.segment<3>(3) = q.cross(dimg_dq).transpose();
         // Prediction term (numerical): q and m move with the pose, k with log k.
         if (options.refine_poses) {
-          const double e = 1e-6;
           for (int j = 0; j < 6; ++j) {
-            Vector6d d = Vector6d::Zero();
-            d[j] = e;
-            const Eigen::Matrix3d rp = ExpSo3(d.tail<3>()).toRotationMatrix();
+            const Eigen::Matrix3d& rp = perturb_rotation[j];
             const Eigen::Matrix3d rm = rp.transpose();
-            const Eigen::Vector3d qp = rp * q + d.head<3>(), qm = rm * q - d.head<3>();
+            const Eigen::Vector3d qp = rp * q + perturb_translation[j], qm = rm * q - perturb_translation[j];
             jac[j] -= (PredictGrey(rig, qp, rp * m_frame, k) - PredictGrey(rig, qm, rm * m_frame, k)) / (2 * e);
           }
         }
-        jac[6] = -(PredictGrey(rig, q, r * p.m_plus, k * std::exp(h)) -
-                   PredictGrey(rig, q, r * p.m_minus, k * std::exp(-h))) /
+        jac[6] = -(PredictGrey(rig, q, r * p.m_plus, k * exp_h) - PredictGrey(rig, q, r * p.m_minus, k * exp_minus_h)) /
                  (2 * h);
         // Scatter into the frame's pose block and the shared log k.
         const int o = 6 * f;
