@@ -85,14 +85,19 @@ void BM_DepthUpdate(benchmark::State& state, const std::string& preset) {
   kd->Seed(seed, 0.05, 2);
   const Rigid3d frame_from_keyframe = f->trajectory[5].world_from_camera.Inverse() * f->trajectory[0].world_from_camera;
   cv::Mat j, mean;
+  // Args: threads (1: no pool).
+  const int threads = static_cast<int>(state.range(0));
+  std::unique_ptr<ThreadPool> pool = threads > 1 ? std::make_unique<ThreadPool>(threads) : nullptr;
   for (auto _ : state) {
     KeyframeDepth copy = *kd;
     KeyframeDepth::NormalisedGrey(f->frames[5].rgb, options, &j, &mean);
-    const DepthUpdateStats s = copy.Update(j, frame_from_keyframe, nullptr);
+    const DepthUpdateStats s = copy.Update(j, frame_from_keyframe, pool.get());
     benchmark::DoNotOptimize(s);
   }
 }
 BENCHMARK_CAPTURE(BM_DepthUpdate, bunny, std::string("bunny-multicolor-forward"))
+    ->Arg(1)
+    ->Arg(2)
     ->Unit(benchmark::kMillisecond)
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);

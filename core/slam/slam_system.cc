@@ -116,17 +116,30 @@ struct ShadingPair {
   Sim3d world_from_older, world_from_newer;
 };
 
-// Each pair's shading scale (metres per world unit) with its older keyframe's index.
-std::vector<std::pair<int, double>> PairScales(const RigCalibration& rig, const std::vector<ShadingPair>& pairs) {
-  std::vector<std::pair<int, double>> estimates;
+// Each pair's shading scale (metres per world unit) with its older keyframe's index, in the pairs' order
+// (the pairs on `pool` when given: each is independent, so the result is the same to the bit).
+std::vector<std::pair<int, double>> PairScales(const RigCalibration& rig, const std::vector<ShadingPair>& pairs,
+                                               ThreadPool* pool = nullptr) {
   const ShadingScaleOptions so;
-  for (const ShadingPair& p : pairs) {
+  std::vector<double> scales(pairs.size(), 0.0);
+  std::vector<char> found(pairs.size(), 0);
+  const auto one = [&](std::ptrdiff_t i) {
+    const ShadingPair& p = pairs[static_cast<size_t>(i)];
     const std::vector<ShadingScaleFrame> frames = {
         {p.newer_rgb, BFromAInUnitsOfA(p.world_from_older, p.world_from_newer)}};
     StatusOr<ShadingScaleResult> r = EstimateShadingScale(rig, p.older_rgb, p.older_inverse_depth, frames, so);
-    if (!r.ok()) continue;
-    estimates.emplace_back(p.older, r->metres_per_unit / p.world_from_older.scale);
+    if (!r.ok()) return;
+    scales[static_cast<size_t>(i)] = r->metres_per_unit / p.world_from_older.scale;
+    found[static_cast<size_t>(i)] = 1;
+  };
+  if (pool && pool->num_threads() > 1 && pairs.size() > 1) {
+    pool->ParallelFor(0, static_cast<std::ptrdiff_t>(pairs.size()), one);
+  } else {
+    for (size_t i = 0; i < pairs.size(); ++i) one(static_cast<std::ptrdiff_t>(i));
   }
+  std::vector<std::pair<int, double>> estimates;
+  for (size_t i = 0; i < pairs.size(); ++i)
+    if (found[i]) estimates.emplace_back(pairs[i].older, scales[i]);
   return estimates;
 }
 
@@ -1363,7 +1376,7 @@ std::vector<ShadingPair> SlamSystem::Impl::ShadingPairs(size_t num_keyframes, bo
 
 std::vector<std::pair<int, double>> SlamSystem::Impl::IndexedPairShadingScales(size_t num_keyframes) const {
   if (!AllPointLights(rig)) return {};
-  return PairScales(rig, ShadingPairs(num_keyframes, /*own_depth=*/false));
+  return PairScales(rig, ShadingPairs(num_keyframes, /*own_depth=*/false), pool);
 }
 
 void SlamSystem::Impl::StartPairShadingScales(size_t num_keyframes) {
