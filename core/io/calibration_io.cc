@@ -8,18 +8,6 @@
 
 namespace prism {
 
-void Light::Illuminate(const Eigen::Vector3d& point_in_camera, Eigen::Vector3d* to_light, double* irradiance) const {
-  if (type == LightType::kDirectional) {
-    *to_light = direction_in_camera.normalized();
-    *irradiance = intensity;
-    return;
-  }
-  const Eigen::Vector3d d = position_in_camera - point_in_camera;
-  const double d2 = d.squaredNorm();
-  *to_light = d / std::sqrt(d2);
-  *irradiance = intensity / d2;
-}
-
 Status RigCalibration::Check() const {
   PRISM_RETURN_IF_ERROR(camera.Check());
   for (const Light& l : lights) {

@@ -13,6 +13,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <string>
 
 #include <Eigen/Core>
@@ -34,7 +35,18 @@ struct Light {
 
   // Unit vector from `point_in_camera` towards the light and the irradiance factor
   // intensity / d^2 (point) or intensity (directional).
-  void Illuminate(const Eigen::Vector3d& point_in_camera, Eigen::Vector3d* to_light, double* irradiance) const;
+  // Inline: the shading models call it several times per residual (EstimateShadingScale).
+  void Illuminate(const Eigen::Vector3d& point_in_camera, Eigen::Vector3d* to_light, double* irradiance) const {
+    if (type == LightType::kDirectional) {
+      *to_light = direction_in_camera.normalized();
+      *irradiance = intensity;
+      return;
+    }
+    const Eigen::Vector3d d = position_in_camera - point_in_camera;
+    const double d2 = d.squaredNorm();
+    *to_light = d / std::sqrt(d2);
+    *irradiance = intensity / d2;
+  }
 };
 
 struct RigCalibration {
