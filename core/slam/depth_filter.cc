@@ -332,8 +332,8 @@ DepthUpdateStats KeyframeDepth::Update(const cv::Mat& frame_grey_j, const Rigid3
 void KeyframeDepth::UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid3d& frame_from_keyframe,
                                double mean_idepth, DepthUpdateStats* out_stats) {
   // Counted here and written once at the end: the chunks' entries share cache lines, and counting in
-  // them from two threads (about 10 increments per searched pixel) made the update barely faster on two
-  // threads than on one (false sharing; fifty-fourth round).
+  // them from two threads (increments in the inner loops) made the update barely faster on two threads
+  // than on one (false sharing; fifty-fourth round).
   DepthUpdateStats counts;
   DepthUpdateStats* const stats = &counts;
   const int w = camera_.width;
