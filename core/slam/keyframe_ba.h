@@ -198,7 +198,7 @@ double DepthOverlapFraction(const PinholeCamera& camera, const cv::Mat& inverse_
 // an out-of-range host or a non-positive inverse depth, or a camera with distortion.
 //
 // With a pool of more than one thread the residuals are linearised and evaluated target by target in
-// parallel (without the relit residual; with it the pool is not used). Every sum is still formed in the
+// parallel (the relit residual too, and its points' implied normals). Every sum is still formed in the
 // one-thread order (each target's terms are kept and added target by target afterwards), so the result
 // is the same to the last bit with or without the pool.
 StatusOr<DirectBaSummary> AdjustKeyframeWindowDirect(const DirectBaOptions& options, DirectBaProblem* problem,

@@ -457,6 +457,60 @@ TEST_P(RelitKeyframeBaPresetTest, MixedStaysNearTheTruth) {
   EXPECT_NEAR(ScaleRatio(mixed, w.truth), 1.0, kMaxScaleErrorFromTruth);
 }
 
+// The relit residual with a pool: its residuals (and the points' implied normals) are linearised and
+// evaluated target by target in parallel, log K's sums too, each still formed in the one-thread order:
+// the same poses, inverse depths, K and summary to the last bit. Relit with K estimated from 20% low
+// (EstimateMetricScale's adjustment) and mixed (J and relit together), from the perturbed start.
+TEST(RelitKeyframeBa, GivesTheSameResultToTheLastBitWithAPool) {
+  const Window w = MakeWindow("sphere-uniform-sideways");
+  ASSERT_TRUE(w.ok) << w.why;
+  const DirectBaProblem perturbed = PerturbedStart(w);
+  DirectBaProblem relit_k = Relit(w, perturbed);
+  relit_k.relit.metres_per_world_unit = 0.8;
+  relit_k.relit.estimate_metres_per_world_unit = true;
+  DirectBaOptions relit_options;
+  relit_options.huber = 4.0;
+  relit_options.outlier = 20.0;
+  const std::vector<std::pair<std::string, std::pair<DirectBaProblem, DirectBaOptions>>> cases = {
+      {"relit, K estimated", {relit_k, relit_options}}, {"mixed", {Mixed(w, perturbed), DirectBaOptions()}}};
+  for (const auto& [name, c] : cases) {
+    const auto& [start, options] = c;
+    DirectBaProblem serial = start;
+    StatusOr<DirectBaSummary> s_serial = AdjustKeyframeWindowDirect(options, &serial);
+    ASSERT_TRUE(s_serial.ok()) << s_serial.status();
+    for (int threads : {2, 3}) {
+      const std::string what = name + ", " + std::to_string(threads) + " threads";
+      ThreadPool pool(threads);
+      DirectBaProblem parallel = start;
+      StatusOr<DirectBaSummary> s_parallel = AdjustKeyframeWindowDirect(options, &parallel, &pool);
+      ASSERT_TRUE(s_parallel.ok()) << s_parallel.status();
+      EXPECT_EQ(s_parallel->iterations, s_serial->iterations) << what;
+      EXPECT_EQ(s_parallel->evaluations, s_serial->evaluations) << what;
+      EXPECT_EQ(s_parallel->residuals, s_serial->residuals) << what;
+      EXPECT_EQ(s_parallel->initial_rms, s_serial->initial_rms) << what;
+      EXPECT_EQ(s_parallel->final_rms, s_serial->final_rms) << what;
+      EXPECT_EQ(parallel.relit.metres_per_world_unit, serial.relit.metres_per_world_unit) << what;
+      for (size_t k = 0; k < start.world_from_keyframe.size(); ++k) {
+        const Sim3d& a = serial.world_from_keyframe[k];
+        const Sim3d& b = parallel.world_from_keyframe[k];
+        EXPECT_EQ(a.rotation.coeffs(), b.rotation.coeffs()) << "keyframe " << k << ", " << what;
+        EXPECT_EQ(a.translation, b.translation) << "keyframe " << k << ", " << what;
+      }
+      int differing = 0;
+      for (size_t i = 0; i < start.points.size(); ++i)
+        differing += serial.points[i].inverse_depth != parallel.points[i].inverse_depth ||
+                     serial.points[i].ok != parallel.points[i].ok;
+      EXPECT_EQ(differing, 0) << what;
+    }
+    // A real solve: the keyframes moved (and K, where it is estimated).
+    EXPECT_GT((serial.world_from_keyframe[3].translation - start.world_from_keyframe[3].translation).norm(), 0.0)
+        << name;
+    if (start.relit.estimate_metres_per_world_unit) {
+      EXPECT_NE(serial.relit.metres_per_world_unit, start.relit.metres_per_world_unit) << name;
+    }
+  }
+}
+
 TEST(RelitKeyframeBa, MixedRecoversTheScaleOnTheUniformSphere) {
   const Window w = MakeWindow("sphere-uniform-sideways");
   ASSERT_TRUE(w.ok) << w.why;

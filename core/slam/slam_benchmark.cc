@@ -7,8 +7,9 @@
 //                       counter.
 //   BM_KeyframeWindowAdjustment: one window adjustment (keyframe_ba.h) with SlamSystem's window settings:
 //                    8 keyframes 6 frames apart at their true poses, then perturbed (2% of the spacing
-//                    sideways, 0.1 degrees, inverse depths 3% off), one point per 16x16 cell; the time
-//                    per residual linearised or evaluated is the "ns_per_residual" counter.
+//                    sideways, 0.1 degrees, inverse depths 3% off), one point per 12x12 cell; the time
+//                    per residual linearised or evaluated is the "ns_per_residual" counter. The last
+//                    argument 24: 24 keyframes 4 frames apart (the size of a final adjustment).
 //   BM_SlamSequence: the whole SlamSystem (initialisation, tracking, depth filter, keyframes, keyframe
 //                    adjustment) over 150 frames of a preset; the per-frame time is the "ms_per_frame"
 //                    counter (with and without the keyframe adjustment on the bunny; budget_*: with
@@ -192,7 +193,9 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
     return;
   }
   const SlamOptions slam_options;
-  const int num_kf = slam_options.keyframe_window, spacing = 6, first = 40;
+  // Arg 3: keyframes (0: the window's 8, 6 frames apart; more: 4 frames apart, as the final adjustment).
+  const int num_kf = state.range(3) > 0 ? static_cast<int>(state.range(3)) : slam_options.keyframe_window;
+  const int spacing = state.range(3) > 0 ? 4 : 6, first = 40;
   DirectBaProblem start;
   start.camera = f->setup.rig.camera;
   std::mt19937 rng(11);
@@ -255,19 +258,23 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
       1e9 * seconds / (static_cast<double>(state.iterations()) * summary.residuals * 2 * summary.iterations);
 }
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, torus, std::string("torus-textured-forward"))
-    ->Args({1, 0, 1})
-    ->Args({1, 1, 0})
-    ->Args({1, 1, 1})
-    ->Args({2, 1, 1})
+    ->Args({1, 0, 1, 0})
+    ->Args({1, 1, 0, 0})
+    ->Args({1, 1, 1, 0})
+    ->Args({2, 1, 1, 0})
+    ->Args({1, 1, 1, 24})
+    ->Args({2, 1, 1, 24})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)
     ->ReportAggregatesOnly(true);
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo-textured-forward"))
-    ->Args({1, 0, 1})
-    ->Args({1, 1, 0})
-    ->Args({1, 1, 1})
-    ->Args({2, 1, 1})
+    ->Args({1, 0, 1, 0})
+    ->Args({1, 1, 0, 0})
+    ->Args({1, 1, 1, 0})
+    ->Args({2, 1, 1, 0})
+    ->Args({1, 1, 1, 24})
+    ->Args({2, 1, 1, 24})
     ->Unit(benchmark::kMillisecond)
     ->UseRealTime()
     ->Repetitions(5)

@@ -1825,7 +1825,8 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
     if (!m.BuildAdjustmentProblem(first, /*relit=*/true, /*mixed=*/false, k, m.options.metric_scale_min_band_fraction,
                                   &problem))
       return FailedPreconditionError("EstimateMetricScale: too few adjustment points");
-    StatusOr<DirectBaSummary> summary = AdjustKeyframeWindowDirect(m.options.final_adjustment_relit_ba, &problem);
+    StatusOr<DirectBaSummary> summary =
+        AdjustKeyframeWindowDirect(m.options.final_adjustment_relit_ba, &problem, m.pool);
     if (!summary.ok()) return summary.status();
     const double next = problem.relit.metres_per_world_unit;
     e.passes = pass + 1;
