@@ -1978,23 +1978,42 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
       m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
       for (size_t i = 0; i < keyframes->size(); ++i) (*keyframes)[i].depth = handed_out[i];
     }
-    for (SlamKeyframe& out : *keyframes) {
+    // Each keyframe apart: with a pool of more than one thread the keyframes are refined in parallel,
+    // each on one thread (the depth update gives the same bits with or without a pool), every neighbour's
+    // J made first. Keyframe 0's seed reads keyframe 1's depth as handed out (the one-thread order
+    // refines keyframe 0 first).
+    const bool by_keyframe = m.pool != nullptr && m.pool->num_threads() > 1 && keyframes->size() > 1;
+    if (by_keyframe) {
+      m.pool->ParallelFor(0, n, [&](std::ptrdiff_t j) {
+        cv::Mat& jj = grey_j[static_cast<size_t>(j)];
+        if (jj.empty()) {
+          cv::Mat mean;
+          KeyframeDepth::NormalisedGrey(m.keyframes[static_cast<size_t>(j)].rgb, m.options.depth, &jj, &mean);
+        }
+      });
+    }
+    std::vector<InverseDepthMap> round_start;  // by_keyframe: the depths this round starts from
+    if (by_keyframe)
+      for (const SlamKeyframe& o : *keyframes) round_start.push_back(o.depth);
+    auto refine = [&](SlamKeyframe& out, ThreadPool* update_pool) {
       const int id = out.id;
-      if (id < 0 || id >= n || out.depth.inverse_depth.empty()) continue;
+      if (id < 0 || id >= n || out.depth.inverse_depth.empty()) return;
       const Impl::Keyframe& k = m.keyframes[static_cast<size_t>(id)];
       // Every search made: this runs once, after the last frame (skip_information_ratio is for the
       // online mapping's time).
       DepthFilterOptions refine_options = m.options.depth;
       refine_options.skip_information_ratio = 0;
       StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(k.rgb, m.rig.camera, refine_options, m.rig.crosstalk);
-      if (!kd.ok()) continue;
+      if (!kd.ok()) return;
       cv::Mat seed = out.depth.inverse_depth;
       if (id == 0 && n >= 2 && m.options.final_refinement_first_from_second) {
-        const SlamKeyframe* second = nullptr;
-        for (const SlamKeyframe& o : *keyframes)
-          if (o.id == 1 && !o.depth.inverse_depth.empty()) second = &o;
-        if (second != nullptr)
-          seed = m.SeedFromSecondKeyframe(*kd, out.depth.inverse_depth, second->depth.inverse_depth);
+        const cv::Mat* second = nullptr;
+        for (size_t i = 0; i < keyframes->size(); ++i) {
+          const SlamKeyframe& o = (*keyframes)[i];
+          const cv::Mat& second_depth = by_keyframe ? round_start[i].inverse_depth : o.depth.inverse_depth;
+          if (o.id == 1 && !second_depth.empty()) second = &second_depth;
+        }
+        if (second != nullptr) seed = m.SeedFromSecondKeyframe(*kd, out.depth.inverse_depth, *second);
       }
       kd->Seed(seed, relative_sigma, 2);
       const double mean_idepth = kd->MeanInverseDepth();
@@ -2013,7 +2032,7 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
           cv::Mat mean;
           KeyframeDepth::NormalisedGrey(m.keyframes[static_cast<size_t>(j)].rgb, m.options.depth, &jj, &mean);
         }
-        kd->Update(jj, j_from_id, m.pool);
+        kd->Update(jj, j_from_id, update_pool);
       }
       kd->Regularise();
       out.depth = kd->ToInverseDepthMap();
@@ -2023,6 +2042,12 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
         refined.final_depth = out.depth;
         refined.DropWindowPoints();
       }
+    };
+    if (by_keyframe) {
+      m.pool->ParallelFor(0, static_cast<std::ptrdiff_t>(keyframes->size()),
+                          [&](std::ptrdiff_t i) { refine((*keyframes)[static_cast<size_t>(i)], nullptr); });
+    } else {
+      for (SlamKeyframe& out : *keyframes) refine(out, m.pool);
     }
   }
 }

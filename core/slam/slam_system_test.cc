@@ -716,6 +716,44 @@ TEST(SlamSystem, TheInitialisationOnTwoThreadsGivesTheSameStart) {
   }
 }
 
+// With a pool of two, RefineKeyframeDepths refines the keyframes in parallel (each on one thread) and the
+// final adjustments between its rounds run on the pool: the same depths, variances and poses to the bit
+// as on one thread (prism-slam's defaults, two rounds).
+TEST(SlamSystem, TheFinalRefinementOnTwoThreadsGivesTheSameDepths) {
+  Rendered r;
+  std::string why;
+  if (!Render("sphere-uniform-sideways", 60, 1, &r, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ThreadPool pool(2);
+  SlamOptions options;
+  options.final_refinement_rounds = 2;
+  struct Run {
+    std::vector<SlamKeyframe> keyframes;
+    std::vector<SlamFrameResult> trajectory;
+    std::vector<Sim3d> keyframe_poses;
+  };
+  std::vector<Run> runs;
+  for (ThreadPool* p : {static_cast<ThreadPool*>(nullptr), &pool}) {
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, p);
+    ASSERT_TRUE(slam.ok()) << slam.status();
+    Run run;
+    ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &run.keyframes));
+    run.trajectory = (*slam)->Trajectory();
+    run.keyframe_poses = (*slam)->KeyframePoses();
+    runs.push_back(std::move(run));
+  }
+  ASSERT_GE(runs[0].keyframes.size(), 3u);
+  ASSERT_NO_FATAL_FAILURE(
+      ExpectSamePoses(runs[1].trajectory, runs[1].keyframe_poses, runs[0].trajectory, runs[0].keyframe_poses));
+  ASSERT_EQ(runs[1].keyframes.size(), runs[0].keyframes.size());
+  for (size_t i = 0; i < runs[0].keyframes.size(); ++i) {
+    const InverseDepthMap& a = runs[0].keyframes[i].depth;
+    const InverseDepthMap& b = runs[1].keyframes[i].depth;
+    ASSERT_FALSE(a.inverse_depth.empty()) << "keyframe " << i;
+    EXPECT_EQ(cv::norm(a.inverse_depth, b.inverse_depth, cv::NORM_INF), 0.0) << "keyframe " << i;
+    EXPECT_EQ(cv::norm(a.variance, b.variance, cv::NORM_INF), 0.0) << "keyframe " << i;
+  }
+}
+
 TEST(SlamSystem, RejectsBadInputAndReportsStates) {
   const RigCalibration rig = synth::MakeDefaultRig(128, 96);
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(rig, SlamOptions());
