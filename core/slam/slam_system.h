@@ -690,7 +690,8 @@ class SlamSystem {
   // refined depth too. Nothing when neighbours <= 0. With rounds > 1 (SlamOptions::final_refinement_rounds)
   // and the final adjustment available, the adjustment of all keyframes runs again on the refined depths
   // between rounds (KeyframePoses and Trajectory move) and each round starts again from the depths as
-  // handed out. prism-slam runs it with SlamOptions::final_refinement_*.
+  // handed out. prism-slam runs it with SlamOptions::final_refinement_*. With a pool of more than one
+  // thread the keyframes are refined in parallel, each on one thread (the same results to the bit).
   void RefineKeyframeDepths(int neighbours, double relative_sigma, int rounds, std::vector<SlamKeyframe>* keyframes);
 
   // Every processed frame's result, in order (poses of frames tracked against keyframes moved by the
