@@ -235,6 +235,24 @@ TEST(KeyframeBa, TheGradientWeightRecoversMoreOfTheScaleOnTheUniformSphere) {
   EXPECT_FALSE(AdjustKeyframeWindowDirect(options, &bad).ok());
 }
 
+// Two adjustments of the same start agree to the last bit: every keyframe pose, inverse depth and
+// inlier flag (`what` names the comparison).
+void ExpectSameAdjustment(const DirectBaProblem& a, const DirectBaProblem& b, const std::string& what) {
+  ASSERT_EQ(a.world_from_keyframe.size(), b.world_from_keyframe.size()) << what;
+  for (size_t k = 0; k < a.world_from_keyframe.size(); ++k) {
+    EXPECT_EQ(a.world_from_keyframe[k].rotation.coeffs(), b.world_from_keyframe[k].rotation.coeffs())
+        << "keyframe " << k << ", " << what;
+    EXPECT_EQ(a.world_from_keyframe[k].translation, b.world_from_keyframe[k].translation)
+        << "keyframe " << k << ", " << what;
+    EXPECT_EQ(a.world_from_keyframe[k].scale, b.world_from_keyframe[k].scale) << "keyframe " << k << ", " << what;
+  }
+  ASSERT_EQ(a.points.size(), b.points.size()) << what;
+  int differing = 0;
+  for (size_t i = 0; i < a.points.size(); ++i)
+    differing += a.points[i].inverse_depth != b.points[i].inverse_depth || a.points[i].ok != b.points[i].ok;
+  EXPECT_EQ(differing, 0) << what;
+}
+
 // With a pool the residuals are linearised and evaluated target by target in parallel, and every sum is
 // still formed in the one-thread order: the same poses, inverse depths and summary to the last bit.
 TEST(KeyframeBa, GivesTheSameResultToTheLastBitWithAPool) {
@@ -253,18 +271,7 @@ TEST(KeyframeBa, GivesTheSameResultToTheLastBitWithAPool) {
     EXPECT_EQ(s_parallel->residuals, s_serial->residuals);
     EXPECT_EQ(s_parallel->initial_rms, s_serial->initial_rms);
     EXPECT_EQ(s_parallel->final_rms, s_serial->final_rms);
-    for (size_t k = 0; k < start.world_from_keyframe.size(); ++k) {
-      const Sim3d& a = serial.world_from_keyframe[k];
-      const Sim3d& b = parallel.world_from_keyframe[k];
-      EXPECT_EQ(a.rotation.coeffs(), b.rotation.coeffs()) << "keyframe " << k << ", " << threads << " threads";
-      EXPECT_EQ(a.translation, b.translation) << "keyframe " << k << ", " << threads << " threads";
-      EXPECT_EQ(a.scale, b.scale) << "keyframe " << k << ", " << threads << " threads";
-    }
-    int differing = 0;
-    for (size_t i = 0; i < start.points.size(); ++i)
-      differing += serial.points[i].inverse_depth != parallel.points[i].inverse_depth ||
-                   serial.points[i].ok != parallel.points[i].ok;
-    EXPECT_EQ(differing, 0) << threads << " threads";
+    ExpectSameAdjustment(serial, parallel, std::to_string(threads) + " threads");
   }
   // The adjustment moved the keyframes (the comparison above is of a real solve).
   EXPECT_GT((serial.world_from_keyframe[3].translation - start.world_from_keyframe[3].translation).norm(), 0.0);
@@ -305,17 +312,7 @@ TEST(KeyframeBa, LinearisesFromTheEvaluationToTheLastBit) {
       EXPECT_EQ(s_kept->initial_rms, s_read->initial_rms) << what;
       EXPECT_EQ(s_kept->final_rms, s_read->final_rms) << what;
       EXPECT_LT(s_kept->image_samples, s_read->image_samples) << what;
-      for (size_t k = 0; k < start.world_from_keyframe.size(); ++k) {
-        const Sim3d& a = read.world_from_keyframe[k];
-        const Sim3d& b = kept.world_from_keyframe[k];
-        EXPECT_EQ(a.rotation.coeffs(), b.rotation.coeffs()) << "keyframe " << k << ", " << what;
-        EXPECT_EQ(a.translation, b.translation) << "keyframe " << k << ", " << what;
-      }
-      int differing = 0;
-      for (size_t i = 0; i < start.points.size(); ++i)
-        differing +=
-            read.points[i].inverse_depth != kept.points[i].inverse_depth || read.points[i].ok != kept.points[i].ok;
-      EXPECT_EQ(differing, 0) << what;
+      ExpectSameAdjustment(read, kept, what);
       EXPECT_GT((kept.world_from_keyframe[3].translation - start.world_from_keyframe[3].translation).norm(), 0.0);
     }
     ++setting;
@@ -490,17 +487,7 @@ TEST(RelitKeyframeBa, GivesTheSameResultToTheLastBitWithAPool) {
       EXPECT_EQ(s_parallel->initial_rms, s_serial->initial_rms) << what;
       EXPECT_EQ(s_parallel->final_rms, s_serial->final_rms) << what;
       EXPECT_EQ(parallel.relit.metres_per_world_unit, serial.relit.metres_per_world_unit) << what;
-      for (size_t k = 0; k < start.world_from_keyframe.size(); ++k) {
-        const Sim3d& a = serial.world_from_keyframe[k];
-        const Sim3d& b = parallel.world_from_keyframe[k];
-        EXPECT_EQ(a.rotation.coeffs(), b.rotation.coeffs()) << "keyframe " << k << ", " << what;
-        EXPECT_EQ(a.translation, b.translation) << "keyframe " << k << ", " << what;
-      }
-      int differing = 0;
-      for (size_t i = 0; i < start.points.size(); ++i)
-        differing += serial.points[i].inverse_depth != parallel.points[i].inverse_depth ||
-                     serial.points[i].ok != parallel.points[i].ok;
-      EXPECT_EQ(differing, 0) << what;
+      ExpectSameAdjustment(serial, parallel, what);
     }
     // A real solve: the keyframes moved (and K, where it is estimated).
     EXPECT_GT((serial.world_from_keyframe[3].translation - start.world_from_keyframe[3].translation).norm(), 0.0)

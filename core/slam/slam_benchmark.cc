@@ -257,28 +257,23 @@ void BM_KeyframeWindowAdjustment(benchmark::State& state, const std::string& pre
   state.counters["ns_per_residual"] =
       1e9 * seconds / (static_cast<double>(state.iterations()) * summary.residuals * 2 * summary.iterations);
 }
+// Threads, damping rule, reads (see above) and keyframes (0: the window's 8, or 24).
+void WindowAdjustmentSettings(benchmark::internal::Benchmark* b) {
+  b->Args({1, 0, 1, 0})
+      ->Args({1, 1, 0, 0})
+      ->Args({1, 1, 1, 0})
+      ->Args({2, 1, 1, 0})
+      ->Args({1, 1, 1, 24})
+      ->Args({2, 1, 1, 24})
+      ->Unit(benchmark::kMillisecond)
+      ->UseRealTime()
+      ->Repetitions(5)
+      ->ReportAggregatesOnly(true);
+}
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, torus, std::string("torus-textured-forward"))
-    ->Args({1, 0, 1, 0})
-    ->Args({1, 1, 0, 0})
-    ->Args({1, 1, 1, 0})
-    ->Args({2, 1, 1, 0})
-    ->Args({1, 1, 1, 24})
-    ->Args({2, 1, 1, 24})
-    ->Unit(benchmark::kMillisecond)
-    ->UseRealTime()
-    ->Repetitions(5)
-    ->ReportAggregatesOnly(true);
+    ->Apply(WindowAdjustmentSettings);
 BENCHMARK_CAPTURE(BM_KeyframeWindowAdjustment, armadillo, std::string("armadillo-textured-forward"))
-    ->Args({1, 0, 1, 0})
-    ->Args({1, 1, 0, 0})
-    ->Args({1, 1, 1, 0})
-    ->Args({2, 1, 1, 0})
-    ->Args({1, 1, 1, 24})
-    ->Args({2, 1, 1, 24})
-    ->Unit(benchmark::kMillisecond)
-    ->UseRealTime()
-    ->Repetitions(5)
-    ->ReportAggregatesOnly(true);
+    ->Apply(WindowAdjustmentSettings);
 
 void BM_SlamSequence(benchmark::State& state, const std::string& preset, bool keyframe_adjustment,
                      double mapping_budget_ms = 0, bool async_adjustment = false, bool paced = false,
