@@ -1,7 +1,9 @@
 #include "core/util/thread_pool.h"
 
+#include <algorithm>
 #include <atomic>
 #include <exception>
+#include <memory>
 
 namespace prism {
 
@@ -38,45 +40,65 @@ void ThreadPool::ParallelFor(std::ptrdiff_t begin, std::ptrdiff_t end, const std
                              std::ptrdiff_t grain) {
   if (end <= begin) return;
   if (grain < 1) grain = 1;
-  std::atomic<std::ptrdiff_t> next{begin};
-  std::atomic<int> active{0};
-  std::mutex done_mutex;
-  std::condition_variable done_cv;
-  std::exception_ptr error;
-  std::mutex error_mutex;
+  // The helpers' tasks share this state and may outlive the call: a helper still in the queue when the
+  // caller has claimed every chunk finds the call closed and does nothing. The caller waits only for the
+  // helpers that started (they read fn, which lives on the caller's stack), never for a helper queued
+  // behind other callers' work: two ParallelFor calls on one pool from different threads (sessions, or a
+  // stage and the SLAM) do not wait for each other.
+  struct Call {
+    std::atomic<std::ptrdiff_t> next{0};
+    std::ptrdiff_t end = 0;
+    std::ptrdiff_t grain = 1;
+    const std::function<void(std::ptrdiff_t)>* fn = nullptr;
+    std::mutex mutex;
+    std::condition_variable done;
+    int running = 0;           // helpers inside Run; guarded by mutex
+    bool closed = false;       // the caller has finished its own Run; guarded by mutex
+    std::exception_ptr error;  // guarded by mutex
 
-  auto run = [&] {
-    for (;;) {
-      const std::ptrdiff_t start = next.fetch_add(grain);
-      if (start >= end) break;
-      const std::ptrdiff_t stop = std::min(end, start + grain);
-      try {
-        for (std::ptrdiff_t i = start; i < stop; ++i) fn(i);
-      } catch (...) {
-        std::lock_guard<std::mutex> lock(error_mutex);
-        if (!error) error = std::current_exception();
-        next = end;
+    void Run() {
+      for (;;) {
+        const std::ptrdiff_t start = next.fetch_add(grain);
+        if (start >= end) break;
+        const std::ptrdiff_t stop = std::min(end, start + grain);
+        try {
+          for (std::ptrdiff_t i = start; i < stop; ++i) (*fn)(i);
+        } catch (...) {
+          std::lock_guard<std::mutex> lock(mutex);
+          if (!error) error = std::current_exception();
+          next = end;
+        }
       }
     }
   };
+  auto call = std::make_shared<Call>();
+  call->next = begin;
+  call->end = end;
+  call->grain = grain;
+  call->fn = &fn;
 
   const int helpers = static_cast<int>(std::min<std::ptrdiff_t>(workers_.size(), (end - begin + grain - 1) / grain));
-  active = helpers;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     for (int i = 0; i < helpers; ++i) {
-      tasks_.push([&] {
-        run();
-        std::lock_guard<std::mutex> l(done_mutex);
-        if (--active == 0) done_cv.notify_all();
+      tasks_.push([call] {
+        {
+          std::lock_guard<std::mutex> l(call->mutex);
+          if (call->closed) return;
+          ++call->running;
+        }
+        call->Run();
+        std::lock_guard<std::mutex> l(call->mutex);
+        if (--call->running == 0) call->done.notify_all();
       });
     }
   }
   cv_.notify_all();
-  run();
-  std::unique_lock<std::mutex> lock(done_mutex);
-  done_cv.wait(lock, [&] { return active.load() == 0; });
-  if (error) std::rethrow_exception(error);
+  call->Run();
+  std::unique_lock<std::mutex> lock(call->mutex);
+  call->closed = true;
+  call->done.wait(lock, [&] { return call->running == 0; });
+  if (call->error) std::rethrow_exception(call->error);
 }
 
 }  // namespace prism

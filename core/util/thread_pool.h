@@ -25,6 +25,9 @@ class ThreadPool {
 
   // Runs fn(i) for i in [begin, end) on the pool and the calling thread; returns when all are done.
   // Indices are handed out in chunks of `grain`. An exception in fn is rethrown here (the first one).
+  // Calls from several threads share the workers: a call waits only for the workers that took part in
+  // it, never for its helper tasks still queued behind another call's work (the calling thread then
+  // runs the rest itself), so one caller's long loop does not hold up another's short one.
   void ParallelFor(std::ptrdiff_t begin, std::ptrdiff_t end, const std::function<void(std::ptrdiff_t)>& fn,
                    std::ptrdiff_t grain = 1);
 

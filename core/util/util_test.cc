@@ -1,4 +1,7 @@
 #include <atomic>
+#include <chrono>
+#include <future>
+#include <thread>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -61,6 +64,38 @@ TEST(ThreadPoolTest, ExceptionIsRethrown) {
   std::atomic<int> n{0};
   pool.ParallelFor(0, 10, [&](std::ptrdiff_t) { n++; });
   EXPECT_EQ(n.load(), 10);
+}
+
+// Two ParallelFor calls from different threads share the pool's worker. The first call's work blocks
+// until the second call has returned; the second's helper task sits in the queue behind the first's,
+// so the second call must not wait for that helper (it runs every index itself and returns).
+TEST(ThreadPoolTest, ACallDoesNotWaitForAnotherCallsWork) {
+  ThreadPool pool(2);
+  std::promise<void> release;
+  std::shared_future<void> released = release.get_future().share();
+  std::atomic<int> blocked{0};
+  std::thread first([&] {
+    pool.ParallelFor(0, 2, [&](std::ptrdiff_t) {
+      ++blocked;
+      released.wait();
+    });
+  });
+  // Both threads of the pool (the worker and `first`) are inside the first call's work.
+  while (blocked.load() < 2) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  std::atomic<int> n{0};
+  std::future<void> second =
+      std::async(std::launch::async, [&] { pool.ParallelFor(0, 100, [&](std::ptrdiff_t) { n++; }); });
+  // Generous: the second call's own work is 100 increments. Without the fix it returns only after release.
+  const bool returned = second.wait_for(std::chrono::seconds(30)) == std::future_status::ready;
+  release.set_value();
+  first.join();
+  second.wait();
+  EXPECT_TRUE(returned) << "the second ParallelFor waited for the first call's work";
+  EXPECT_EQ(n.load(), 100);
+  // The stale helper of the second call ran as a no-op; the pool still works.
+  std::atomic<int> m{0};
+  pool.ParallelFor(0, 10, [&](std::ptrdiff_t) { m++; });
+  EXPECT_EQ(m.load(), 10);
 }
 
 }  // namespace
