@@ -1,6 +1,7 @@
 #include <atomic>
 #include <chrono>
 #include <future>
+#include <memory>
 #include <thread>
 #include <vector>
 
@@ -96,6 +97,32 @@ TEST(ThreadPoolTest, ACallDoesNotWaitForAnotherCallsWork) {
   std::atomic<int> m{0};
   pool.ParallelFor(0, 10, [&](std::ptrdiff_t) { m++; });
   EXPECT_EQ(m.load(), 10);
+}
+
+// A call made from inside another call's loop (both threads of the pool in the outer loop): each inner
+// call runs its indices itself and returns; its helper task, queued behind the outer loop's, no longer has
+// to run first. With the old pool both threads waited for helpers only they could run, for ever.
+TEST(ThreadPoolTest, ACallInsideAnotherCallsLoopReturns) {
+  // The pool and the calling thread are leaked when the calls never return, so that the test fails
+  // instead of hanging (a detached thread; std::async's future would wait in its destructor).
+  auto* pool = new ThreadPool(2);
+  auto inner_sum = std::make_shared<std::atomic<int>>(0);
+  auto done = std::make_shared<std::promise<void>>();
+  std::future<void> returned = done->get_future();
+  std::thread([pool, inner_sum, done] {
+    std::atomic<int> entered{0};
+    pool->ParallelFor(0, 2, [&](std::ptrdiff_t) {
+      // Both threads inside the outer loop before either calls again.
+      ++entered;
+      while (entered.load() < 2) std::this_thread::yield();
+      pool->ParallelFor(0, 50, [&](std::ptrdiff_t) { ++*inner_sum; });
+    });
+    done->set_value();
+  }).detach();
+  ASSERT_EQ(returned.wait_for(std::chrono::seconds(30)), std::future_status::ready)
+      << "a ParallelFor inside another one's loop did not return";
+  EXPECT_EQ(inner_sum->load(), 100);
+  delete pool;
 }
 
 }  // namespace
