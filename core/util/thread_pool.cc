@@ -43,8 +43,8 @@ void ThreadPool::ParallelFor(std::ptrdiff_t begin, std::ptrdiff_t end, const std
   // The helpers' tasks share this state and may outlive the call: a helper still in the queue when the
   // caller has claimed every chunk finds the call closed and does nothing. The caller waits only for the
   // helpers that started (they read fn, which lives on the caller's stack), never for a helper queued
-  // behind other callers' work: two ParallelFor calls on one pool from different threads (sessions, or a
-  // stage and the SLAM) do not wait for each other.
+  // behind other callers' work: two ParallelFor calls on one pool from different threads (prism-server's
+  // dense workers) do not wait for each other.
   struct Call {
     std::atomic<std::ptrdiff_t> next{0};
     std::ptrdiff_t end = 0;
