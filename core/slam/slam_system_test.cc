@@ -509,6 +509,30 @@ TEST(SlamSystem, CorrectsTheScaleDriftOfTheUniformSphere) {
   EXPECT_LT(metric_after->pair_spread, metric_before->pair_spread);
 }
 
+// The uniform sphere's seed 2, the run that missed the bar longest: its shading is the same from
+// every direction and its path's scale drifts along the arc (2.64 -> 2.05 units per metre over 140
+// frames). With each keyframe's propagated depth at 1% relative sigma (the default before the
+// fifty-seventh round) prism-slam ends at 2.00% of path; at 1.25% (the default) the new stereo re-anchors
+// each keyframe's scale to the tracked motion and it ends at 0.86% (seeds 1-9: 7 -> 8 of 9 within 1%;
+// README, fifty-seventh round).
+constexpr double kUniformSphereMaxAtePercent = 1.0;  // the bar
+TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
+  Rendered r;
+  std::string why;
+  if (!Render("sphere-uniform-sideways", 150, 1, &r, &why, /*seed=*/2)) GTEST_SKIP() << "preset unavailable: " << why;
+  ThreadPool pool(2);
+  const SlamOptions options;
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
+  ASSERT_TRUE(slam.ok()) << slam.status();
+  std::vector<SlamKeyframe> keyframes;
+  ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
+  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
+  ASSERT_TRUE(ate.ok()) << ate.status();
+  std::printf("uniform sphere, seed 2: ATE %.3f%% of path, %zu keyframes\n", PercentOfPath(*ate), keyframes.size());
+  EXPECT_EQ(TrackedPoses((*slam)->Trajectory()).size(), r.trajectory.size()) << "every frame tracked";
+  EXPECT_LE(PercentOfPath(*ate), kUniformSphereMaxAtePercent);
+}
+
 // The uniform bunny's seed 1 starts in the bas-relief valley (the test above: ATE 3.9% of path). The
 // online start check sees it after 6 keyframes and a second start with a longer baseline replaces it.
 constexpr double kStartCheckAtePercent = 1.0;  // the bar
