@@ -66,6 +66,8 @@ Status DepthFilterOptions::Check() const {
   if (local_mean_radius_px < 1 || local_mean_radius_px > 32)
     return InvalidArgumentError("DepthFilterOptions: local_mean_radius_px must be in [1, 32]");
   if (!(local_mean_floor > 0)) return InvalidArgumentError("DepthFilterOptions: local_mean_floor must be > 0");
+  if (!(max_local_mean_log_gradient >= 0))
+    return InvalidArgumentError("DepthFilterOptions: max_local_mean_log_gradient must be >= 0");
   if (!(min_local_mean >= 0 && min_local_mean <= 255))
     return InvalidArgumentError("DepthFilterOptions: min_local_mean must be in [0, 255]");
   if (!(regularise_sigmas > 0)) return InvalidArgumentError("DepthFilterOptions: regularise_sigmas must be > 0");
@@ -163,6 +165,24 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
     return InvalidArgumentError("KeyframeDepth: the crosstalk matrix must be invertible for the light edges");
   // Empty when the light edges are off (no mask to allocate and read per keyframe).
   const cv::Mat light_edge = options.light_edge_radius_px > 0 ? LightEdgeMask(rgb, crosstalk, options) : cv::Mat();
+  // Where the local mean changes fast (DepthFilterOptions::max_local_mean_log_gradient): 255.
+  cv::Mat mean_edge;
+  if (options.max_local_mean_log_gradient > 0) {
+    mean_edge = cv::Mat::zeros(h, w, CV_8U);
+    const int r = options.local_mean_radius_px;
+    const float limit = static_cast<float>(options.max_local_mean_log_gradient);
+    const float floor = static_cast<float>(options.local_mean_floor);
+    for (int y = r; y < h - r; ++y) {
+      const float* m = local_mean.ptr<float>(y);
+      const float* mu = local_mean.ptr<float>(y - r);
+      const float* md = local_mean.ptr<float>(y + r);
+      uint8_t* e = mean_edge.ptr<uint8_t>(y);
+      for (int x = r; x < w - r; ++x) {
+        const float gx = (m[x + r] - m[x - r]) / (2.0f * r), gy = (md[x] - mu[x]) / (2.0f * r);
+        e[x] = std::sqrt(gx * gx + gy * gy) > limit * (m[x] + floor) ? 255 : 0;
+      }
+    }
+  }
   auto candidates = std::make_shared<Candidates>();
   candidates->row_begin.assign(static_cast<size_t>(h) + 1, 0);
   // Every pixel's index is written at the end of the list and kept (the count advanced) when it is a
@@ -179,11 +199,13 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
     float* gx = kd.grad_x_.ptr<float>(y);
     float* gy = kd.grad_y_.ptr<float>(y);
     const uint8_t* le = light_edge.empty() ? nullptr : light_edge.ptr<uint8_t>(y);
+    const uint8_t* me = mean_edge.empty() ? nullptr : mean_edge.ptr<uint8_t>(y);
     for (int x = 1; x < w - 1; ++x) {
       gx[x] = 0.5f * (row[x + 1] - row[x - 1]);
       gy[x] = 0.5f * (down[x] - up[x]);
       const bool inside = !(x < border || y < border || x >= w - border || y >= h - border);
-      const bool keep = inside && !(m[x] < min_mean) && !(gx[x] * gx[x] + gy[x] * gy[x] < min_g2) && !(le && le[x]);
+      const bool keep =
+          inside && !(m[x] < min_mean) && !(gx[x] * gx[x] + gy[x] * gy[x] < min_g2) && !(le && le[x]) && !(me && me[x]);
       index[count] = static_cast<uint32_t>(y * w + x);
       count += keep;
     }

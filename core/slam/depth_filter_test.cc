@@ -303,6 +303,57 @@ TEST(KeyframeDepth, LightEdgesAreNotCandidates) {
   EXPECT_FALSE(KeyframeDepth::Create(f.rgb, seq.setup.rig.camera, with, Eigen::Matrix3d::Zero()).ok());
 }
 
+// The local mean's edge test (max_local_mean_log_gradient): beside a bright disc on a dim textured
+// ground the ground's J carries the disc's outline through the local mean; those pixels are no
+// candidates, while the ground far from the disc and a smooth brightness ramp keep theirs.
+TEST(KeyframeDepth, PixelsBesideABrightOutlineAreNotCandidates) {
+  PinholeCamera camera;
+  camera.width = 160;
+  camera.height = 160;
+  camera.fx = camera.fy = 150;
+  camera.cx = camera.cy = 79.5;
+  // Ground: a checker of 4 px squares at 35 / 55 grey levels on a ramp of +0.2% per pixel in x; the
+  // disc: radius 30 px at 200, no texture.
+  cv::Mat rgb(camera.height, camera.width, CV_8UC3);
+  const double radius = 30;
+  for (int y = 0; y < rgb.rows; ++y)
+    for (int x = 0; x < rgb.cols; ++x) {
+      const bool disc = std::hypot(x - 80.0, y - 80.0) < radius;
+      const double ground = (((x / 4) + (y / 4)) % 2 ? 35.0 : 55.0) * (1.0 + 0.002 * x);
+      const auto v = static_cast<uint8_t>(std::lround(disc ? 200.0 : ground));
+      rgb.at<cv::Vec3b>(y, x) = cv::Vec3b(v, v, v);
+    }
+  DepthFilterOptions off;
+  off.min_local_mean = 20;
+  DepthFilterOptions on = off;
+  on.max_local_mean_log_gradient = 0.03;
+  StatusOr<KeyframeDepth> plain = KeyframeDepth::Create(rgb, camera, off);
+  StatusOr<KeyframeDepth> masked = KeyframeDepth::Create(rgb, camera, on);
+  ASSERT_TRUE(plain.ok() && masked.ok());
+  cv::Mat seed(rgb.size(), CV_32F, cv::Scalar(1.0f));
+  plain->Seed(seed, 0.05, 3);
+  masked->Seed(seed, 0.05, 3);
+  const InverseDepthMap a = plain->ToInverseDepthMap(), b = masked->ToInverseDepthMap();
+  const int r = on.local_mean_radius_px;
+  int near_kept = 0, near_plain = 0, far_kept = 0, far_plain = 0, added = 0;
+  for (int y = 0; y < rgb.rows; ++y)
+    for (int x = 0; x < rgb.cols; ++x) {
+      const bool in_a = a.inverse_depth.at<float>(y, x) > 0, in_b = b.inverse_depth.at<float>(y, x) > 0;
+      added += in_b && !in_a;
+      const double outside = std::hypot(x - 80.0, y - 80.0) - radius;
+      if (outside > 1 && outside < 0.5 * r) near_plain += in_a, near_kept += in_b;
+      // Far from the disc: the outline is at least two boxes away.
+      if (outside > 2.5 * r) far_plain += in_a, far_kept += in_b;
+    }
+  EXPECT_EQ(added, 0);
+  EXPECT_GT(near_plain, 50);
+  EXPECT_EQ(near_kept, 0);
+  EXPECT_GT(far_plain, 200);
+  EXPECT_EQ(far_kept, far_plain);
+  std::printf("beside the outline %d -> %d candidates with output, far from it %d -> %d\n", near_plain, near_kept,
+              far_plain, far_kept);
+}
+
 // Blank() is what Create gives for the same image: propagating into either gives the same estimates, to
 // the last bit, however much the depth Blank() was taken from had been estimated already.
 TEST(KeyframeDepth, BlankIsCreateOfTheSameImage) {
@@ -466,6 +517,9 @@ TEST(DepthFilterOptions, RejectsInvalidValues) {
   EXPECT_FALSE(o.Check().ok());
   o = DepthFilterOptions();
   o.skip_information_ratio = -1;
+  EXPECT_FALSE(o.Check().ok());
+  o = DepthFilterOptions();
+  o.max_local_mean_log_gradient = -0.01;
   EXPECT_FALSE(o.Check().ok());
 }
 

@@ -457,10 +457,13 @@ StatusOr<std::unique_ptr<SlamSystem::Impl>> SlamSystem::NewImpl(const RigCalibra
   // 0.9%, without).
   // The initialisation's KLT on J (init_track_normalised) cancels the same lights' shading; without them
   // raw grey everywhere, as before (KITTI 06: 0.17% of path so, 3.9% on J with a floor of 20). The final
-  // adjustment's gradient weight targets the edges those lights move: off without them.
+  // adjustment's gradient weight targets the edges those lights move: off without them. So does the
+  // local mean's edge test (depth.max_local_mean_log_gradient): without co-moving lights the local mean's
+  // pattern moves with the scene.
   if (!AnyLight(rig)) {
     impl->options.tracker.camera_attached_min_votes = 0;
     impl->options.depth.camera_attached_min_votes = 0;
+    impl->options.depth.max_local_mean_log_gradient = 0;
     impl->options.init_track_normalised = false;
     impl->options.init_min_feature_local_mean = 0;
     impl->options.final_adjustment_ba.gradient_weight_c = 0;
