@@ -179,7 +179,15 @@ StatusOr<KeyframeDepth> KeyframeDepth::Create(const cv::Mat& rgb, const PinholeC
       uint8_t* e = mean_edge.ptr<uint8_t>(y);
       for (int x = r; x < w - r; ++x) {
         const float gx = (m[x + r] - m[x - r]) / (2.0f * r), gy = (md[x] - mu[x]) / (2.0f * r);
-        e[x] = std::sqrt(gx * gx + gy * gy) > limit * (m[x] + floor) ? 255 : 0;
+        const float g = std::sqrt(gx * gx + gy * gy);
+        e[x] = g > limit * (m[x] + floor) ? 255 : 0;
+        if (e[x] && options.local_mean_edge_dim_side_only) {
+          // The dim side of the mean's ramp curves up along the gradient, the bright side down.
+          const int dx = static_cast<int>(std::lround(r * gx / g)), dy = static_cast<int>(std::lround(r * gy / g));
+          const int xa = std::clamp(x + dx, 0, w - 1), ya = std::clamp(y + dy, 0, h - 1);
+          const int xb = std::clamp(x - dx, 0, w - 1), yb = std::clamp(y - dy, 0, h - 1);
+          if (local_mean.at<float>(ya, xa) + local_mean.at<float>(yb, xb) - 2 * m[x] <= 0) e[x] = 0;
+        }
       }
     }
   }

@@ -72,13 +72,14 @@ struct DepthFilterOptions {
   // mean's own pattern (a bright object's outline beside a dim ground; the co-moving shading), which
   // stays put in the image while the surface slides under it. The test: |grad mean| / (mean + floor) >
   // this, the gradient by central differences over local_mean_radius_px, per pixel. 0 = off, >= 0.
-  // Off: measured in SlamSystem (fifty-eighth round, its radius 12 and floor 4) at 0.03, the 54 standard
-  // runs stay 54 within 1% ATE with the geometric mean 0.138 -> 0.153% (lower on 22 of 54), 50 within
-  // the 3% depth bar (49) and all 54 within 5% (52), the depth error lower on 41 of 54 (worst 10.7 ->
-  // 5.0%), the uniform sphere's seeds 1-6 0.489 -> 0.357% ATE, but the coverage 18.6 -> 15.7% of the
-  // image in the median and the held-out seeds 7-9 0.152 -> 0.192% ATE (lower on 7 of 27). 0.04: 54,
-  // 0.147%, 48 within 3% depth.
+  // Off here; SlamOptions::depth sets 0.03 with the dim side only (see there). Both sides at 0.03 on the
+  // 54 standard runs (fifty-eighth round): 54 within 1% ATE, geometric mean 0.138 -> 0.153% (lower on
+  // 22 of 54), 50 within the 3% depth bar (49), coverage 18.6 -> 15.7% of the image in the median;
+  // 0.04: 54, 0.147%, 48.
   double max_local_mean_log_gradient = 0.0;
+  // Only the dim side of such an edge (the mean curving up along its gradient, sampled at the box's
+  // radius on either side): the ground beside a bright object, not the object's own rim.
+  bool local_mean_edge_dim_side_only = false;
   // Regularisation: an estimate is replaced by the inverse-variance weighted mean of the 3x3
   // neighbours within this many sigmas of it, > 0; estimates with fewer than `min_neighbours` such
   // neighbours are dropped, in [0, 8].

@@ -65,6 +65,7 @@ void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Fie
   f->push_back({p + "propagation_relative_sigma", &d.propagation_relative_sigma});
   f->push_back({p + "local_mean_radius_px", &d.local_mean_radius_px});
   f->push_back({p + "max_local_mean_log_gradient", &d.max_local_mean_log_gradient});
+  f->push_back({p + "local_mean_edge_dim_side_only", &d.local_mean_edge_dim_side_only});
   f->push_back({p + "local_mean_floor", &d.local_mean_floor});
   f->push_back({p + "min_local_mean", &d.min_local_mean});
   f->push_back({p + "regularise_sigmas", &d.regularise_sigmas});

@@ -514,7 +514,7 @@ TEST(SlamSystem, CorrectsTheScaleDriftOfTheUniformSphere) {
 // frames). With each keyframe's propagated depth at 1% relative sigma (the default before the
 // fifty-seventh round) prism-slam ends at 2.00% of path; at 1.25% (the default) the new stereo re-anchors
 // each keyframe's scale to the tracked motion and it ends at 0.86% (seeds 1-9: 7 -> 8 of 9 within 1%;
-// README, fifty-seventh round).
+// README, fifty-seventh round); 0.57% with the local mean's edge test (fifty-eighth round).
 constexpr double kUniformSphereMaxAtePercent = 1.0;  // the bar
 TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
   Rendered r;
@@ -532,6 +532,47 @@ TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
   std::printf("uniform sphere, seed 2: ATE %.3f%% of path, %zu keyframes\n", PercentOfPath(*ate), keyframes.size());
   EXPECT_EQ(tracked.size(), r.trajectory.size()) << "every frame tracked";
   EXPECT_LE(PercentOfPath(*ate), kUniformSphereMaxAtePercent);
+}
+
+// The uniform sphere's seed 4, the run furthest over the depth bar before the fifty-eighth round
+// (10.7%): its ground beside the bright sphere took the sphere's outline into J through the local mean,
+// a pattern that stays put in the image while the ground slides under it. With the dim side of the
+// local mean's edges left out (DepthFilterOptions::max_local_mean_log_gradient, on in SlamOptions)
+// prism-slam's keyframe depth is within 2.83% in the median (README, fifty-eighth round).
+constexpr double kUniformSphereMaxDepthMedian = 0.03;  // the bar
+
+TEST(SlamSystem, TheUniformSpheresSeed4DepthIsWithinTheBar) {
+  Rendered r;
+  std::string why;
+  if (!Render("sphere-uniform-sideways", 150, 1, &r, &why, /*seed=*/4)) GTEST_SKIP() << "preset unavailable: " << why;
+  ThreadPool pool(2);
+  const SlamOptions options;
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
+  ASSERT_TRUE(slam.ok()) << slam.status();
+  std::vector<SlamKeyframe> keyframes;
+  ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
+  const Trajectory tracked = TrackedPoses((*slam)->Trajectory());
+  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, tracked);
+  ASSERT_TRUE(ate.ok()) << ate.status();
+  const std::vector<Sim3d> poses = (*slam)->KeyframePoses();
+  std::vector<double> rel;
+  for (const SlamKeyframe& k : keyframes) {
+    const double scale = ate->gt_from_est.scale * poses[static_cast<size_t>(k.id)].scale;
+    const cv::Mat& gt = r.frames[static_cast<size_t>(k.frame_id)].depth;
+    for (int y = 0; y < gt.rows; ++y)
+      for (int x = 0; x < gt.cols; ++x) {
+        const float d = k.depth.inverse_depth.at<float>(y, x);
+        const float z = gt.at<float>(y, x);
+        if (d > 0 && z > 0) rel.push_back(std::abs(scale / d - z) / z);
+      }
+  }
+  ASSERT_GT(rel.size(), 100000u);
+  std::nth_element(rel.begin(), rel.begin() + rel.size() / 2, rel.end());
+  const double depth_median = rel[rel.size() / 2];
+  std::printf("uniform sphere, seed 4: ATE %.3f%% of path, depth median rel error %.4f on %zu pixels\n",
+              PercentOfPath(*ate), depth_median, rel.size());
+  EXPECT_LE(PercentOfPath(*ate), kUniformSphereMaxAtePercent);
+  EXPECT_LE(depth_median, kUniformSphereMaxDepthMedian);
 }
 
 // The uniform bunny's seed 1 starts in the bas-relief valley (the test above: ATE 3.9% of path). The
