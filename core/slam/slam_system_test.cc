@@ -1218,6 +1218,17 @@ TEST(SlamSystem, KeyframesMadeWhileTheAdjustmentRunsFollowItWhenItIsApplied) {
 // The first keyframe's depth against the truth: the tilt c of log(estimated / true inverse depth) =
 // a + b x + c y over the image (normalised coordinates, pixels within 20%), least squares.
 double FirstDepthTilt(const SlamKeyframe& k, const cv::Mat& true_depth, const PinholeCamera& camera) {
+  // The depth's unit is arbitrary: the cut below is around the median of log(d z), not around 0 (a unit
+  // more than 22% from the truth's left no pixel, and a tilt of 0).
+  std::vector<double> logs;
+  for (int y = 0; y < true_depth.rows; ++y)
+    for (int x = 0; x < true_depth.cols; ++x) {
+      const float d = k.depth.inverse_depth.at<float>(y, x), z = true_depth.at<float>(y, x);
+      if (d > 0 && z > 0) logs.push_back(std::log(d * z));
+    }
+  if (logs.empty()) return 0;
+  std::nth_element(logs.begin(), logs.begin() + logs.size() / 2, logs.end());
+  const double unit = logs[logs.size() / 2];
   Eigen::Matrix3d a = Eigen::Matrix3d::Zero();
   Eigen::Vector3d b = Eigen::Vector3d::Zero();
   for (int y = 0; y < true_depth.rows; ++y)
@@ -1225,7 +1236,7 @@ double FirstDepthTilt(const SlamKeyframe& k, const cv::Mat& true_depth, const Pi
       const float d = k.depth.inverse_depth.at<float>(y, x), z = true_depth.at<float>(y, x);
       if (!(d > 0 && z > 0)) continue;
       const double e = std::log(d * z);
-      if (std::abs(e) > 0.2) continue;
+      if (std::abs(e - unit) > 0.2) continue;
       const Eigen::Vector3d j(1, (x - camera.cx) / camera.fx, (y - camera.cy) / camera.fy);
       a += j * j.transpose();
       b += j * e;
@@ -1237,11 +1248,12 @@ double FirstDepthTilt(const SlamKeyframe& k, const cv::Mat& true_depth, const Pi
 // 30 frames) the first depth map is tilted across the image's rows (the ground's relief wrong, which
 // the tracker then trades for rotation). Estimating the depth again at the re-tracked poses
 // straightens it. Measured: tilt 0.314 with one round, 0.120 with three; since the thirty-fifth round's
-// 25x25 normalisation box 0.118 and 0.077. (The 150-frame preset, seed 1, before that: -0.271 and
-// -0.163, the error at the image's top and bottom edge 12.6% and 7.6%.)
+// 25x25 normalisation box 0.118 and 0.077; since the fifty-eighth round's local-mean edge test (and the
+// cut around the median unit in FirstDepthTilt) -0.128 and -0.100. (The 150-frame preset, seed 1, before that: -0.271
+// and -0.163, the error at the image's top and bottom edge 12.6% and 7.6%.)
 TEST(SlamSystem, MoreInitialisationRoundsStraightenTheFirstDepth) {
-  constexpr double kMinTilt = 0.1;       // |tilt, 1 round|: the premise; measured 0.118 (0.314 with 17x17)
-  constexpr double kMaxTiltRatio = 0.8;  // |tilt, 3 rounds| / |tilt, 1 round|; measured 0.65 (0.38 with 17x17)
+  constexpr double kMinTilt = 0.1;       // |tilt, 1 round|: the premise; measured 0.128 (0.314 with 17x17)
+  constexpr double kMaxTiltRatio = 0.8;  // |tilt, 3 rounds| / |tilt, 1 round|; measured 0.79 (0.38 with 17x17)
   Rendered r;
   std::string why;
   if (!Render("torus-textured-forward", 30, /*supersampling=*/1, &r, &why))
@@ -1264,7 +1276,7 @@ TEST(SlamSystem, MoreInitialisationRoundsStraightenTheFirstDepth) {
         FirstDepthTilt(keyframes[0], r.frames[static_cast<size_t>(keyframes[0].frame_id)].depth, r.setup.rig.camera);
     std::printf("init_rounds %d: first depth tilt %.4f\n", options.init_rounds, tilt[run]);
   }
-  EXPECT_GT(std::abs(tilt[0]), kMinTilt) << "the one-round first depth is tilted (measured 0.118)";
+  EXPECT_GT(std::abs(tilt[0]), kMinTilt) << "the one-round first depth is tilted (measured 0.128)";
   EXPECT_LT(std::abs(tilt[1]), kMaxTiltRatio * std::abs(tilt[0]));
 }
 
