@@ -516,22 +516,41 @@ TEST(SlamSystem, CorrectsTheScaleDriftOfTheUniformSphere) {
 // each keyframe's scale to the tracked motion and it ends at 0.86% (seeds 1-9: 7 -> 8 of 9 within 1%;
 // README, fifty-seventh round); 0.57% with the local mean's edge test (fifty-eighth round).
 constexpr double kUniformSphereMaxAtePercent = 1.0;  // the bar
-TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
+
+// One uniform-sphere seed as prism-slam runs it (default options, refinement rounds included).
+struct UniformSphereRun {
   Rendered r;
-  std::string why;
-  if (!Render("sphere-uniform-sideways", 150, 1, &r, &why, /*seed=*/2)) GTEST_SKIP() << "preset unavailable: " << why;
+  std::vector<SlamKeyframe> keyframes;
+  std::vector<Sim3d> keyframe_poses;
+  Trajectory tracked;
+  AteResult ate;
+};
+// False (and *why) when the preset cannot be rendered; fatal failures on errors.
+bool RunUniformSphere(int seed, UniformSphereRun* run, std::string* why) {
+  if (!Render("sphere-uniform-sideways", 150, 1, &run->r, why, seed)) return false;
   ThreadPool pool(2);
   const SlamOptions options;
-  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
-  ASSERT_TRUE(slam.ok()) << slam.status();
-  std::vector<SlamKeyframe> keyframes;
-  ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
-  const Trajectory tracked = TrackedPoses((*slam)->Trajectory());
-  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, tracked);
-  ASSERT_TRUE(ate.ok()) << ate.status();
-  std::printf("uniform sphere, seed 2: ATE %.3f%% of path, %zu keyframes\n", PercentOfPath(*ate), keyframes.size());
-  EXPECT_EQ(tracked.size(), r.trajectory.size()) << "every frame tracked";
-  EXPECT_LE(PercentOfPath(*ate), kUniformSphereMaxAtePercent);
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(run->r.setup.rig, options, &pool);
+  EXPECT_TRUE(slam.ok()) << slam.status();
+  if (!slam.ok()) return true;
+  RunAsPrismSlam(run->r, options, slam->get(), &run->keyframes);
+  run->tracked = TrackedPoses((*slam)->Trajectory());
+  run->keyframe_poses = (*slam)->KeyframePoses();
+  StatusOr<AteResult> ate = Sim3Ate(run->r.trajectory, run->tracked);
+  EXPECT_TRUE(ate.ok()) << ate.status();
+  if (ate.ok()) run->ate = *ate;
+  return true;
+}
+
+TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
+  UniformSphereRun run;
+  std::string why;
+  if (!RunUniformSphere(2, &run, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ASSERT_FALSE(HasFailure());
+  std::printf("uniform sphere, seed 2: ATE %.3f%% of path, %zu keyframes\n", PercentOfPath(run.ate),
+              run.keyframes.size());
+  EXPECT_EQ(run.tracked.size(), run.r.trajectory.size()) << "every frame tracked";
+  EXPECT_LE(PercentOfPath(run.ate), kUniformSphereMaxAtePercent);
 }
 
 // The uniform sphere's seed 4, the run furthest over the depth bar before the fifty-eighth round
@@ -542,19 +561,14 @@ TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
 constexpr double kUniformSphereMaxDepthMedian = 0.03;  // the bar
 
 TEST(SlamSystem, TheUniformSpheresSeed4DepthIsWithinTheBar) {
-  Rendered r;
+  UniformSphereRun run;
   std::string why;
-  if (!Render("sphere-uniform-sideways", 150, 1, &r, &why, /*seed=*/4)) GTEST_SKIP() << "preset unavailable: " << why;
-  ThreadPool pool(2);
-  const SlamOptions options;
-  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
-  ASSERT_TRUE(slam.ok()) << slam.status();
-  std::vector<SlamKeyframe> keyframes;
-  ASSERT_NO_FATAL_FAILURE(RunAsPrismSlam(r, options, slam->get(), &keyframes));
-  const Trajectory tracked = TrackedPoses((*slam)->Trajectory());
-  StatusOr<AteResult> ate = Sim3Ate(r.trajectory, tracked);
-  ASSERT_TRUE(ate.ok()) << ate.status();
-  const std::vector<Sim3d> poses = (*slam)->KeyframePoses();
+  if (!RunUniformSphere(4, &run, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ASSERT_FALSE(HasFailure());
+  const Rendered& r = run.r;
+  const std::vector<SlamKeyframe>& keyframes = run.keyframes;
+  const std::vector<Sim3d>& poses = run.keyframe_poses;
+  const AteResult* ate = &run.ate;
   std::vector<double> rel;
   for (const SlamKeyframe& k : keyframes) {
     const double scale = ate->gt_from_est.scale * poses[static_cast<size_t>(k.id)].scale;
