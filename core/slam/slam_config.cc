@@ -108,6 +108,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"init_residual_factor", &o.init_residual_factor});
   f.push_back({"init_rounds", &o.init_rounds});
   f.push_back({"init_threads", &o.init_threads});
+  f.push_back({"init_depth_edge_test", &o.init_depth_edge_test});
   f.push_back({"new_pixel_relative_sigma", &o.new_pixel_relative_sigma});
   f.push_back({"tracker_refresh_frames", &o.tracker_refresh_frames});
   f.push_back({"depth_update_interval", &o.depth_update_interval});

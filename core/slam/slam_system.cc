@@ -820,7 +820,9 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
   const cv::Mat dense = DensifyInverseDepth(sparse, dens);
 
   const InitFrame& first = init_frames.front();
-  StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(first.rgb, cam, options.depth, rig.crosstalk);
+  DepthFilterOptions init_depth = options.depth;
+  if (!options.init_depth_edge_test) init_depth.max_local_mean_log_gradient = 0;
+  StatusOr<KeyframeDepth> kd = KeyframeDepth::Create(first.rgb, cam, init_depth, rig.crosstalk);
   if (!kd.ok()) {
     *why = kd.status().ToString();
     return false;
@@ -860,7 +862,7 @@ bool SlamSystem::Impl::TryInitialise(std::string* why) {
     if (pass >= 2) {
       // A further round: the depth estimated again from the seed, by stereo with every buffered frame at
       // the poses of the previous pass, then the frames tracked again on it.
-      StatusOr<KeyframeDepth> fresh = KeyframeDepth::Create(first.rgb, cam, options.depth, rig.crosstalk);
+      StatusOr<KeyframeDepth> fresh = KeyframeDepth::Create(first.rgb, cam, init_depth, rig.crosstalk);
       if (!fresh.ok()) {
         *why = fresh.status().ToString();
         return false;

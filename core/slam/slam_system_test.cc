@@ -517,7 +517,8 @@ TEST(SlamSystem, CorrectsTheScaleDriftOfTheUniformSphere) {
 // README, fifty-seventh round); 0.57% with the local mean's edge test (fifty-eighth round).
 constexpr double kUniformSphereMaxAtePercent = 1.0;  // the bar
 
-// One uniform-sphere seed as prism-slam runs it (default options, refinement rounds included).
+// One uniform-sphere seed as prism-slam runs it (refinement rounds included; default options unless
+// given), from the sideways start unless another preset is named.
 struct UniformSphereRun {
   Rendered r;
   std::vector<SlamKeyframe> keyframes;
@@ -526,10 +527,10 @@ struct UniformSphereRun {
   AteResult ate;
 };
 // False (and *why) when the preset cannot be rendered; fatal failures on errors.
-bool RunUniformSphere(int seed, UniformSphereRun* run, std::string* why) {
-  if (!Render("sphere-uniform-sideways", 150, 1, &run->r, why, seed)) return false;
+bool RunUniformSphere(int seed, UniformSphereRun* run, std::string* why, const SlamOptions& options = SlamOptions(),
+                      const std::string& preset = "sphere-uniform-sideways") {
+  if (!Render(preset, 150, 1, &run->r, why, seed)) return false;
   ThreadPool pool(2);
-  const SlamOptions options;
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(run->r.setup.rig, options, &pool);
   EXPECT_TRUE(slam.ok()) << slam.status();
   if (!slam.ok()) return true;
@@ -587,6 +588,25 @@ TEST(SlamSystem, TheUniformSpheresSeed4DepthIsWithinTheBar) {
               PercentOfPath(*ate), depth_median, rel.size());
   EXPECT_LE(PercentOfPath(*ate), kUniformSphereMaxAtePercent);
   EXPECT_LE(depth_median, kUniformSphereMaxDepthMedian);
+}
+
+// The uniform sphere's forward start (outside the standard nine), seed 2: with the local mean's edge test
+// in the first keyframe's depth (the default) prism-slam ends at 1.30% of path; without it there
+// (SlamOptions::init_depth_edge_test false) at 0.50% (README, fifty-ninth round). There the edge test
+// takes the ground beside the sphere from the first keyframe's depth; why the start is better with that
+// ground kept was not isolated.
+TEST(SlamSystem, TheUniformSpheresForwardStartWithoutTheEdgeTestInTheFirstDepth) {
+  UniformSphereRun run;
+  std::string why;
+  SlamOptions options;
+  options.init_depth_edge_test = false;
+  if (!RunUniformSphere(2, &run, &why, options, "sphere-uniform-forward"))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  ASSERT_FALSE(HasFailure());
+  std::printf("uniform sphere, forward start, seed 2: ATE %.3f%% of path, %zu keyframes\n", PercentOfPath(run.ate),
+              run.keyframes.size());
+  EXPECT_EQ(run.tracked.size(), run.r.trajectory.size()) << "every frame tracked";
+  EXPECT_LE(PercentOfPath(run.ate), kUniformSphereMaxAtePercent);
 }
 
 // The uniform bunny's seed 1 starts in the bas-relief valley (the test above: ATE 3.9% of path). The
