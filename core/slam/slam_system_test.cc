@@ -543,15 +543,19 @@ bool RunUniformSphere(int seed, UniformSphereRun* run, std::string* why, const S
   return true;
 }
 
+// Every frame tracked and the ATE within the bar, printed with `label`.
+void ExpectTrackedWithinTheBar(const UniformSphereRun& run, const char* label) {
+  std::printf("%s: ATE %.3f%% of path, %zu keyframes\n", label, PercentOfPath(run.ate), run.keyframes.size());
+  EXPECT_EQ(run.tracked.size(), run.r.trajectory.size()) << "every frame tracked";
+  EXPECT_LE(PercentOfPath(run.ate), kUniformSphereMaxAtePercent);
+}
+
 TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
   UniformSphereRun run;
   std::string why;
   if (!RunUniformSphere(2, &run, &why)) GTEST_SKIP() << "preset unavailable: " << why;
   ASSERT_FALSE(HasFailure());
-  std::printf("uniform sphere, seed 2: ATE %.3f%% of path, %zu keyframes\n", PercentOfPath(run.ate),
-              run.keyframes.size());
-  EXPECT_EQ(run.tracked.size(), run.r.trajectory.size()) << "every frame tracked";
-  EXPECT_LE(PercentOfPath(run.ate), kUniformSphereMaxAtePercent);
+  ExpectTrackedWithinTheBar(run, "uniform sphere, seed 2");
 }
 
 // The uniform sphere's seed 4, the run furthest over the depth bar before the fifty-eighth round
@@ -603,10 +607,7 @@ TEST(SlamSystem, TheUniformSpheresForwardStartWithoutTheEdgeTestInTheFirstDepth)
   if (!RunUniformSphere(2, &run, &why, options, "sphere-uniform-forward"))
     GTEST_SKIP() << "preset unavailable: " << why;
   ASSERT_FALSE(HasFailure());
-  std::printf("uniform sphere, forward start, seed 2: ATE %.3f%% of path, %zu keyframes\n", PercentOfPath(run.ate),
-              run.keyframes.size());
-  EXPECT_EQ(run.tracked.size(), run.r.trajectory.size()) << "every frame tracked";
-  EXPECT_LE(PercentOfPath(run.ate), kUniformSphereMaxAtePercent);
+  ExpectTrackedWithinTheBar(run, "uniform sphere, forward start, seed 2");
 }
 
 // The uniform bunny's seed 1 starts in the bas-relief valley (the test above: ATE 3.9% of path). The
