@@ -312,6 +312,76 @@ TEST(SlamCliTest, WritesTrajectoryKeyframesCloudAndSummary) {
   fs::remove_all(dir);
 }
 
+// A frame that cannot be decoded and one of the wrong size, in the middle of a sequence: prism-slam
+// skips both with a warning naming them, tracks the rest without loss and within the ATE bar,
+// and numbers its keyframes by their frames in the sequence; with --on-bad-frame stop it ends at the
+// first one with exit status 1 but still writes the trajectory of the frames before it.
+TEST(SlamCliTest, SkipsUndecodableAndWrongSizeFramesOrStopsAtThemKeepingTheRest) {
+  constexpr int kFrames = 60, kUndecodable = 19, kWrongSize = 40;
+  constexpr double kMaxAtePercent = 1.0;  // the bar, % of the path
+  const fs::path dir = fs::temp_directory_path() / ("prism_slam_bad_frames_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  const std::string seq = (dir / "seq").string(), out = (dir / "out").string(), out_stop = (dir / "stop").string();
+  ProcessResult r = Execute(Bin("prism-synth") + " --preset torus-textured-forward --frames " +
+                            std::to_string(kFrames) + " --out " + seq);
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  StatusOr<Sequence> sequence = LoadSequence(seq);
+  ASSERT_TRUE(sequence.ok()) << sequence.status();
+  ASSERT_EQ(sequence->frames.size(), static_cast<size_t>(kFrames));
+  const fs::path undecodable = fs::path(seq) / sequence->frames[kUndecodable].rgb_file;
+  std::ofstream(undecodable, std::ios::trunc) << "not a PNG";
+  ASSERT_TRUE(cv::imwrite((fs::path(seq) / sequence->frames[kWrongSize].rgb_file).string(),
+                          cv::Mat(96, 128, CV_8UC3, cv::Scalar(40, 80, 120))));
+
+  r = Execute(Bin("prism-slam") + " --sequence " + seq + " --out " + out);
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NE(r.out.find("frame " + std::to_string(kUndecodable) + " "), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("frame " + std::to_string(kWrongSize) + " "), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("128x96"), std::string::npos) << "the wrong size is named";
+  EXPECT_EQ(JsonNumber(r.out, "skipped_frames"), 2);
+  EXPECT_EQ(JsonNumber(r.out, "frames"), kFrames - 2);
+  EXPECT_EQ(JsonNumber(r.out, "lost_frames"), 0);
+  EXPECT_LE(JsonNumber(r.out, "ate_percent_of_path"), kMaxAtePercent);
+  StatusOr<Trajectory> traj = ReadTumTrajectory(out + "/trajectory.txt");
+  ASSERT_TRUE(traj.ok()) << traj.status();
+  EXPECT_EQ(traj->size(), static_cast<size_t>(kFrames - 2));
+  for (const TimedPose& p : *traj) {
+    EXPECT_GT(std::abs(p.timestamp_s - sequence->frames[kUndecodable].timestamp_s), 1e-4);
+    EXPECT_GT(std::abs(p.timestamp_s - sequence->frames[kWrongSize].timestamp_s), 1e-4);
+  }
+  // keyframes.txt: id frame_id timestamp ..., frame_id the index in the sequence.
+  std::ifstream index(out + "/keyframes/keyframes.txt");
+  std::string line;
+  int keyframes = 0, after_a_skip = 0;
+  while (std::getline(index, line)) {
+    if (line.empty() || line[0] == '#') continue;
+    std::istringstream in(line);
+    int id = -1;
+    long frame = -1;
+    double timestamp = 0;
+    ASSERT_TRUE(in >> id >> frame >> timestamp) << line;
+    ASSERT_GE(frame, 0) << line;
+    ASSERT_LT(frame, kFrames) << line;
+    EXPECT_NEAR(timestamp, sequence->frames[static_cast<size_t>(frame)].timestamp_s, 1e-6) << line;
+    ++keyframes;
+    if (frame > kUndecodable) ++after_a_skip;
+  }
+  EXPECT_GE(keyframes, 3);
+  EXPECT_GE(after_a_skip, 1) << "the check above covers keyframes whose frame ids differ from the SLAM's count";
+
+  r = Execute(Bin("prism-slam") + " --sequence " + seq + " --out " + out_stop + " --on-bad-frame stop");
+  EXPECT_EQ(r.exit_code, 1) << r.out;
+  EXPECT_NE(r.out.find("stopped at frame " + std::to_string(kUndecodable) + " "), std::string::npos) << r.out;
+  traj = ReadTumTrajectory(out_stop + "/trajectory.txt");
+  ASSERT_TRUE(traj.ok()) << traj.status();
+  EXPECT_EQ(traj->size(), static_cast<size_t>(kUndecodable)) << "every frame before the bad one";
+  EXPECT_TRUE(fs::exists(out_stop + "/summary.json"));
+  EXPECT_TRUE(fs::exists(out_stop + "/semidense.ply"));
+  r = Execute(Bin("prism-slam") + " --sequence " + seq + " --out " + out_stop + " --on-bad-frame ignore");
+  EXPECT_NE(r.exit_code, 0) << "skip or stop only";
+  fs::remove_all(dir);
+}
+
 // One SLAM configuration for every entry point (core/slam/slam_config.h): prism-slam takes a config
 // file and --set, writes every option it ran with to slam_config.txt, and that file run again gives the
 // same trajectory; the settings take effect (fewer keyframes at a larger keyframe distance); bad keys,

@@ -44,7 +44,8 @@ Writes to DIR:
                    its rotation (degrees) and the result's distance from the constant-velocity guess,
                    distances as fractions of the keyframe's mean depth (core/slam/slam_system.h)
   keyframes/       per keyframe <id>_idepth.tiff and <id>_variance.tiff (32-bit float, 0 = none)
-                   and keyframes.txt (id frame_id timestamp scale tx ty tz qx qy qz qw)
+                   and keyframes.txt (id frame_id timestamp scale tx ty tz qx qy qz qw; frame_id is
+                   the frame's index in the sequence)
   semidense.ply    the semi-dense points of all keyframes, world frame, with colours
   trajectory_metres.txt  trajectory.txt in metres, when the metric scale is known (from the co-moving
                    lights, see --no-metric-scale, or with --dense the dense stage's)
@@ -93,6 +94,9 @@ options:
   --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
   --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
   --max-frames N   process at most N frames
+  --on-bad-frame skip|stop  a frame that cannot be read or decoded, or has the wrong size: skip it
+                   with a warning (default; summary.json counts and lists the skipped frames) or stop
+                   there (exit status 1 after writing every output for the frames before it)
   --threads N      threads for the depth filter and the keyframe adjustments (default: all cores)
   --log-level L    debug, info, warning or error (default: info); debug prints each keyframe
                    adjustment's points, residuals, RMS and iterations
@@ -117,6 +121,23 @@ std::string StartCheckJson(const StartCheckReport& r) {
     << ", \"second_spread\": " << number(r.second_spread) << ", \"second_kept\": " << (r.second_kept ? "true" : "false")
     << ", \"ms\": " << 1000 * r.seconds << ", \"thread_ms\": " << 1000 * r.thread_seconds << "}";
   return j.str();
+}
+
+// `m` as a JSON string literal (quotes, backslashes and control characters escaped).
+std::string JsonString(const std::string& m) {
+  std::ostringstream o;
+  o << '"';
+  for (const char c : m) {
+    if (c == '"' || c == '\\') {
+      o << '\\' << c;
+    } else if (static_cast<unsigned char>(c) < 0x20) {
+      o << "\\u" << std::hex << std::setw(4) << std::setfill('0') << static_cast<int>(c) << std::dec;
+    } else {
+      o << c;
+    }
+  }
+  o << '"';
+  return o.str();
 }
 
 int Fail(const std::string& m) {
@@ -181,6 +202,7 @@ int main(int argc, char** argv) {
   bool remap = true;
   bool metric_scale = true;
   bool dense_online = false;
+  bool stop_on_bad_frame = false;
   SlamOptions options;
   DenseStageOptions dense_options;
   // Switches without a value: the flag sets its bool to the given value.
@@ -227,7 +249,8 @@ int main(int argc, char** argv) {
       const size_t eq = v.find('=');
       if (eq == std::string::npos) return Fail("--set expects KEY=VALUE, got '" + v + "'");
       if (Status st = SetSlamOption(v.substr(0, eq), v.substr(eq + 1), &options); !st.ok()) return Fail(st.ToString());
-    } else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
+    } else if (a == "--on-bad-frame" && (v == "skip" || v == "stop")) stop_on_bad_frame = v == "stop";
+    else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
     else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
     else if (a == "--log-level") {
       if (!SetMinLogLevel(v)) return Fail("--log-level expects debug, info, warning or error, got '" + v + "'");
@@ -301,15 +324,39 @@ int main(int argc, char** argv) {
       std::cerr << "prism-slam: dense stage, keyframe " << k.id << ": " << r.status() << "\n";
     }
   };
+  // A frame that cannot be read, decoded or undistorted, or that has the wrong size, is skipped
+  // (--on-bad-frame skip) or ends the frame loop (stop); either way every output of the frames before
+  // it is written. The SLAM numbers the frames it was given; seq_index maps its frame ids back.
+  std::vector<size_t> seq_index;
+  std::vector<std::string> skipped;  // "frame i (t = ...): error"
+  std::string stop_error;
   for (size_t i = 0; i < n; ++i) {
+    const auto bad_frame = [&](const Status& s) {
+      std::ostringstream m;
+      m << "frame " << i << " (t = " << std::setprecision(17) << seq->frames[i].timestamp_s << "): " << s.ToString();
+      std::cerr << "prism-slam: " << m.str() << (stop_on_bad_frame ? "; stopping (--on-bad-frame stop)" : "; skipped")
+                << "\n";
+      if (stop_on_bad_frame) stop_error = m.str();
+      else skipped.push_back(m.str());
+    };
     StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
-    if (!rgb.ok()) return Fail(rgb.status().ToString());
     const auto t0 = std::chrono::steady_clock::now();
-    rgb = undistorter->Undistort(*rgb);
-    if (!rgb.ok()) return Fail("frame " + std::to_string(i) + ": " + rgb.status().ToString());
+    if (rgb.ok()) rgb = undistorter->Undistort(*rgb);
+    if (rgb.ok() && (rgb->type() != CV_8UC3 || rgb->cols != rig.camera.width || rgb->rows != rig.camera.height)) {
+      std::ostringstream m;
+      m << "expected a " << rig.camera.width << "x" << rig.camera.height << " colour image, got " << rgb->cols << "x"
+        << rgb->rows << " with " << rgb->channels() << " channel(s)";
+      rgb = InvalidArgumentError(m.str());
+    }
+    if (!rgb.ok()) {
+      bad_frame(rgb.status());
+      if (stop_on_bad_frame) break;
+      continue;
+    }
     StatusOr<SlamFrameResult> r = (*slam)->ProcessFrame(seq->frames[i].timestamp_s, *rgb);
     slam_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (!r.ok()) return Fail("frame " + std::to_string(i) + ": " + r.status().ToString());
+    seq_index.push_back(i);
     if (r->state == SlamState::kLost) std::cerr << "prism-slam: frame " << i << ": " << r->message << "\n";
     for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) {
       if (dense_online) run_dense(k);
@@ -436,7 +483,11 @@ int main(int argc, char** argv) {
         !cv::imwrite(base + "_variance.tiff", k.depth.variance))
       return Fail("cannot write '" + base + "_*.tiff'");
     const Sim3d& p = keyframe_poses[static_cast<size_t>(k.id)];
-    kf_index << k.id << " " << k.frame_id << " " << k.timestamp << " " << p.scale << " " << p.translation.x() << " "
+    // frame_id: the frame's index in the sequence (the SLAM's own count leaves out skipped frames).
+    const long frame = k.frame_id >= 0 && static_cast<size_t>(k.frame_id) < seq_index.size()
+                           ? static_cast<long>(seq_index[k.frame_id])
+                           : -1;
+    kf_index << k.id << " " << frame << " " << k.timestamp << " " << p.scale << " " << p.translation.x() << " "
              << p.translation.y() << " " << p.translation.z() << " " << p.rotation.x() << " " << p.rotation.y() << " "
              << p.rotation.z() << " " << p.rotation.w() << "\n";
   }
@@ -448,7 +499,8 @@ int main(int argc, char** argv) {
   std::ostringstream json;
   json << std::setprecision(6) << "{\n  \"frames\": " << results.size() << ",\n  \"keyframes\": " << keyframes.size()
        << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
-       << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
+       << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"skipped_frames\": " << skipped.size()
+       << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
        << ",\n  \"keyframe_adjustments\": " << (*slam)->num_keyframe_adjustments()
        << ",\n  \"start_check\": " << StartCheckJson((*slam)->start_check())
        << ",\n  \"semidense_points\": " << cloud.size()
@@ -482,7 +534,7 @@ int main(int argc, char** argv) {
          << ", \"max_factor\": " << drift->max_factor << ", \"loop_edges\": " << drift->loop_edges
          << ", \"ms\": " << 1000.0 * drift_seconds << "}";
   } else if (options.scale_drift_correction) {
-    json << ",\n  \"scale_drift_correction_error\": \"" << drift_error << "\"";
+    json << ",\n  \"scale_drift_correction_error\": " << JsonString(drift_error);
   }
   if (shading_scale) {
     json << ",\n  \"shading_metres_per_unit\": " << shading_scale->metres_per_world_unit
@@ -493,7 +545,7 @@ int main(int argc, char** argv) {
          << ",\n  \"shading_scale_pair_spread\": " << shading_scale->pair_spread
          << ",\n  \"shading_scale_consistent\": " << (shading_scale->consistent ? "true" : "false");
   } else if (metric_scale) {
-    json << ",\n  \"shading_scale_error\": \"" << shading_scale_error << "\"";
+    json << ",\n  \"shading_scale_error\": " << JsonString(shading_scale_error);
   }
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
@@ -502,7 +554,7 @@ int main(int argc, char** argv) {
          << ",\n  \"map_points\": " << dense_stage->map().output_size()
          << ",\n  \"map_remapped\": " << (remapped ? "true" : "false")
          << ",\n  \"remap_ms\": " << 1000.0 * remap_seconds;
-    if (dense_failed) json << ",\n  \"dense_first_error\": \"" << dense_first_error << "\"";
+    if (dense_failed) json << ",\n  \"dense_first_error\": " << JsonString(dense_first_error);
   }
 
   if (eval && !seq->groundtruth.empty() && estimate.size() >= 3) {
@@ -527,9 +579,10 @@ int main(int argc, char** argv) {
       per_keyframe << std::setprecision(4);
       per_keyframe_fused << std::setprecision(4);
       for (const SlamKeyframe& k : keyframes) {
-        if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq->frames.size()) continue;
-        if (seq->frames[static_cast<size_t>(k.frame_id)].depth_file.empty()) continue;
-        StatusOr<cv::Mat> gt = seq->ReadDepth(static_cast<size_t>(k.frame_id));
+        if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq_index.size()) continue;
+        const size_t frame = seq_index[static_cast<size_t>(k.frame_id)];  // in the sequence
+        if (seq->frames[frame].depth_file.empty()) continue;
+        StatusOr<cv::Mat> gt = seq->ReadDepth(frame);
         if (gt.ok()) gt = undistorter->UndistortNearest(*gt);
         if (!gt.ok()) continue;
         cv::Mat est = cv::Mat::zeros(k.depth.inverse_depth.size(), CV_32F);
@@ -572,11 +625,19 @@ int main(int argc, char** argv) {
         if (!fused_depth.empty()) json << ",\n  \"keyframe_fused_depth\": [" << per_keyframe_fused.str() << "]";
       }
     } else {
-      json << ",\n  \"ate_error\": \"" << ate.status().message() << "\"";
+      json << ",\n  \"ate_error\": " << JsonString(std::string(ate.status().message()));
     }
   }
+  if (!skipped.empty()) {
+    json << ",\n  \"skipped\": [";
+    for (size_t i = 0; i < skipped.size(); ++i) json << (i ? ", " : "") << JsonString(skipped[i]);
+    json << "]";
+  }
+  if (!stop_error.empty()) json << ",\n  \"stopped_at_bad_frame\": " << JsonString(stop_error);
   json << "\n}\n";
   std::ofstream(out_dir + "/summary.json") << json.str();
   std::cout << json.str();
+  // --on-bad-frame stop: everything up to the bad frame is written; the exit status says the run ended there.
+  if (!stop_error.empty()) return Fail("stopped at " + stop_error + " (outputs cover the frames before it)");
   return 0;
 }
