@@ -381,6 +381,20 @@ TEST(SlamCliTest, SkipsUndecodableAndWrongSizeFramesOrStopsAtThemKeepingTheRest)
   EXPECT_TRUE(fs::exists(out_stop + "/semidense.ply"));
   r = Execute(Bin("prism-slam") + " --sequence " + seq + " --out " + out_stop + " --on-bad-frame ignore");
   EXPECT_NE(r.exit_code, 0) << "skip or stop only";
+  // A sequence of nothing but bad frames is an error, not an empty success.
+  const fs::path junk = dir / "junk";
+  fs::create_directories(junk / "rgb");
+  fs::copy_file(fs::path(seq) / "camera.yaml", junk / "camera.yaml");
+  std::ofstream junk_index(junk / "rgb.txt");
+  for (int i = 0; i < 3; ++i) {
+    const std::string name = "rgb/" + std::to_string(i) + ".png";
+    junk_index << i << " " << name << "\n";
+    std::ofstream(junk / name) << "not a PNG either";
+  }
+  junk_index.close();
+  r = Execute(Bin("prism-slam") + " --sequence " + junk.string() + " --out " + (dir / "junk_out").string());
+  EXPECT_EQ(r.exit_code, 1) << r.out;
+  EXPECT_NE(r.out.find("none of the sequence's 3 frames could be used"), std::string::npos) << r.out;
   fs::remove_all(dir);
 }
 

@@ -333,7 +333,8 @@ int main(int argc, char** argv) {
   for (size_t i = 0; i < n; ++i) {
     const auto bad_frame = [&](const Status& s) {
       std::ostringstream m;
-      m << "frame " << i << " (t = " << std::setprecision(17) << seq->frames[i].timestamp_s << "): " << s.ToString();
+      m << "frame " << i << " (t = " << std::fixed << std::setprecision(6) << seq->frames[i].timestamp_s
+        << "): " << s.ToString();
       std::cerr << "prism-slam: " << m.str() << (stop_on_bad_frame ? "; stopping (--on-bad-frame stop)" : "; skipped")
                 << "\n";
       if (stop_on_bad_frame) stop_error = m.str();
@@ -639,5 +640,6 @@ int main(int argc, char** argv) {
   std::cout << json.str();
   // --on-bad-frame stop: everything up to the bad frame is written; the exit status says the run ended there.
   if (!stop_error.empty()) return Fail("stopped at " + stop_error + " (outputs cover the frames before it)");
+  if (seq_index.empty()) return Fail("none of the sequence's " + std::to_string(n) + " frames could be used");
   return 0;
 }
