@@ -7,12 +7,14 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <memory>
 #include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
 
 #include "core/eval/statistics.h"
 #include "core/io/calibration_io.h"
@@ -225,6 +227,35 @@ TEST_F(RoundTripTest, TwoConcurrentSessionsBothComplete) {
     EXPECT_EQ(JsonNumber(cat.out, "poses"), 24) << cat.out;
     EXPECT_NE(cat.out.find("\"reason\": \"closed by client\""), std::string::npos) << cat.out;
   }
+  EXPECT_EQ(server.Stop(kServerStopTimeoutMs), 0);
+}
+
+// Bad frames in the middle of a stream lose nothing else: prism-client does not send a frame it cannot
+// decode (a warning, frames_unreadable), the server refuses one of the wrong size with an error the
+// client counts, and the session goes on to its summary with a pose for every other frame.
+TEST_F(RoundTripTest, AnUndecodableAndAWrongSizeFrameCostOnlyThemselves) {
+  constexpr int kFrames = 24, kUndecodable = 12, kWrongSize = 16;
+  ProcessResult r = Execute(Bin("prism-synth") + " --preset torus-textured-forward --frames " +
+                            std::to_string(kFrames) + " --size 256x256 --out " + P("seq"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  StatusOr<Sequence> seq = LoadSequence(P("seq"));
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  ASSERT_EQ(seq->frames.size(), static_cast<size_t>(kFrames));
+  std::ofstream(seq->Path(seq->frames[kUndecodable].rgb_file), std::ios::trunc) << "not a PNG";
+  ASSERT_TRUE(cv::imwrite(seq->Path(seq->frames[kWrongSize].rgb_file), cv::Mat(96, 128, CV_8UC3, cv::Scalar::all(90))));
+  ServerProcess server(P("data"), WithServerWaitFlags({"--input-policy", "upload"}), P("server.log"));
+  ASSERT_TRUE(server.ok());
+  r = Execute(StreamCommand(server) + " --out " + P("out"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NE(r.out.find("frame " + std::to_string(kUndecodable) + ": "), std::string::npos) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "frames_unreadable"), 1) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "frames_sent"), kFrames - 1) << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "errors"), 1) << "the wrong-size frame, refused by the server: " << r.out;
+  EXPECT_EQ(JsonNumber(r.out, "poses"), kFrames - 2) << r.out;
+  EXPECT_NE(r.out.find("\"reason\": \"closed by client\""), std::string::npos) << r.out;
+  StatusOr<Trajectory> est = ReadTumTrajectory(P("out/trajectory.txt"));
+  ASSERT_TRUE(est.ok()) << est.status();
+  EXPECT_EQ(est->size(), static_cast<size_t>(kFrames - 2)) << "every other frame tracked";
   EXPECT_EQ(server.Stop(kServerStopTimeoutMs), 0);
 }
 

@@ -40,6 +40,9 @@ options:
   --codec C             png (lossless, default), jpeg (4:4:4) or raw
   --jpeg-quality Q      1..100 (default 95)
   --max-frames N        stop after N frames
+  A frame of the sequence that cannot be read or decoded is not sent (a warning names it; counted in
+  summary.json's frames_unreadable); one the server refuses (e.g. of the wrong size) is counted in
+  "errors". Either way the session goes on.
   --timeout-ms MS       wait for the server this long (open, credits; default 20000)
   --close-timeout-ms MS wait this long for the last keyframes after the stream (default 300000)
   --reconnect-timeout-ms MS  keep trying to resume a lost connection this long (default 60000; 0 = off)
@@ -158,7 +161,7 @@ int main(int argc, char** argv) {
 
   std::map<uint64_t, pc::Pose> poses;  // by frame sequence number: the latest (refined) pose wins
   size_t refined_poses = 0;
-  size_t chunks = 0, chunk_bytes = 0, frame_errors = 0, skipped = 0;
+  size_t chunks = 0, chunk_bytes = 0, frame_errors = 0, skipped = 0, unreadable = 0;
   bool remapped = false;  // a chunk replaced the map (rebuilt at the final keyframe poses)
   std::string fatal;
   auto drain = [&](int timeout_ms) {
@@ -197,7 +200,11 @@ int main(int argc, char** argv) {
   const double t0 = n ? seq->frames[0].timestamp_s : 0.0;
   for (size_t i = 0; i < n && fatal.empty() && !session->read_only(); ++i) {
     prism::StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
-    if (!rgb.ok()) return Fail(rgb.status().ToString());
+    if (!rgb.ok()) {  // the session goes on without it (counted; summary.json's frames_unreadable)
+      ++unreadable;
+      std::cerr << "prism-client: frame " << i << ": " << rgb.status().ToString() << "; not sent\n";
+      continue;
+    }
     if (realtime) {
       std::this_thread::sleep_until(start + std::chrono::duration<double>(seq->frames[i].timestamp_s - t0));
       drain(0);
@@ -270,28 +277,32 @@ int main(int argc, char** argv) {
   }
   if (prism::Status w = prism::WritePointCloudPly(out_dir + "/map.ply", cloud); !w.ok()) return Fail(w.ToString());
   char json[2048];
-  std::snprintf(
-      json, sizeof(json),
-      "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"poses\": %zu, \"refined_poses\": %zu, "
-      "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"map_replaced\": %s, \"errors\": %zu, "
-      "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
-      "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
-      "\"server_frames_depth_update_skipped\": %llu, "
-      "\"metres_per_unit\": %.6g, \"shading_check\": \"%s\", \"shading_pair_spread\": %.4g, "
-      "\"start_check\": \"%s\", \"start_pair_spread\": %.4g, "
-      "\"reconnects\": %d, \"reason\": \"%s\"}\n",
-      session->session_id().c_str(), n - skipped, skipped, poses.size(), refined_poses, chunks, chunk_bytes, map.size(),
-      remapped ? "true" : "false", frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
-      n > skipped ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped) : 0.0, seconds,
-      seconds > 0 ? static_cast<double>(n - skipped) / seconds : 0.0,
-      static_cast<unsigned long long>(summary.keyframes), static_cast<unsigned long long>(summary.keyframes_failed),
-      static_cast<unsigned long long>(summary.map_points),
-      static_cast<unsigned long long>(summary.frames_depth_update_skipped), summary.metres_per_unit,
-      summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
-      : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
-                                                                       : "not_run",
-      summary.shading_pair_spread, pc::StartCheckName(summary.start_check), summary.start_pair_spread,
-      session->reconnects(), summary.reason.c_str());
+  std::snprintf(json, sizeof(json),
+                "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"frames_unreadable\": %zu, "
+                "\"poses\": %zu, \"refined_poses\": %zu, "
+                "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"map_replaced\": %s, \"errors\": %zu, "
+                "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
+                "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
+                "\"server_frames_depth_update_skipped\": %llu, "
+                "\"metres_per_unit\": %.6g, \"shading_check\": \"%s\", \"shading_pair_spread\": %.4g, "
+                "\"start_check\": \"%s\", \"start_pair_spread\": %.4g, "
+                "\"reconnects\": %d, \"reason\": \"%s\"}\n",
+                session->session_id().c_str(), n - skipped - unreadable, skipped, unreadable, poses.size(),
+                refined_poses, chunks, chunk_bytes, map.size(), remapped ? "true" : "false", frame_errors,
+                static_cast<unsigned long long>(session->bytes_sent()),
+                n > skipped + unreadable
+                    ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped - unreadable)
+                    : 0.0,
+                seconds, seconds > 0 ? static_cast<double>(n - skipped - unreadable) / seconds : 0.0,
+                static_cast<unsigned long long>(summary.keyframes),
+                static_cast<unsigned long long>(summary.keyframes_failed),
+                static_cast<unsigned long long>(summary.map_points),
+                static_cast<unsigned long long>(summary.frames_depth_update_skipped), summary.metres_per_unit,
+                summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
+                : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
+                                                                                 : "not_run",
+                summary.shading_pair_spread, pc::StartCheckName(summary.start_check), summary.start_pair_spread,
+                session->reconnects(), summary.reason.c_str());
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
   if (session->reconnects() > 0)
