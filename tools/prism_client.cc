@@ -276,33 +276,30 @@ int main(int argc, char** argv) {
     cloud.colors.emplace_back(p.color[0], p.color[1], p.color[2]);
   }
   if (prism::Status w = prism::WritePointCloudPly(out_dir + "/map.ply", cloud); !w.ok()) return Fail(w.ToString());
+  const size_t sent = n - skipped - unreadable;
   char json[2048];
-  std::snprintf(json, sizeof(json),
-                "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"frames_unreadable\": %zu, "
-                "\"poses\": %zu, \"refined_poses\": %zu, "
-                "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"map_replaced\": %s, \"errors\": %zu, "
-                "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
-                "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
-                "\"server_frames_depth_update_skipped\": %llu, "
-                "\"metres_per_unit\": %.6g, \"shading_check\": \"%s\", \"shading_pair_spread\": %.4g, "
-                "\"start_check\": \"%s\", \"start_pair_spread\": %.4g, "
-                "\"reconnects\": %d, \"reason\": \"%s\"}\n",
-                session->session_id().c_str(), n - skipped - unreadable, skipped, unreadable, poses.size(),
-                refined_poses, chunks, chunk_bytes, map.size(), remapped ? "true" : "false", frame_errors,
-                static_cast<unsigned long long>(session->bytes_sent()),
-                n > skipped + unreadable
-                    ? static_cast<double>(session->bytes_sent()) / static_cast<double>(n - skipped - unreadable)
-                    : 0.0,
-                seconds, seconds > 0 ? static_cast<double>(n - skipped - unreadable) / seconds : 0.0,
-                static_cast<unsigned long long>(summary.keyframes),
-                static_cast<unsigned long long>(summary.keyframes_failed),
-                static_cast<unsigned long long>(summary.map_points),
-                static_cast<unsigned long long>(summary.frames_depth_update_skipped), summary.metres_per_unit,
-                summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
-                : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
-                                                                                 : "not_run",
-                summary.shading_pair_spread, pc::StartCheckName(summary.start_check), summary.start_pair_spread,
-                session->reconnects(), summary.reason.c_str());
+  std::snprintf(
+      json, sizeof(json),
+      "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"frames_unreadable\": %zu, "
+      "\"poses\": %zu, \"refined_poses\": %zu, "
+      "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"map_replaced\": %s, \"errors\": %zu, "
+      "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
+      "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
+      "\"server_frames_depth_update_skipped\": %llu, "
+      "\"metres_per_unit\": %.6g, \"shading_check\": \"%s\", \"shading_pair_spread\": %.4g, "
+      "\"start_check\": \"%s\", \"start_pair_spread\": %.4g, "
+      "\"reconnects\": %d, \"reason\": \"%s\"}\n",
+      session->session_id().c_str(), sent, skipped, unreadable, poses.size(), refined_poses, chunks, chunk_bytes,
+      map.size(), remapped ? "true" : "false", frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
+      sent > 0 ? static_cast<double>(session->bytes_sent()) / static_cast<double>(sent) : 0.0, seconds,
+      seconds > 0 ? static_cast<double>(sent) / seconds : 0.0, static_cast<unsigned long long>(summary.keyframes),
+      static_cast<unsigned long long>(summary.keyframes_failed), static_cast<unsigned long long>(summary.map_points),
+      static_cast<unsigned long long>(summary.frames_depth_update_skipped), summary.metres_per_unit,
+      summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
+      : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
+                                                                       : "not_run",
+      summary.shading_pair_spread, pc::StartCheckName(summary.start_check), summary.start_pair_spread,
+      session->reconnects(), summary.reason.c_str());
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
   if (session->reconnects() > 0)

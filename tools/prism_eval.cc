@@ -28,6 +28,7 @@
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
+#include "core/util/json_text.h"
 #include "core/util/status.h"
 #include "core/util/thread_pool.h"
 
@@ -54,12 +55,12 @@ class JsonObject {
   void Integer(const std::string& key, long long value) { Raw(key, std::to_string(value)); }
   void Bool(const std::string& key, bool value) { Raw(key, value ? "true" : "false"); }
   void Null(const std::string& key) { Raw(key, "null"); }
-  void String(const std::string& key, const std::string& value) { Raw(key, Quote(value)); }
+  void String(const std::string& key, const std::string& value) { Raw(key, JsonQuote(value)); }
 
   std::string ToString() const {
     std::string out = "{\n";
     for (size_t i = 0; i < fields_.size(); ++i) {
-      out += "  " + Quote(fields_[i].first) + ": " + fields_[i].second;
+      out += "  " + JsonQuote(fields_[i].first) + ": " + fields_[i].second;
       out += i + 1 < fields_.size() ? ",\n" : "\n";
     }
     return out + "}\n";
@@ -67,38 +68,6 @@ class JsonObject {
 
  private:
   void Raw(const std::string& key, std::string value) { fields_.emplace_back(key, std::move(value)); }
-
-  static std::string Quote(const std::string& s) {
-    std::string out = "\"";
-    for (const char c : s) {
-      switch (c) {
-        case '"':
-          out += "\\\"";
-          break;
-        case '\\':
-          out += "\\\\";
-          break;
-        case '\n':
-          out += "\\n";
-          break;
-        case '\r':
-          out += "\\r";
-          break;
-        case '\t':
-          out += "\\t";
-          break;
-        default:
-          if (static_cast<unsigned char>(c) < 0x20) {
-            char buf[8];
-            std::snprintf(buf, sizeof(buf), "\\u%04x", static_cast<unsigned>(static_cast<unsigned char>(c)));
-            out += buf;
-          } else {
-            out += c;
-          }
-      }
-    }
-    return out + "\"";
-  }
 
   std::vector<std::pair<std::string, std::string>> fields_;
 };

@@ -23,6 +23,7 @@
 #include "core/slam/slam_config.h"
 #include "core/slam/slam_system.h"
 #include "core/slam/undistort.h"
+#include "core/util/json_text.h"
 #include "core/util/log_level.h"
 #include "core/util/logging.h"
 #include "core/util/thread_pool.h"
@@ -121,23 +122,6 @@ std::string StartCheckJson(const StartCheckReport& r) {
     << ", \"second_spread\": " << number(r.second_spread) << ", \"second_kept\": " << (r.second_kept ? "true" : "false")
     << ", \"ms\": " << 1000 * r.seconds << ", \"thread_ms\": " << 1000 * r.thread_seconds << "}";
   return j.str();
-}
-
-// `m` as a JSON string literal (quotes, backslashes and control characters escaped).
-std::string JsonString(const std::string& m) {
-  std::ostringstream o;
-  o << '"';
-  for (const char c : m) {
-    if (c == '"' || c == '\\') {
-      o << '\\' << c;
-    } else if (static_cast<unsigned char>(c) < 0x20) {
-      o << "\\u" << std::hex << std::setw(4) << std::setfill('0') << static_cast<int>(c) << std::dec;
-    } else {
-      o << c;
-    }
-  }
-  o << '"';
-  return o.str();
 }
 
 int Fail(const std::string& m) {
@@ -340,15 +324,10 @@ int main(int argc, char** argv) {
       if (stop_on_bad_frame) stop_error = m.str();
       else skipped.push_back(m.str());
     };
+    // ReadRgb gives 8-bit RGB or an error; Undistort refuses an image whose size is not the camera's.
     StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
     const auto t0 = std::chrono::steady_clock::now();
     if (rgb.ok()) rgb = undistorter->Undistort(*rgb);
-    if (rgb.ok() && (rgb->type() != CV_8UC3 || rgb->cols != rig.camera.width || rgb->rows != rig.camera.height)) {
-      std::ostringstream m;
-      m << "expected a " << rig.camera.width << "x" << rig.camera.height << " colour image, got " << rgb->cols << "x"
-        << rgb->rows << " with " << rgb->channels() << " channel(s)";
-      rgb = InvalidArgumentError(m.str());
-    }
     if (!rgb.ok()) {
       bad_frame(rgb.status());
       if (stop_on_bad_frame) break;
@@ -535,7 +514,7 @@ int main(int argc, char** argv) {
          << ", \"max_factor\": " << drift->max_factor << ", \"loop_edges\": " << drift->loop_edges
          << ", \"ms\": " << 1000.0 * drift_seconds << "}";
   } else if (options.scale_drift_correction) {
-    json << ",\n  \"scale_drift_correction_error\": " << JsonString(drift_error);
+    json << ",\n  \"scale_drift_correction_error\": " << JsonQuote(drift_error);
   }
   if (shading_scale) {
     json << ",\n  \"shading_metres_per_unit\": " << shading_scale->metres_per_world_unit
@@ -546,7 +525,7 @@ int main(int argc, char** argv) {
          << ",\n  \"shading_scale_pair_spread\": " << shading_scale->pair_spread
          << ",\n  \"shading_scale_consistent\": " << (shading_scale->consistent ? "true" : "false");
   } else if (metric_scale) {
-    json << ",\n  \"shading_scale_error\": " << JsonString(shading_scale_error);
+    json << ",\n  \"shading_scale_error\": " << JsonQuote(shading_scale_error);
   }
   if (dense_stage) {
     json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
@@ -555,7 +534,7 @@ int main(int argc, char** argv) {
          << ",\n  \"map_points\": " << dense_stage->map().output_size()
          << ",\n  \"map_remapped\": " << (remapped ? "true" : "false")
          << ",\n  \"remap_ms\": " << 1000.0 * remap_seconds;
-    if (dense_failed) json << ",\n  \"dense_first_error\": " << JsonString(dense_first_error);
+    if (dense_failed) json << ",\n  \"dense_first_error\": " << JsonQuote(dense_first_error);
   }
 
   if (eval && !seq->groundtruth.empty() && estimate.size() >= 3) {
@@ -626,15 +605,15 @@ int main(int argc, char** argv) {
         if (!fused_depth.empty()) json << ",\n  \"keyframe_fused_depth\": [" << per_keyframe_fused.str() << "]";
       }
     } else {
-      json << ",\n  \"ate_error\": " << JsonString(std::string(ate.status().message()));
+      json << ",\n  \"ate_error\": " << JsonQuote(std::string(ate.status().message()));
     }
   }
   if (!skipped.empty()) {
     json << ",\n  \"skipped\": [";
-    for (size_t i = 0; i < skipped.size(); ++i) json << (i ? ", " : "") << JsonString(skipped[i]);
+    for (size_t i = 0; i < skipped.size(); ++i) json << (i ? ", " : "") << JsonQuote(skipped[i]);
     json << "]";
   }
-  if (!stop_error.empty()) json << ",\n  \"stopped_at_bad_frame\": " << JsonString(stop_error);
+  if (!stop_error.empty()) json << ",\n  \"stopped_at_bad_frame\": " << JsonQuote(stop_error);
   json << "\n}\n";
   std::ofstream(out_dir + "/summary.json") << json.str();
   std::cout << json.str();
