@@ -124,6 +124,19 @@ std::string StartCheckJson(const StartCheckReport& r) {
   return j.str();
 }
 
+// SlamSystem::feature_adjustment() as a JSON object.
+std::string FeatureAdjustmentJson(const FeatureAdjustmentReport& r) {
+  std::ostringstream j;
+  const FeatureAdjustmentSummary& s = r.summary;
+  j << "{\"ran\": " << (r.ran ? "true" : "false") << ", \"applied\": " << (r.applied ? "true" : "false")
+    << ", \"error\": " << JsonQuote(r.error) << ", \"runs\": " << r.runs << ", \"features\": " << s.features
+    << ", \"pairs_matched\": " << s.pairs_matched << ", \"tracks\": " << s.tracks
+    << ", \"observations\": " << s.observations << ", \"initial_median_px\": " << s.initial_median_px
+    << ", \"final_median_px\": " << s.final_median_px << ", \"final_rms_px\": " << s.final_rms_px
+    << ", \"keyframes_rescaled\": " << r.keyframes_rescaled << ", \"ms\": " << 1000 * r.seconds << "}";
+  return j.str();
+}
+
 int Fail(const std::string& m) {
   std::cerr << "prism-slam: " << m << "\n";
   return 1;
@@ -483,6 +496,7 @@ int main(int argc, char** argv) {
        << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
        << ",\n  \"keyframe_adjustments\": " << (*slam)->num_keyframe_adjustments()
        << ",\n  \"start_check\": " << StartCheckJson((*slam)->start_check())
+       << ",\n  \"feature_adjustment\": " << FeatureAdjustmentJson((*slam)->feature_adjustment())
        << ",\n  \"semidense_points\": " << cloud.size()
        << ",\n  \"undistorted\": " << (undistorter->identity() ? "false" : "true")
        << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n)

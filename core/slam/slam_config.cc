@@ -93,6 +93,21 @@ void AddDirectBa(const std::string& p, DirectBaOptions& b, std::vector<Field>* f
   f->push_back({p + "linearise_from_evaluation", &b.linearise_from_evaluation});
 }
 
+void AddFeatureAdjustment(const std::string& p, FeatureAdjustmentOptions& a, std::vector<Field>* f) {
+  f->push_back({p + "max_features", &a.max_features});
+  f->push_back({p + "contrast_threshold", &a.contrast_threshold});
+  f->push_back({p + "min_local_mean", &a.min_local_mean});
+  f->push_back({p + "ratio", &a.ratio});
+  f->push_back({p + "ransac_threshold_px", &a.ransac_threshold_px});
+  f->push_back({p + "min_pair_matches", &a.min_pair_matches});
+  f->push_back({p + "max_pair_angle_deg", &a.max_pair_angle_deg});
+  f->push_back({p + "huber_px", &a.huber_px});
+  f->push_back({p + "outlier_px", &a.outlier_px});
+  f->push_back({p + "max_iterations", &a.max_iterations});
+  f->push_back({p + "function_tolerance", &a.function_tolerance});
+  f->push_back({p + "min_triangulation_angle_deg", &a.min_triangulation_angle_deg});
+}
+
 // The fields of `o`, by key. Pointers into `o`: valid while it lives.
 std::vector<Field> Fields(SlamOptions& o) {
   std::vector<Field> f;
@@ -146,6 +161,8 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"distribute_keyframe_corrections", &o.distribute_keyframe_corrections});
   f.push_back({"final_adjustment", &o.final_adjustment});
   f.push_back({"final_adjustment_max_keyframes", &o.final_adjustment_max_keyframes});
+  f.push_back({"final_feature_adjustment", &o.final_feature_adjustment});
+  AddFeatureAdjustment("feature_adjustment.", o.feature_adjustment, &f);
   f.push_back({"final_refinement_neighbours", &o.final_refinement_neighbours});
   f.push_back({"final_refinement_first_from_second", &o.final_refinement_first_from_second});
   f.push_back({"final_refinement_relative_sigma", &o.final_refinement_relative_sigma});

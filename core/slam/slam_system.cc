@@ -202,6 +202,7 @@ Status SlamOptions::Check() const {
   if (final_refinement_rounds < 1 || final_refinement_rounds > 10)
     return InvalidArgumentError("SlamOptions: final_refinement_rounds must be in [1, 10]");
   PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
+  PRISM_RETURN_IF_ERROR(feature_adjustment.Check());
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
   if (!(metric_scale_max_pair_spread > 0))
     return InvalidArgumentError("SlamOptions: metric_scale_max_pair_spread must be > 0");
@@ -395,6 +396,14 @@ struct SlamSystem::Impl {
   }
   // After an adjustment: the newest keyframe's depth propagated again, along the adjusted pose.
   void RepropagateNewestKeyframe();
+  // The feature adjustment of every keyframe (SlamOptions::final_feature_adjustment), when the final
+  // adjustment's conditions hold: the keyframes, the odometry edges and the frames move.
+  void AdjustByFeatures();
+  FeatureAdjustmentReport feature_report;
+  std::unique_ptr<FeatureTracks> feature_tracks;  // of the keyframes, once built (AdjustByFeatures)
+  // After keyframes first.. moved: the odometry edges between consecutive ones and the frames tracked on
+  // keyframes first_moved.. follow.
+  void FollowKeyframes(int first_edge, int first_moved);
   // A window adjustment: its problem, set up from keyframes first..num_keyframes-1, and its result
   // (solved inline, or on its own thread with SlamOptions::keyframe_adjustment_async).
   struct PendingAdjustment {
@@ -1622,23 +1631,107 @@ void SlamSystem::Impl::ApplyAdjustment(PendingAdjustment* job) {
   const Sim3d newest_move = keyframes[static_cast<size_t>(n - 1)].world_from_keyframe * newest_before.Inverse();
   for (size_t k = static_cast<size_t>(n); k < keyframes.size(); ++k)
     keyframes[k].world_from_keyframe = newest_move * keyframes[k].world_from_keyframe;
-  // The odometry edges follow (a later loop closure starts from the adjusted chain), as do the frames.
-  for (PoseGraphEdge& e : graph_edges) {
-    if (e.to - e.from != 1 || e.to < first_refitted) continue;
-    e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
-                     keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
+  if (options.repropagate_after_adjustment && !at_finish) {
+    FollowKeyframes(first_refitted, static_cast<int>(keyframes.size()));  // the edges, before the re-propagation
+    RepropagateNewestKeyframe();
   }
-  if (options.repropagate_after_adjustment && !at_finish) RepropagateNewestKeyframe();
   // The frames of the oldest keyframe move too when its next keyframe moved (distribute_keyframe_corrections).
-  const int first_moved = options.distribute_keyframe_corrections ? first : first_refitted;
-  for (FrameRecord& f : frames)
-    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= first_moved)
-      f.result.world_from_camera = WorldFromFrame(f);
+  FollowKeyframes(first_refitted, options.distribute_keyframe_corrections ? first : first_refitted);
   ++keyframe_adjustments;
   PRISM_LOG(DEBUG) << "slam: " << (at_finish ? "final" : "keyframe") << " adjustment " << first << ".." << n - 1 << ": "
                    << problem.points.size() << " points, " << summary->residuals << " residuals, RMS "
                    << summary->initial_rms << " -> " << summary->final_rms << " in " << summary->iterations
                    << " iterations";
+}
+
+void SlamSystem::Impl::FollowKeyframes(int first_edge, int first_moved) {
+  // The odometry edges follow (a later loop closure starts from the adjusted chain), as do the frames.
+  for (PoseGraphEdge& e : graph_edges) {
+    if (e.to - e.from != 1 || e.to < first_edge) continue;
+    e.from_from_to = keyframes[static_cast<size_t>(e.from)].world_from_keyframe.Inverse() *
+                     keyframes[static_cast<size_t>(e.to)].world_from_keyframe;
+  }
+  for (FrameRecord& f : frames)
+    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= first_moved)
+      f.result.world_from_camera = WorldFromFrame(f);
+}
+
+void SlamSystem::Impl::AdjustByFeatures() {
+  ApplyPendingAdjustment();
+  const int n = static_cast<int>(keyframes.size());
+  if (!options.final_feature_adjustment || !CanAdjustAllKeyframes() || n < 3) return;
+  const auto start = std::chrono::steady_clock::now();
+  feature_report.ran = true;
+  ++feature_report.runs;
+  // The tracks depend on the images alone: built once for these keyframes (RefineKeyframeDepths' rounds
+  // adjust the same keyframes again).
+  if (!feature_tracks || feature_tracks->num_keyframes != n) {
+    std::vector<FeatureImage> images(static_cast<size_t>(n));
+    std::vector<Sim3d> poses;
+    for (const Keyframe& kf : keyframes) poses.push_back(kf.world_from_keyframe);
+    auto prepare = [&](std::ptrdiff_t k) {
+      FeatureImage& in = images[static_cast<size_t>(k)];
+      KeyframeDepth::NormalisedGrey(keyframes[static_cast<size_t>(k)].rgb, options.depth, &in.grey_j, &in.local_mean);
+    };
+    if (pool) pool->ParallelFor(0, n, prepare);
+    else
+      for (int k = 0; k < n; ++k) prepare(k);
+    StatusOr<FeatureTracks> tracks = BuildFeatureTracks(rig.camera, options.feature_adjustment, images, poses, pool);
+    if (!tracks.ok()) {
+      feature_report.seconds += SecondsSince(start);
+      feature_report.applied = false;
+      feature_report.error = std::string(tracks.status().message());
+      PRISM_LOG(WARNING) << "slam: feature adjustment not applied: " << tracks.status();
+      return;
+    }
+    feature_tracks = std::make_unique<FeatureTracks>(std::move(tracks).value());
+  }
+  std::vector<Sim3d> adjusted;
+  for (const Keyframe& kf : keyframes) adjusted.push_back(kf.world_from_keyframe);
+  StatusOr<FeatureAdjustmentSummary> summary =
+      AdjustKeyframesByFeatures(rig.camera, options.feature_adjustment, *feature_tracks, &adjusted);
+  feature_report.seconds += SecondsSince(start);
+  if (!summary.ok()) {
+    feature_report.applied = false;
+    feature_report.error = std::string(summary.status().message());
+    PRISM_LOG(WARNING) << "slam: feature adjustment not applied: " << summary.status();
+    return;
+  }
+  // Each keyframe's depth unit follows the tracks' depths where its depth map has them: a point at depth
+  // z_map (the keyframe's units) is at depth scale * z_map in world units.
+  int rescaled = 0;
+  for (int k = 0; k < n; ++k) {
+    Keyframe& kf = keyframes[static_cast<size_t>(k)];
+    Sim3d pose = adjusted[static_cast<size_t>(k)];
+    const cv::Mat& d = kf.final_depth.inverse_depth;
+    std::vector<double> ratios;
+    if (!d.empty()) {
+      for (const FeatureObservation& o : summary->observations_by_keyframe[static_cast<size_t>(k)]) {
+        const int x = static_cast<int>(std::lround(o.u)), y = static_cast<int>(std::lround(o.v));
+        if (x < 0 || y < 0 || x >= d.cols || y >= d.rows) continue;
+        const float rho = d.at<float>(y, x);
+        if (rho > 0 && o.depth > 0) ratios.push_back(o.depth * rho);
+      }
+    }
+    if (ratios.size() >= 20) {
+      std::nth_element(ratios.begin(), ratios.begin() + static_cast<std::ptrdiff_t>(ratios.size() / 2), ratios.end());
+      pose.scale = ratios[ratios.size() / 2];
+      ++rescaled;
+    }
+    kf.world_from_keyframe = pose;
+  }
+  FollowKeyframes(0, 0);
+  feature_report.applied = true;
+  feature_report.error.clear();
+  feature_report.keyframes_rescaled = rescaled;
+  feature_report.summary = std::move(summary).value();
+  feature_report.summary.observations_by_keyframe.clear();
+  const FeatureAdjustmentSummary& r = feature_report.summary;
+  PRISM_LOG(INFO) << "slam: feature adjustment: " << r.features << " features, " << r.pairs_matched << " pairs, "
+                  << r.tracks << " tracks (" << r.mean_track_length << " keyframes each), reprojection RMS "
+                  << r.initial_rms_px << " -> " << r.final_rms_px << " px (median " << r.initial_median_px << " -> "
+                  << r.final_median_px << "), " << r.iterations << " iterations, " << rescaled
+                  << " depth units refitted";
 }
 
 cv::Mat SlamSystem::Impl::SeedFromSecondKeyframe(const KeyframeDepth& first, const cv::Mat& first_inverse_depth,
@@ -1795,7 +1888,10 @@ void SlamSystem::AdjustAllKeyframes() {
   if (m.final_adjustment_done || !m.CanAdjustAllKeyframes()) return;
   m.final_adjustment_done = true;
   m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
+  m.AdjustByFeatures();
 }
+
+FeatureAdjustmentReport SlamSystem::feature_adjustment() const { return impl_->feature_report; }
 
 StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   impl_->ApplyPendingAdjustment();
@@ -1981,6 +2077,7 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
         if (!grey_j[static_cast<size_t>(k)].empty())
           m.keyframes[static_cast<size_t>(k)].grey_j = grey_j[static_cast<size_t>(k)];
       m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
+      m.AdjustByFeatures();
       for (size_t i = 0; i < keyframes->size(); ++i) (*keyframes)[i].depth = handed_out[i];
     }
     // Each keyframe apart: with a pool of more than one thread the keyframes are refined in parallel,

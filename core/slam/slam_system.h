@@ -25,6 +25,7 @@
 #include "core/io/calibration_io.h"
 #include "core/io/inverse_depth.h"
 #include "core/slam/depth_filter.h"
+#include "core/slam/feature_adjustment.h"
 #include "core/slam/keyframe_ba.h"
 #include "core/slam/tracker.h"
 #include "core/util/status.h"
@@ -391,6 +392,16 @@ struct SlamOptions {
   // unchanged.
   bool final_adjustment = true;
   int final_adjustment_max_keyframes = 64;  // >= 3
+  // After the final direct adjustment (and in each of RefineKeyframeDepths' rounds after the direct one),
+  // the feature adjustment of every keyframe (feature_adjustment.h: SIFT on J, tracks across all keyframe
+  // pairs within feature_adjustment.max_pair_angle_deg, reprojection error): the keyframes' rotations and
+  // centres move, each keyframe's depth unit follows the adjusted tracks' depths where its depth map has
+  // them (median ratio, at least 20), keyframe 0 stays (the gauge). The direct cost is nearly flat along
+  // the turn-for-depth direction of an orbit (feature_adjustment.h); the features pin it. Needs the
+  // final adjustment's conditions (keyframe_adjustment, at most final_adjustment_max_keyframes). Off:
+  // the direct adjustments alone. Measured: README, sixty-first round.
+  bool final_feature_adjustment = true;
+  FeatureAdjustmentOptions feature_adjustment;
   // RefineKeyframeDepths, which prism-slam runs after Finish on the keyframes it writes (0 = off; the
   // streaming server hands keyframes on as they finish and does not): each keyframe's depth estimated
   // again by stereo with up to this many keyframes on each side, at their final poses, from its own
@@ -637,6 +648,17 @@ struct SlamTimings {
   int64_t depth_pixels_skipped = 0;   // and searches skipped as uninformative (skip_information_ratio)
 };
 
+// The last feature adjustment of the keyframes (SlamOptions::final_feature_adjustment).
+struct FeatureAdjustmentReport {
+  bool ran = false;                  // it was tried
+  bool applied = false;              // it succeeded and moved the keyframes
+  std::string error;                 // why not, when it was tried and did not apply
+  int runs = 0;                      // times it ran (Finish, and RefineKeyframeDepths' rounds)
+  FeatureAdjustmentSummary summary;  // of the last run (observations_by_keyframe cleared)
+  int keyframes_rescaled = 0;        // keyframes whose depth unit followed the tracks in the last run
+  double seconds = 0;                // wall time over all runs
+};
+
 // What the start check (SlamOptions::start_check_*) found.
 struct StartCheckReport {
   bool checked = false;     // the first start reached start_check_keyframes keyframes and was checked
@@ -733,6 +755,8 @@ class SlamSystem {
   int num_keyframe_adjustments() const;
   // Where ProcessFrame's time went so far.
   SlamTimings timings() const;
+  // The feature adjustment's outcome so far (SlamOptions::final_feature_adjustment).
+  FeatureAdjustmentReport feature_adjustment() const;
   // The start check's outcome so far.
   StartCheckReport start_check() const {
     StartCheckReport r = start_check_report_;

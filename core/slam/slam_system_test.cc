@@ -517,9 +517,9 @@ TEST(SlamSystem, CorrectsTheScaleDriftOfTheUniformSphere) {
 // README, fifty-seventh round); 0.57% with the local mean's edge test (fifty-eighth round).
 constexpr double kUniformSphereMaxAtePercent = 1.0;  // the bar
 
-// One uniform-sphere seed as prism-slam runs it (refinement rounds included; default options unless
-// given), from the sideways start unless another preset is named.
-struct UniformSphereRun {
+// One seed of a preset as prism-slam runs it (refinement rounds included; default options unless
+// given), the uniform sphere's sideways start unless another preset is named.
+struct PrismSlamRun {
   Rendered r;
   std::vector<SlamKeyframe> keyframes;
   std::vector<Sim3d> keyframe_poses;
@@ -527,8 +527,8 @@ struct UniformSphereRun {
   AteResult ate;
 };
 // False (and *why) when the preset cannot be rendered; fatal failures on errors.
-bool RunUniformSphere(int seed, UniformSphereRun* run, std::string* why, const SlamOptions& options = SlamOptions(),
-                      const std::string& preset = "sphere-uniform-sideways") {
+bool RunSeedAsPrismSlam(int seed, PrismSlamRun* run, std::string* why, const SlamOptions& options = SlamOptions(),
+                        const std::string& preset = "sphere-uniform-sideways") {
   if (!Render(preset, 150, 1, &run->r, why, seed)) return false;
   ThreadPool pool(2);
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(run->r.setup.rig, options, &pool);
@@ -544,40 +544,19 @@ bool RunUniformSphere(int seed, UniformSphereRun* run, std::string* why, const S
 }
 
 // Every frame tracked and the ATE within the bar, printed with `label`.
-void ExpectTrackedWithinTheBar(const UniformSphereRun& run, const char* label) {
+void ExpectTrackedWithinTheBar(const PrismSlamRun& run, const char* label) {
   std::printf("%s: ATE %.3f%% of path, %zu keyframes\n", label, PercentOfPath(run.ate), run.keyframes.size());
   EXPECT_EQ(run.tracked.size(), run.r.trajectory.size()) << "every frame tracked";
   EXPECT_LE(PercentOfPath(run.ate), kUniformSphereMaxAtePercent);
 }
 
-TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
-  UniformSphereRun run;
-  std::string why;
-  if (!RunUniformSphere(2, &run, &why)) GTEST_SKIP() << "preset unavailable: " << why;
-  ASSERT_FALSE(HasFailure());
-  ExpectTrackedWithinTheBar(run, "uniform sphere, seed 2");
-}
-
-// The uniform sphere's seed 4, the run furthest over the depth bar before the fifty-eighth round
-// (10.7%): its ground beside the bright sphere took the sphere's outline into J through the local mean,
-// a pattern that stays put in the image while the ground slides under it. With the dim side of the
-// local mean's edges left out (DepthFilterOptions::max_local_mean_log_gradient, on in SlamOptions)
-// prism-slam's keyframe depth is within 2.83% in the median (README, fifty-eighth round).
-constexpr double kUniformSphereMaxDepthMedian = 0.03;  // the bar
-
-TEST(SlamSystem, TheUniformSpheresSeed4DepthIsWithinTheBar) {
-  UniformSphereRun run;
-  std::string why;
-  if (!RunUniformSphere(4, &run, &why)) GTEST_SKIP() << "preset unavailable: " << why;
-  ASSERT_FALSE(HasFailure());
-  const Rendered& r = run.r;
-  const std::vector<SlamKeyframe>& keyframes = run.keyframes;
-  const std::vector<Sim3d>& poses = run.keyframe_poses;
-  const AteResult* ate = &run.ate;
+// The keyframes' median relative depth error through the trajectory's Sim(3) scale (as prism-slam
+// scores it), over the pixels they claim; *pixels: how many.
+double DepthMedianThroughTheTrajectory(const PrismSlamRun& run, size_t* pixels) {
   std::vector<double> rel;
-  for (const SlamKeyframe& k : keyframes) {
-    const double scale = ate->gt_from_est.scale * poses[static_cast<size_t>(k.id)].scale;
-    const cv::Mat& gt = r.frames[static_cast<size_t>(k.frame_id)].depth;
+  for (const SlamKeyframe& k : run.keyframes) {
+    const double scale = run.ate.gt_from_est.scale * run.keyframe_poses[static_cast<size_t>(k.id)].scale;
+    const cv::Mat& gt = run.r.frames[static_cast<size_t>(k.frame_id)].depth;
     for (int y = 0; y < gt.rows; ++y)
       for (int x = 0; x < gt.cols; ++x) {
         const float d = k.depth.inverse_depth.at<float>(y, x);
@@ -585,13 +564,65 @@ TEST(SlamSystem, TheUniformSpheresSeed4DepthIsWithinTheBar) {
         if (d > 0 && z > 0) rel.push_back(std::abs(scale / d - z) / z);
       }
   }
-  ASSERT_GT(rel.size(), 100000u);
-  std::nth_element(rel.begin(), rel.begin() + rel.size() / 2, rel.end());
-  const double depth_median = rel[rel.size() / 2];
-  std::printf("uniform sphere, seed 4: ATE %.3f%% of path, depth median rel error %.4f on %zu pixels\n",
-              PercentOfPath(*ate), depth_median, rel.size());
-  EXPECT_LE(PercentOfPath(*ate), kUniformSphereMaxAtePercent);
-  EXPECT_LE(depth_median, kUniformSphereMaxDepthMedian);
+  *pixels = rel.size();
+  if (rel.empty()) return 1.0;
+  std::nth_element(rel.begin(), rel.begin() + static_cast<std::ptrdiff_t>(rel.size() / 2), rel.end());
+  return rel[rel.size() / 2];
+}
+
+constexpr double kMaxDepthMedian = 0.03;  // the bar
+constexpr size_t kMinDepthPixels = 100000;
+
+// The ATE and the depth within the bars, printed with `label`.
+void ExpectWithinBothBars(const PrismSlamRun& run, const char* label) {
+  size_t pixels = 0;
+  const double depth_median = DepthMedianThroughTheTrajectory(run, &pixels);
+  std::printf("%s: ATE %.3f%% of path, depth median rel error %.4f on %zu pixels, %zu keyframes\n", label,
+              PercentOfPath(run.ate), depth_median, pixels, run.keyframes.size());
+  EXPECT_EQ(run.tracked.size(), run.r.trajectory.size()) << "every frame tracked";
+  EXPECT_LE(PercentOfPath(run.ate), kUniformSphereMaxAtePercent);
+  EXPECT_GT(pixels, kMinDepthPixels);
+  EXPECT_LE(depth_median, kMaxDepthMedian);
+}
+
+// The uniform sphere's seed 2 also missed the depth bar until the sixty-first round (5.65%: every
+// keyframe's depth 3-9% too far for the path, the turn 0.982 of the truth). The feature adjustment of the
+// keyframes (SlamOptions::final_feature_adjustment) pins the turn: 0.14% of path and 1.11% depth
+// (README, sixty-first round).
+TEST(SlamSystem, TheUniformSpheresSeed2IsWithinTheBar) {
+  PrismSlamRun run;
+  std::string why;
+  if (!RunSeedAsPrismSlam(2, &run, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ASSERT_FALSE(HasFailure());
+  ExpectWithinBothBars(run, "uniform sphere, seed 2");
+}
+
+// The uniform sphere's seed 4, the run furthest over the depth bar before the fifty-eighth round
+// (10.7%): its ground beside the bright sphere took the sphere's outline into J through the local mean,
+// a pattern that stays put in the image while the ground slides under it. With the dim side of the
+// local mean's edges left out (DepthFilterOptions::max_local_mean_log_gradient, on in SlamOptions)
+// prism-slam's keyframe depth is within 2.83% in the median (README, fifty-eighth round); 0.95% with the
+// feature adjustment (sixty-first round).
+TEST(SlamSystem, TheUniformSpheresSeed4DepthIsWithinTheBar) {
+  PrismSlamRun run;
+  std::string why;
+  if (!RunSeedAsPrismSlam(4, &run, &why)) GTEST_SKIP() << "preset unavailable: " << why;
+  ASSERT_FALSE(HasFailure());
+  ExpectWithinBothBars(run, "uniform sphere, seed 4");
+}
+
+// The torus's seed 5, the other run over the depth bar until the sixty-first round (4.83%): the cast
+// shadows of the co-moving lights (rendered without them it reached 1.54%) left the direct adjustments
+// a turn 0.969 of the truth, with each keyframe's depth scale drifting 1.00 -> 0.91 along the arc. Their
+// cost is nearly flat along that turn-for-depth direction; the feature adjustment's is not (0.20% of
+// path, 1.34% depth, the turn 0.995; README, sixty-first round).
+TEST(SlamSystem, TheTorussSeed5IsWithinBothBars) {
+  PrismSlamRun run;
+  std::string why;
+  if (!RunSeedAsPrismSlam(5, &run, &why, SlamOptions(), "torus-textured-forward"))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  ASSERT_FALSE(HasFailure());
+  ExpectWithinBothBars(run, "torus, seed 5");
 }
 
 // The uniform sphere's forward start (outside the standard nine), seed 2: with the local mean's edge test
@@ -600,11 +631,11 @@ TEST(SlamSystem, TheUniformSpheresSeed4DepthIsWithinTheBar) {
 // takes the ground beside the sphere from the first keyframe's depth; why the start is better with that
 // ground kept was not isolated.
 TEST(SlamSystem, TheUniformSpheresForwardStartWithoutTheEdgeTestInTheFirstDepth) {
-  UniformSphereRun run;
+  PrismSlamRun run;
   std::string why;
   SlamOptions options;
   options.init_depth_edge_test = false;
-  if (!RunUniformSphere(2, &run, &why, options, "sphere-uniform-forward"))
+  if (!RunSeedAsPrismSlam(2, &run, &why, options, "sphere-uniform-forward"))
     GTEST_SKIP() << "preset unavailable: " << why;
   ASSERT_FALSE(HasFailure());
   ExpectTrackedWithinTheBar(run, "uniform sphere, forward start, seed 2");
