@@ -130,10 +130,11 @@ std::string FeatureAdjustmentJson(const FeatureAdjustmentReport& r) {
   const FeatureAdjustmentSummary& s = r.summary;
   j << "{\"ran\": " << (r.ran ? "true" : "false") << ", \"applied\": " << (r.applied ? "true" : "false")
     << ", \"error\": " << JsonQuote(r.error) << ", \"runs\": " << r.runs << ", \"features\": " << s.features
-    << ", \"pairs_matched\": " << s.pairs_matched << ", \"tracks\": " << s.tracks
-    << ", \"observations\": " << s.observations << ", \"initial_median_px\": " << s.initial_median_px
-    << ", \"final_median_px\": " << s.final_median_px << ", \"final_rms_px\": " << s.final_rms_px
-    << ", \"keyframes_rescaled\": " << r.keyframes_rescaled << ", \"ms\": " << 1000 * r.seconds << "}";
+    << ", \"pairs_tried\": " << r.pairs_tried << ", \"pairs_matched\": " << s.pairs_matched
+    << ", \"tracks\": " << s.tracks << ", \"observations\": " << s.observations
+    << ", \"initial_median_px\": " << s.initial_median_px << ", \"final_median_px\": " << s.final_median_px
+    << ", \"final_rms_px\": " << s.final_rms_px << ", \"keyframes_rescaled\": " << r.keyframes_rescaled
+    << ", \"tracks_ms\": " << 1000 * r.tracks_seconds << ", \"ms\": " << 1000 * r.seconds << "}";
   return j.str();
 }
 

@@ -52,10 +52,24 @@ KeyframeFeatures DetectFeatures(const FeatureImage& k, const FeatureAdjustmentOp
   cv::Mat j8, mask;
   k.grey_j.convertTo(j8, CV_8U);  // saturates to [0, 255]
   mask = k.local_mean >= options.min_local_mean;
-  cv::Ptr<cv::SIFT> sift = cv::SIFT::create(options.max_features, 3, options.contrast_threshold);
+  cv::Ptr<cv::SIFT> sift = cv::SIFT::create(0, 3, options.contrast_threshold);
   std::vector<cv::KeyPoint> keypoints;
+  sift->detect(j8, keypoints, mask);
+  // The strongest max_features, in an order that does not depend on OpenCV's threads (ties by position,
+  // size and angle), then their descriptors.
+  std::sort(keypoints.begin(), keypoints.end(), [](const cv::KeyPoint& a, const cv::KeyPoint& b) {
+    if (a.response != b.response) return a.response > b.response;
+    if (a.pt.y != b.pt.y) return a.pt.y < b.pt.y;
+    if (a.pt.x != b.pt.x) return a.pt.x < b.pt.x;
+    if (a.size != b.size) return a.size < b.size;
+    if (a.angle != b.angle) return a.angle < b.angle;
+    return a.octave < b.octave;
+  });
+  if (static_cast<int>(keypoints.size()) > options.max_features)
+    keypoints.resize(static_cast<size_t>(options.max_features));
   KeyframeFeatures f;
-  sift->detectAndCompute(j8, mask, keypoints, f.descriptors);
+  if (keypoints.empty()) return f;
+  sift->compute(j8, keypoints, f.descriptors);
   f.points.reserve(keypoints.size());
   for (const cv::KeyPoint& kp : keypoints) f.points.push_back(kp.pt);
   return f;
@@ -248,8 +262,9 @@ class Solver {
         Eigen::Matrix<double, 2, 6> jc = PoseJacobian(d_proj, p, x);
         const int d = o.keyframe == 1 ? 5 : 6;
         if (o.keyframe == 1) {
-          jc.col(3) = jc.middleCols<3>(3) * across_.col(0);
-          jc.col(4) = jc.middleCols<3>(3) * across_.col(1);
+          // The centre's two directions across the baseline.
+          const Eigen::Matrix<double, 2, 2> across = jc.rightCols<3>() * across_;
+          jc.middleCols<2>(3) = across;
           jc.col(5).setZero();
         }
         hcc_.block(off, off, d, d) += w * jc.leftCols(d).transpose() * jc.leftCols(d);
@@ -372,7 +387,8 @@ double Rms(const std::vector<double>& v) {
 
 StatusOr<FeatureTracks> BuildFeatureTracks(const PinholeCamera& camera, const FeatureAdjustmentOptions& options,
                                            const std::vector<FeatureImage>& images,
-                                           const std::vector<Sim3d>& world_from_keyframe, ThreadPool* pool) {
+                                           const std::vector<Sim3d>& world_from_keyframe, ThreadPool* pool,
+                                           const std::function<bool(int, int)>& pair_filter) {
   PRISM_RETURN_IF_ERROR(options.Check());
   const int n = static_cast<int>(images.size());
   if (n < 3) return InvalidArgumentError("BuildFeatureTracks: needs at least 3 keyframes");
@@ -397,7 +413,7 @@ StatusOr<FeatureTracks> BuildFeatureTracks(const PinholeCamera& camera, const Fe
     for (int b = a + 1; b < n; ++b) {
       const Eigen::Vector3d za = world_from_keyframe[static_cast<size_t>(a)].rotation * Eigen::Vector3d::UnitZ();
       const Eigen::Vector3d zb = world_from_keyframe[static_cast<size_t>(b)].rotation * Eigen::Vector3d::UnitZ();
-      if (za.dot(zb) >= min_axis_cos) pairs.emplace_back(a, b);
+      if (za.dot(zb) >= min_axis_cos && (!pair_filter || pair_filter(a, b))) pairs.emplace_back(a, b);
     }
   std::vector<std::vector<std::pair<int, int>>> matches(pairs.size());
   auto match = [&](std::ptrdiff_t i) {

@@ -19,6 +19,7 @@
 // adjusted; the keyframes' Sim(3) scales (their depth units) are the caller's (see KeyframeFeatureDepths).
 #pragma once
 
+#include <functional>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -32,8 +33,10 @@ namespace prism {
 class ThreadPool;
 
 struct FeatureAdjustmentOptions {
-  // SIFT features per keyframe at most (the strongest), >= 16.
-  int max_features = 3000;
+  // SIFT features per keyframe at most (the strongest), >= 16. The dark-room presets give 330-870 per
+  // keyframe; KITTI's street scenes reach the limit (matching every pair of 21 keyframes at 3000 took
+  // 31 s on one thread, at 1500 9 s).
+  int max_features = 1500;
   // SIFT's contrast threshold (on J scaled to 8 bits; OpenCV's default is 0.04), in (0, 1).
   double contrast_threshold = 0.02;
   // Features only where J's raw local mean is at least this many grey levels (the dark background is
@@ -83,13 +86,15 @@ struct FeatureTracks {
   int pairs_matched = 0;  // of those, the pairs whose matches were kept
 };
 
-// Finds SIFT features on every image and matches every pair of keyframes whose optical axes are within
-// options.max_pair_angle_deg (world_from_keyframe: one pose per image). Images and pairs are processed in
-// parallel over `pool` when given (the result is the same). Fails on invalid options, fewer than 3
-// keyframes, or images of the wrong size or type.
+// Finds SIFT features on every image and matches every pair of keyframes (a, b), a < b, whose optical axes
+// are within options.max_pair_angle_deg (world_from_keyframe: one pose per image) and that `pair_filter`
+// accepts when given (the caller's view overlap). Images and pairs are processed in parallel over `pool`
+// when given (the result is the same). Fails on invalid options, fewer than 3 keyframes, or images of the
+// wrong size or type.
 StatusOr<FeatureTracks> BuildFeatureTracks(const PinholeCamera& camera, const FeatureAdjustmentOptions& options,
                                            const std::vector<FeatureImage>& images,
-                                           const std::vector<Sim3d>& world_from_keyframe, ThreadPool* pool = nullptr);
+                                           const std::vector<Sim3d>& world_from_keyframe, ThreadPool* pool = nullptr,
+                                           const std::function<bool(int, int)>& pair_filter = nullptr);
 
 // A track's observation in one keyframe after the adjustment: the feature's pixel and the adjusted
 // point's depth (z) in that keyframe's camera, in world units.

@@ -10,6 +10,10 @@
 //                    sideways, 0.1 degrees, inverse depths 3% off), one point per 12x12 cell; the time
 //                    per residual linearised or evaluated is the "ns_per_residual" counter. The last
 //                    argument 24: 24 keyframes 4 frames apart (the size of a final adjustment).
+//   BM_FeatureTracks / BM_FeatureAdjustment: the feature adjustment's two parts (feature_adjustment.h; the
+//                    one-off work after the last frame): SIFT on J and matching over 22 keyframes 7 frames
+//                    apart along the whole arc (every pair within 90 degrees), on 1 or 2 threads; and the
+//                    adjustment of those tracks from a turn 0.98 of the truth (one thread).
 //   BM_SlamSequence: the whole SlamSystem (initialisation, tracking, depth filter, keyframes, keyframe
 //                    adjustment) over 150 frames of a preset; the per-frame time is the "ms_per_frame"
 //                    counter (with and without the keyframe adjustment on the bunny; budget_*: with
@@ -28,6 +32,7 @@
 #include <benchmark/benchmark.h>
 
 #include "core/slam/depth_filter.h"
+#include "core/slam/feature_adjustment.h"
 #include "core/slam/keyframe_ba.h"
 #include "core/slam/line_sampler.h"
 #include "core/slam/shading_scale.h"
@@ -427,6 +432,98 @@ PRISM_SLAM_PRESET_BENCHMARK(boxes_multicolor_forward, "boxes-multicolor-forward"
 PRISM_SLAM_PRESET_BENCHMARK(bunny_uniform_sideways, "bunny-uniform-sideways");
 PRISM_SLAM_PRESET_BENCHMARK(armadillo_textured_forward, "armadillo-textured-forward");
 PRISM_SLAM_PRESET_BENCHMARK(torus_textured_forward, "torus-textured-forward");
+
+// 22 keyframes 7 frames apart over the preset's 150 frames: their images (J with SlamOptions' box) and true
+// poses.
+struct FeatureArc {
+  std::vector<FeatureImage> images;
+  std::vector<Sim3d> truth;
+};
+FeatureArc MakeFeatureArc(const Frames& f) {
+  FeatureArc a;
+  const DepthFilterOptions depth = SlamOptions().depth;
+  for (size_t i = 0; i < f.frames.size(); i += 7) {
+    FeatureImage image;
+    KeyframeDepth::NormalisedGrey(f.frames[i].rgb, depth, &image.grey_j, &image.local_mean);
+    a.images.push_back(image);
+    const Rigid3d& p = f.trajectory[i].world_from_camera;
+    a.truth.push_back(Sim3d(1.0, p.rotation, p.translation));
+  }
+  return a;
+}
+
+void BM_FeatureTracks(benchmark::State& state, const std::string& preset) {
+  const Frames* f = GetFrames(preset);
+  if (!f) {
+    state.SkipWithError("preset unavailable");
+    return;
+  }
+  const FeatureArc arc = MakeFeatureArc(*f);
+  const int threads = static_cast<int>(state.range(0));
+  std::unique_ptr<ThreadPool> pool = threads > 1 ? std::make_unique<ThreadPool>(threads) : nullptr;
+  size_t tracks = 0;
+  int pairs = 0;
+  for (auto _ : state) {
+    StatusOr<FeatureTracks> t =
+        BuildFeatureTracks(f->setup.rig.camera, FeatureAdjustmentOptions(), arc.images, arc.truth, pool.get());
+    if (!t.ok()) {
+      state.SkipWithError(t.status().ToString().c_str());
+      return;
+    }
+    tracks = t->tracks.size();
+    pairs = t->pairs_tried;
+  }
+  state.counters["tracks"] = static_cast<double>(tracks);
+  state.counters["pairs"] = pairs;
+}
+BENCHMARK_CAPTURE(BM_FeatureTracks, torus, std::string("torus-textured-forward"))
+    ->Arg(1)
+    ->Arg(2)
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
+BENCHMARK_CAPTURE(BM_FeatureTracks, bunny, std::string("bunny-multicolor-forward"))
+    ->Arg(1)
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
+
+void BM_FeatureAdjustment(benchmark::State& state, const std::string& preset) {
+  const Frames* f = GetFrames(preset);
+  if (!f) {
+    state.SkipWithError("preset unavailable");
+    return;
+  }
+  const FeatureArc arc = MakeFeatureArc(*f);
+  const FeatureAdjustmentOptions options;
+  StatusOr<FeatureTracks> tracks = BuildFeatureTracks(f->setup.rig.camera, options, arc.images, arc.truth);
+  if (!tracks.ok()) {
+    state.SkipWithError(tracks.status().ToString().c_str());
+    return;
+  }
+  std::vector<Sim3d> start = arc.truth;
+  for (Sim3d& p : start) {
+    const Eigen::AngleAxisd aa(arc.truth.front().rotation.conjugate() * p.rotation);
+    p.rotation = arc.truth.front().rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.98 * aa.angle(), aa.axis()));
+  }
+  int iterations = 0, observations = 0;
+  for (auto _ : state) {
+    std::vector<Sim3d> poses = start;
+    StatusOr<FeatureAdjustmentSummary> s = AdjustKeyframesByFeatures(f->setup.rig.camera, options, *tracks, &poses);
+    if (!s.ok()) {
+      state.SkipWithError(s.status().ToString().c_str());
+      return;
+    }
+    iterations = s->iterations;
+    observations = s->observations;
+  }
+  state.counters["iterations"] = iterations;
+  state.counters["observations"] = observations;
+}
+BENCHMARK_CAPTURE(BM_FeatureAdjustment, torus, std::string("torus-textured-forward"))
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
+BENCHMARK_CAPTURE(BM_FeatureAdjustment, bunny, std::string("bunny-multicolor-forward"))
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
 
 // The initialisation's pause (SlamOptions::init_threads, the argument): the frames up to the first tracked
 // one, on one core as in the bounded_* cases (the SLAM's pool has one thread). init_frame_ms is the frame

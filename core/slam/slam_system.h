@@ -402,6 +402,10 @@ struct SlamOptions {
   // the direct adjustments alone. Measured: README, sixty-first round.
   bool final_feature_adjustment = true;
   FeatureAdjustmentOptions feature_adjustment;
+  // Keyframe pairs are matched for it when at least this fraction of either one's depth projects into
+  // the other (every 8th pixel; as keyframe_window_min_overlap measures it), in [0, 1]: a long forward
+  // sequence (KITTI) would otherwise match every pair.
+  double feature_adjustment_min_overlap = 0.1;
   // RefineKeyframeDepths, which prism-slam runs after Finish on the keyframes it writes (0 = off; the
   // streaming server hands keyframes on as they finish and does not): each keyframe's depth estimated
   // again by stereo with up to this many keyframes on each side, at their final poses, from its own
@@ -655,6 +659,8 @@ struct FeatureAdjustmentReport {
   std::string error;                 // why not, when it was tried and did not apply
   int runs = 0;                      // times it ran (Finish, and RefineKeyframeDepths' rounds)
   FeatureAdjustmentSummary summary;  // of the last run (observations_by_keyframe cleared)
+  int pairs_tried = 0;               // keyframe pairs matched (within the angle and overlap)
+  double tracks_seconds = 0;         // wall time of finding and matching the features (once)
   int keyframes_rescaled = 0;        // keyframes whose depth unit followed the tracks in the last run
   double seconds = 0;                // wall time over all runs
 };
