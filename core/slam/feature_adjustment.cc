@@ -479,6 +479,9 @@ StatusOr<FeatureAdjustmentSummary> AdjustKeyframesByFeatures(const PinholeCamera
   const int n = static_cast<int>(world_from_keyframe->size());
   if (n < 3 || n != tracks.num_keyframes)
     return InvalidArgumentError("AdjustKeyframesByFeatures: needs the tracks' keyframes' poses (at least 3)");
+  if (!((*world_from_keyframe)[1].translation - (*world_from_keyframe)[0].translation).allFinite() ||
+      ((*world_from_keyframe)[1].translation - (*world_from_keyframe)[0].translation).norm() <= 1e-12)
+    return FailedPreconditionError("AdjustKeyframesByFeatures: keyframes 0 and 1 coincide (no scale gauge)");
   FeatureAdjustmentSummary summary;
   summary.features = tracks.features;
   summary.pairs_matched = tracks.pairs_matched;

@@ -118,8 +118,8 @@ struct FeatureAdjustmentSummary {
 
 // Triangulates the tracks at the given poses and adjusts poses and points (world_from_keyframe: in, the
 // start; out, adjusted rotations and centres, the scales unchanged). Fails on invalid options, a camera
-// with distortion, poses that do not match the tracks' keyframes, or too few tracks (FailedPrecondition);
-// the poses are then unchanged.
+// with distortion, or poses that do not match the tracks' keyframes; FailedPrecondition for too few
+// tracks or keyframes 0 and 1 at one place (no scale gauge). The poses are then unchanged.
 StatusOr<FeatureAdjustmentSummary> AdjustKeyframesByFeatures(const PinholeCamera& camera,
                                                              const FeatureAdjustmentOptions& options,
                                                              const FeatureTracks& tracks,

@@ -186,6 +186,12 @@ TEST(FeatureAdjustment, RefusesBadInputAndLeavesThePosesWithTooFewTracks) {
   EXPECT_EQ(AdjustKeyframesByFeatures(camera, options, *tracks, &adjusted).status().code(),
             StatusCode::kFailedPrecondition);
   for (size_t k = 0; k < poses.size(); ++k) EXPECT_EQ(adjusted[k].translation, poses[k].translation);
+  // Keyframes 0 and 1 at one place: no scale gauge.
+  std::vector<Sim3d> coincident = poses;
+  coincident[1].translation = coincident[0].translation;
+  const Status no_gauge = AdjustKeyframesByFeatures(camera, options, *tracks, &coincident).status();
+  EXPECT_EQ(no_gauge.code(), StatusCode::kFailedPrecondition);
+  EXPECT_NE(std::string(no_gauge.message()).find("coincide"), std::string::npos) << no_gauge.message();
   // Poses that do not match the tracks' keyframes.
   std::vector<Sim3d> four(4);
   EXPECT_EQ(AdjustKeyframesByFeatures(camera, options, *tracks, &four).status().code(), StatusCode::kInvalidArgument);

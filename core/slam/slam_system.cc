@@ -151,8 +151,6 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(depth.Check());
   if (!(keyframe_distance_fraction > 0))
     return InvalidArgumentError("SlamOptions: keyframe_distance_fraction must be > 0");
-  if (!(feature_adjustment_min_overlap >= 0 && feature_adjustment_min_overlap <= 1))
-    return InvalidArgumentError("SlamOptions: feature_adjustment_min_overlap must be in [0, 1]");
   if (!(keyframe_min_visible_fraction >= 0 && keyframe_min_visible_fraction <= 1))
     return InvalidArgumentError("SlamOptions: keyframe_min_visible_fraction must be in [0, 1]");
   if (!(keyframe_max_rotation_deg > 0))
@@ -205,6 +203,8 @@ Status SlamOptions::Check() const {
     return InvalidArgumentError("SlamOptions: final_refinement_rounds must be in [1, 10]");
   PRISM_RETURN_IF_ERROR(final_adjustment_ba.Check());
   PRISM_RETURN_IF_ERROR(feature_adjustment.Check());
+  if (!(feature_adjustment_min_overlap >= 0 && feature_adjustment_min_overlap <= 1))
+    return InvalidArgumentError("SlamOptions: feature_adjustment_min_overlap must be in [0, 1]");
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
   if (!(metric_scale_max_pair_spread > 0))
     return InvalidArgumentError("SlamOptions: metric_scale_max_pair_spread must be > 0");
