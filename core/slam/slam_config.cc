@@ -163,6 +163,7 @@ std::vector<Field> Fields(SlamOptions& o) {
   f.push_back({"final_adjustment_max_keyframes", &o.final_adjustment_max_keyframes});
   f.push_back({"final_feature_adjustment", &o.final_feature_adjustment});
   f.push_back({"feature_adjustment_min_overlap", &o.feature_adjustment_min_overlap});
+  f.push_back({"feature_adjustment_max_keyframes", &o.feature_adjustment_max_keyframes});
   AddFeatureAdjustment("feature_adjustment.", o.feature_adjustment, &f);
   f.push_back({"final_refinement_neighbours", &o.final_refinement_neighbours});
   f.push_back({"final_refinement_first_from_second", &o.final_refinement_first_from_second});

@@ -195,6 +195,8 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(keyframe_window_ba.Check());
   if (final_adjustment_max_keyframes < 3)
     return InvalidArgumentError("SlamOptions: final_adjustment_max_keyframes must be >= 3");
+  if (feature_adjustment_max_keyframes < 3)
+    return InvalidArgumentError("SlamOptions: feature_adjustment_max_keyframes must be >= 3");
   if (final_refinement_neighbours < 0 || final_refinement_neighbours > 5)
     return InvalidArgumentError("SlamOptions: final_refinement_neighbours must be in [0, 5]");
   if (!(final_refinement_relative_sigma > 0))
@@ -395,6 +397,14 @@ struct SlamSystem::Impl {
   bool CanAdjustAllKeyframes() const {
     return options.keyframe_adjustment && !keyframes.empty() &&
            static_cast<int>(keyframes.size()) <= options.final_adjustment_max_keyframes && keyframes.back().finished;
+  }
+  // Beyond the direct adjustment's limit, the feature adjustment alone is possible: on, every keyframe
+  // finished, more than final_adjustment_max_keyframes and at most feature_adjustment_max_keyframes.
+  bool CanAdjustByFeaturesAlone() const {
+    const int n = static_cast<int>(keyframes.size());
+    return options.final_feature_adjustment && options.keyframe_adjustment && !keyframes.empty() &&
+           keyframes.back().finished && n > options.final_adjustment_max_keyframes &&
+           n <= options.feature_adjustment_max_keyframes;
   }
   // After an adjustment: the newest keyframe's depth propagated again, along the adjusted pose.
   void RepropagateNewestKeyframe();
@@ -1661,7 +1671,7 @@ void SlamSystem::Impl::FollowKeyframes(int first_edge, int first_moved) {
 void SlamSystem::Impl::AdjustByFeatures() {
   ApplyPendingAdjustment();
   const int n = static_cast<int>(keyframes.size());
-  if (!options.final_feature_adjustment || !CanAdjustAllKeyframes() || n < 3) return;
+  if (!options.final_feature_adjustment || !(CanAdjustAllKeyframes() || CanAdjustByFeaturesAlone()) || n < 3) return;
   const auto start = std::chrono::steady_clock::now();
   feature_report.ran = true;
   ++feature_report.runs;
@@ -1892,10 +1902,15 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
 void SlamSystem::AdjustAllKeyframes() {
   impl_->ApplyPendingAdjustment();
   Impl& m = *impl_;
-  if (m.final_adjustment_done || !m.CanAdjustAllKeyframes()) return;
-  m.final_adjustment_done = true;
-  m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
-  m.AdjustByFeatures();
+  if (m.final_adjustment_done) return;
+  if (m.CanAdjustAllKeyframes()) {
+    m.final_adjustment_done = true;
+    m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
+    m.AdjustByFeatures();
+  } else if (m.CanAdjustByFeaturesAlone()) {
+    m.final_adjustment_done = true;
+    m.AdjustByFeatures();
+  }
 }
 
 FeatureAdjustmentReport SlamSystem::feature_adjustment() const { return impl_->feature_report; }
@@ -2076,9 +2091,10 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
   std::vector<InverseDepthMap> handed_out;              // each round starts from these
   for (const SlamKeyframe& out : *keyframes) handed_out.push_back(out.depth);
   const bool readjust = m.options.final_adjustment && m.CanAdjustAllKeyframes() && n >= 3;
+  const bool features_alone = m.options.final_adjustment && m.CanAdjustByFeaturesAlone() && n >= 3;
   for (int round = 0; round < std::max(1, rounds); ++round) {
     if (round > 0) {
-      if (!readjust) break;
+      if (!readjust && !features_alone) break;
       // The adjustment's points come from the keyframes' (refined) final depths; it uses the same J.
       for (int k = 0; k < n; ++k)
         if (!grey_j[static_cast<size_t>(k)].empty())
@@ -2087,7 +2103,7 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
       // then refines the poses locally from there (KITTI 06: 0.061% of path with the order reversed,
       // 0.043% so; README, sixty-first round).
       m.AdjustByFeatures();
-      m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
+      if (readjust) m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
       for (size_t i = 0; i < keyframes->size(); ++i) (*keyframes)[i].depth = handed_out[i];
     }
     // Each keyframe apart: with a pool of more than one thread the keyframes are refined in parallel,

@@ -392,15 +392,22 @@ struct SlamOptions {
   // unchanged.
   bool final_adjustment = true;
   int final_adjustment_max_keyframes = 64;  // >= 3
-  // After the final direct adjustment (and in each of RefineKeyframeDepths' rounds after the direct one),
+  // After the final direct adjustment (and in each of RefineKeyframeDepths' rounds before the direct one),
   // the feature adjustment of every keyframe (feature_adjustment.h: SIFT on J, tracks across all keyframe
   // pairs within feature_adjustment.max_pair_angle_deg, reprojection error): the keyframes' rotations and
   // centres move, each keyframe's depth unit follows the adjusted tracks' depths where its depth map has
   // them (median ratio, at least 20), keyframe 0 stays (the gauge). The direct cost is nearly flat along
   // the turn-for-depth direction of an orbit (feature_adjustment.h); the features pin it. Needs the
-  // final adjustment's conditions (keyframe_adjustment, at most final_adjustment_max_keyframes). Off:
-  // the direct adjustments alone. Measured: README, sixty-first round.
+  // final adjustment's conditions (keyframe_adjustment, at most final_adjustment_max_keyframes), or
+  // alone with more keyframes, up to feature_adjustment_max_keyframes. Off: the direct adjustments alone.
+  // Measured: README, sixty-first round.
   bool final_feature_adjustment = true;
+  // With more than final_adjustment_max_keyframes keyframes (no direct final adjustment) and at most
+  // this many, the feature adjustment runs alone, at Finish and in each refinement round. Its time grows
+  // with the keyframe pairs: the 450-frame orbit's 65 keyframes (1317 pairs tried) take 15.9 s for the
+  // tracks, once, on one thread, then ~1 s per adjustment; ATE 0.125 -> 0.022% of path, depth 1.13 ->
+  // 0.82% (README, sixty-first round). >= 3; at most final_adjustment_max_keyframes: never alone.
+  int feature_adjustment_max_keyframes = 96;
   FeatureAdjustmentOptions feature_adjustment;
   // Keyframe pairs are matched for it when at least this fraction of either one's depth projects into
   // the other (every 8th pixel; as keyframe_window_min_overlap measures it), in [0, 1]: a long forward

@@ -159,6 +159,11 @@ TEST_P(SlamSystemPresetTest, TracksEveryFrameAgainstGroundTruth) {
   EXPECT_EQ((*slam)->num_keyframe_adjustments(), adjustments_before_finish + (final_adjustment ? 1 : 0));
   (*slam)->AdjustAllKeyframes();  // once only
   EXPECT_EQ((*slam)->num_keyframe_adjustments(), adjustments_before_finish + (final_adjustment ? 1 : 0));
+  // The feature adjustment ran with it, or alone beyond its limit (the orbit).
+  const bool feature_adjustment = options.final_feature_adjustment && options.keyframe_adjustment &&
+                                  (*slam)->num_keyframes() <= std::max(options.final_adjustment_max_keyframes,
+                                                                       options.feature_adjustment_max_keyframes);
+  EXPECT_EQ((*slam)->feature_adjustment().applied, feature_adjustment) << (*slam)->feature_adjustment().error;
   EXPECT_TRUE((*slam)->TakeFinishedKeyframes().empty()) << "each keyframe is handed out once";
   ASSERT_EQ(static_cast<int>(keyframes.size()), (*slam)->num_keyframes());
   ASSERT_GE(keyframes.size(), 2u);
@@ -304,11 +309,11 @@ INSTANTIATE_TEST_SUITE_P(
                       SlamCase{"torus-textured-forward", 150, /*max_ate_percent_of_path=*/1.0,
                                /*max_depth_median_rel_error=*/0.07, /*min_loop_closures=*/0,
                                /*supersampling=*/1, "", /*max_metric_scale_rel_error=*/0.07},
-                      // A full orbit and 40 deg beyond: loop closure. Measured (sixty-first
-                      // round) 0.125% / 1.5% with 26 loop edges and 65 keyframes: over
-                      // final_adjustment_max_keyframes = 64, so neither final adjustment runs
-                      // (with 62 keyframes in the nineteenth round: 0.099% / 2.2%, 22 edges).
-                      // After the 8 refinement rounds: 0.125% / 1.1%.
+                      // A full orbit and 40 deg beyond: loop closure. 65 keyframes, 26 loop
+                      // edges: over final_adjustment_max_keyframes = 64, no direct final
+                      // adjustment; the feature adjustment alone (feature_adjustment_max_keyframes
+                      // = 96): 0.022% / 1.1% at Finish (0.125% / 1.5% without it), after the 8
+                      // refinement rounds 0.022% / 0.82% (0.125% / 1.1%).
                       SlamCase{"bunny-multicolor-orbit", 450, /*max_ate_percent_of_path=*/0.5,
                                /*max_depth_median_rel_error=*/0.04, /*min_loop_closures=*/1},
                       // The demo's bunny rendered with 2x2 rays per pixel (pixel-area
@@ -1410,6 +1415,59 @@ TEST(SlamSystem, TheFirstKeyframesDepthUnitIsFittedLikeTheOthers) {
   EXPECT_LT(offset[1], kMaxFirstScaleOffset);
   EXPECT_LT(offset[2], kMaxFirstScaleOffset);
   EXPECT_LT(offset[3], kMaxFirstScaleOffset) << "the feature adjustment re-fits keyframe 0's unit";
+}
+
+// SlamOptions::feature_adjustment_max_keyframes: beyond the direct final adjustment's limit
+// (final_adjustment_max_keyframes, lowered here to 3 on the dragon's first 60 frames) the feature
+// adjustment runs alone, at Finish and in each refinement round; with its own limit as low, nothing runs
+// and the keyframes keep the window adjustment's poses. Measured: 0.092% of path with the features alone
+// (17 keyframes, 1889 tracks) against 0.338% without.
+constexpr double kMaxAteRatioFeaturesAlone = 0.5;  // ATE with the features alone / without
+
+TEST(SlamSystem, TheFeatureAdjustmentRunsAloneBeyondTheDirectAdjustmentsLimit) {
+  Rendered r;
+  std::string why;
+  if (!Render("dragon-multicolor-sideways", 60, /*supersampling=*/1, &r, &why))
+    GTEST_SKIP() << "preset unavailable: " << why;
+  double ate_percent[2] = {0, 0};
+  std::vector<Sim3d> poses[2];
+  for (int run = 0; run < 2; ++run) {
+    SlamOptions options;
+    options.final_adjustment_max_keyframes = 3;
+    options.feature_adjustment_max_keyframes = run == 0 ? 64 : 3;
+    StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options);
+    ASSERT_TRUE(slam.ok()) << slam.status();
+    std::vector<SlamKeyframe> keyframes;
+    const int adjustments_before = (*slam)->num_keyframe_adjustments();
+    ASSERT_NO_FATAL_FAILURE(RunAndFinish(r, slam->get(), &keyframes));
+    ASSERT_GT(keyframes.size(), 3u);
+    const int adjustments_at_finish = (*slam)->num_keyframe_adjustments();
+    EXPECT_GT(adjustments_at_finish, adjustments_before) << "the window adjustments ran";
+    FeatureAdjustmentReport report = (*slam)->feature_adjustment();
+    EXPECT_EQ(report.ran, run == 0);
+    EXPECT_EQ(report.applied, run == 0) << report.error;
+    EXPECT_EQ(report.runs, run == 0 ? 1 : 0);
+    (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
+                                  /*rounds=*/2, &keyframes);
+    report = (*slam)->feature_adjustment();
+    EXPECT_EQ(report.runs, run == 0 ? 2 : 0) << "once more in the second refinement round";
+    EXPECT_EQ((*slam)->num_keyframe_adjustments(), adjustments_at_finish) << "no direct final adjustment";
+    StatusOr<AteResult> ate = Sim3Ate(r.trajectory, TrackedPoses((*slam)->Trajectory()));
+    ASSERT_TRUE(ate.ok()) << ate.status();
+    ate_percent[run] = PercentOfPath(*ate);
+    poses[run] = (*slam)->KeyframePoses();
+    std::printf(
+        "feature_adjustment_max_keyframes %d: ATE %.3f%% of path, %zu keyframes, %d feature runs, "
+        "%d tracks\n",
+        options.feature_adjustment_max_keyframes, ate_percent[run], keyframes.size(), report.runs,
+        report.summary.tracks);
+  }
+  ASSERT_EQ(poses[0].size(), poses[1].size());
+  double moved = 0;
+  for (size_t k = 0; k < poses[0].size(); ++k)
+    moved = std::max(moved, (poses[0][k].translation - poses[1][k].translation).norm());
+  EXPECT_GT(moved, 0.0) << "the features moved the keyframes";
+  EXPECT_LE(ate_percent[0], kMaxAteRatioFeaturesAlone * ate_percent[1]);
 }
 
 // SlamOptions::distribute_keyframe_corrections: each keyframe's frames take their share of the difference
