@@ -35,8 +35,9 @@ Status FeatureAdjustmentOptions::Check() const {
     e << "FeatureAdjustmentOptions.max_iterations = " << max_iterations << "; violated: in [1, 500]";
   else if (!(function_tolerance > 0))
     e << "FeatureAdjustmentOptions.function_tolerance = " << function_tolerance << "; violated: > 0";
-  else if (!(min_triangulation_angle_deg >= 0))
-    e << "FeatureAdjustmentOptions.min_triangulation_angle_deg = " << min_triangulation_angle_deg << "; violated: >= 0";
+  else if (!(min_triangulation_angle_deg >= 0 && min_triangulation_angle_deg < 180))
+    e << "FeatureAdjustmentOptions.min_triangulation_angle_deg = " << min_triangulation_angle_deg
+      << "; violated: in [0, 180)";
   if (e.str().empty()) return Status::Ok();
   return InvalidArgumentError(e.str());
 }
@@ -539,16 +540,34 @@ StatusOr<FeatureAdjustmentSummary> AdjustKeyframesByFeatures(const PinholeCamera
     for (size_t i = 0; i < obs.size(); ++i)
       if (count[static_cast<size_t>(obs[i].track)] < 2) use[i] = 0;
   };
+  // Tracks with at least two observations in use.
+  auto tracks_in_use = [&]() {
+    std::vector<uint8_t> used(points.size(), 0);
+    for (size_t i = 0; i < obs.size(); ++i)
+      if (use[i]) used[static_cast<size_t>(obs[i].track)] = 1;
+    return static_cast<int>(std::count(used.begin(), used.end(), 1));
+  };
+  auto too_few = [&](const char* when) {
+    return FailedPreconditionError("AdjustKeyframesByFeatures: " + std::to_string(tracks_in_use()) + " tracks " + when +
+                                   ", fewer than " + std::to_string(kMinTracks));
+  };
+  const std::vector<Pose> start_poses = poses;
+  const std::vector<Eigen::Vector3d> start_points = points;
   keep_within(10 * options.outlier_px);
-  {
-    const std::vector<double> e = Errors(camera, poses, points, obs, use);
-    summary.initial_rms_px = Rms(e);
-    summary.initial_median_px = Median(e);
-  }
+  if (tracks_in_use() < kMinTracks) return too_few("within ten outlier thresholds at the start");
   for (int solve = 0; solve < 2; ++solve) {
     Solver solver(camera, options, &poses, &points, &obs, &use);
     summary.iterations += solver.Solve();
-    if (solve == 0) keep_within(options.outlier_px);
+    if (solve == 0) {
+      keep_within(options.outlier_px);
+      if (tracks_in_use() < kMinTracks) return too_few("within the outlier threshold after the first solve");
+    }
+  }
+  // The start's and the end's errors over the same observations: those of the final solve.
+  {
+    const std::vector<double> e0 = Errors(camera, start_poses, start_points, obs, use);
+    summary.initial_rms_px = Rms(e0);
+    summary.initial_median_px = Median(e0);
   }
   const std::vector<double> e = Errors(camera, poses, points, obs, use);
   summary.final_rms_px = Rms(e);

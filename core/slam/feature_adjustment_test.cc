@@ -105,6 +105,20 @@ TEST_P(FeatureAdjustmentArcTest, RestoresAShortTurnAndKeepsTheTruth) {
   std::printf("%s: %d features, %d of %d pairs matched, %zu tracks\n", GetParam().c_str(), tracks->features,
               tracks->pairs_matched, tracks->pairs_tried, tracks->tracks.size());
   ASSERT_GT(tracks->tracks.size(), 300u);
+  // The same tracks without a pool (the strongest features in a thread-independent order).
+  StatusOr<FeatureTracks> alone = BuildFeatureTracks(arc.camera, options, arc.images, arc.truth);
+  ASSERT_TRUE(alone.ok()) << alone.status();
+  EXPECT_EQ(alone->features, tracks->features);
+  EXPECT_EQ(alone->pairs_matched, tracks->pairs_matched);
+  ASSERT_EQ(alone->tracks.size(), tracks->tracks.size());
+  for (size_t t = 0; t < tracks->tracks.size(); ++t) {
+    ASSERT_EQ(alone->tracks[t].size(), tracks->tracks[t].size()) << "track " << t;
+    for (size_t i = 0; i < tracks->tracks[t].size(); ++i) {
+      EXPECT_EQ(alone->tracks[t][i].keyframe, tracks->tracks[t][i].keyframe);
+      EXPECT_EQ(alone->tracks[t][i].u, tracks->tracks[t][i].u);
+      EXPECT_EQ(alone->tracks[t][i].v, tracks->tracks[t][i].v);
+    }
+  }
 
   std::vector<Sim3d> from_truth = arc.truth;
   StatusOr<FeatureAdjustmentSummary> s0 = AdjustKeyframesByFeatures(arc.camera, options, *tracks, &from_truth);
@@ -135,6 +149,16 @@ TEST_P(FeatureAdjustmentArcTest, RestoresAShortTurnAndKeepsTheTruth) {
   const double baseline = (arc.truth[1].translation - arc.truth[0].translation).norm();
   EXPECT_NEAR((start[1].translation - start[0].translation).norm(), baseline, 1e-12);
   for (const Sim3d& p : start) EXPECT_EQ(p.scale, 1.0);
+  // A Sim(3) scale (the depth unit) does not enter the reprojection: the same start with every scale 2.5
+  // gives the same rotations and centres, and keeps the scales.
+  std::vector<Sim3d> scaled = ShortTurn(arc.truth, kShortTurn);
+  for (Sim3d& p : scaled) p.scale = 2.5;
+  ASSERT_TRUE(AdjustKeyframesByFeatures(arc.camera, options, *tracks, &scaled).ok());
+  for (size_t k = 0; k < scaled.size(); ++k) {
+    EXPECT_EQ(scaled[k].scale, 2.5) << "keyframe " << k;
+    EXPECT_TRUE(scaled[k].translation.isApprox(start[k].translation, 1e-12)) << "keyframe " << k;
+    EXPECT_TRUE(scaled[k].rotation.isApprox(start[k].rotation, 1e-12)) << "keyframe " << k;
+  }
   // Each keyframe's observations carry the adjusted depth (positive, near the scene's 0.4-0.9 m).
   ASSERT_EQ(s1->observations_by_keyframe.size(), arc.truth.size());
   for (const std::vector<FeatureObservation>& k : s1->observations_by_keyframe)

@@ -413,6 +413,7 @@ struct SlamSystem::Impl {
   void AdjustByFeatures();
   FeatureAdjustmentReport feature_report;
   std::unique_ptr<FeatureTracks> feature_tracks;  // of the keyframes, once built (AdjustByFeatures)
+  int feature_tracks_failed_for = -1;             // the number of keyframes whose tracks failed
   // After keyframes first.. moved: the odometry edges between consecutive ones and the frames tracked on
   // keyframes first_moved.. follow.
   void FollowKeyframes(int first_edge, int first_moved);
@@ -1672,6 +1673,7 @@ void SlamSystem::Impl::AdjustByFeatures() {
   ApplyPendingAdjustment();
   const int n = static_cast<int>(keyframes.size());
   if (!options.final_feature_adjustment || !(CanAdjustAllKeyframes() || CanAdjustByFeaturesAlone()) || n < 3) return;
+  if (feature_tracks_failed_for == n) return;  // the same keyframes' images gave no tracks: not again
   const auto start = std::chrono::steady_clock::now();
   feature_report.ran = true;
   ++feature_report.runs;
@@ -1697,6 +1699,7 @@ void SlamSystem::Impl::AdjustByFeatures() {
       feature_report.seconds += SecondsSince(start);
       feature_report.applied = false;
       feature_report.error = std::string(tracks.status().message());
+      feature_tracks_failed_for = n;
       PRISM_LOG(WARNING) << "slam: feature adjustment not applied: " << tracks.status();
       return;
     }

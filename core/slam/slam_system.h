@@ -396,7 +396,8 @@ struct SlamOptions {
   // the feature adjustment of every keyframe (feature_adjustment.h: SIFT on J, tracks across all keyframe
   // pairs within feature_adjustment.max_pair_angle_deg, reprojection error): the keyframes' rotations and
   // centres move, each keyframe's depth unit follows the adjusted tracks' depths where its depth map has
-  // them (median ratio, at least 20), keyframe 0 stays (the gauge). The direct cost is nearly flat along
+  // them (median ratio, at least 20), keyframe 0's too (whatever refit_oldest_keyframe_scale says); keyframe
+  // 0's pose stays (the gauge). The direct cost is nearly flat along
   // the turn-for-depth direction of an orbit (feature_adjustment.h); the features pin it. Needs the
   // final adjustment's conditions (keyframe_adjustment, at most final_adjustment_max_keyframes), or
   // alone with more keyframes, up to feature_adjustment_max_keyframes. Off: the direct adjustments alone.
@@ -424,18 +425,20 @@ struct SlamOptions {
   int final_refinement_neighbours = 2;
   // The refinement seeds keyframe 0 from keyframe 1's depth (propagated at their poses, in keyframe 0's
   // units) where that reaches, and elsewhere from its own depth rescaled by their median ratio there.
-  // Keyframe 0's depth comes from the initialisation and keeps its unit (see refit_oldest_keyframe_scale);
-  // this fixes its depth without moving a pose. Measured on the 54 standard runs (thirty-third round):
-  // keyframe 0's scale against the other keyframes' median off by more than 5% on 5 runs instead of 24
-  // (at most 7.5% instead of 36%), its own-scale error 3.6% instead of 4.6% in the median (at most 6.7%
-  // instead of 9.0%); over all keyframes the same: 51 within 1% ATE, geometric mean 0.306% (0.307%), 43
-  // within 3% depth, median 1.23% (1.21%), geometric mean of the depth errors 1% lower.
+  // Keyframe 0's depth comes from the initialisation and keeps its unit (see refit_oldest_keyframe_scale;
+  // the feature adjustment re-fits it); this fixes its depth without moving a pose. Measured on the 54 standard runs
+  // (thirty-third round): keyframe 0's scale against the other keyframes' median off by more than 5% on 5 runs instead
+  // of 24 (at most 7.5% instead of 36%), its own-scale error 3.6% instead of 4.6% in the median (at most 6.7% instead
+  // of 9.0%); over all keyframes the same: 51 within 1% ATE, geometric mean 0.306% (0.307%), 43 within 3% depth,
+  // median 1.23% (1.21%), geometric mean of the depth errors 1% lower.
   bool final_refinement_first_from_second = true;
   double final_refinement_relative_sigma = 0.05;  // > 0
   // Rounds of that refinement, in [1, 10]. Between rounds the final adjustment runs again, its points
   // now taken from the refined depths (it moves the keyframe poses and the trajectory), and the next
   // round re-estimates each keyframe's depth from its depth as handed out, at the new poses. Needs the
-  // final adjustment (final_adjustment, at most final_adjustment_max_keyframes keyframes); else one round.
+  // final adjustment (final_adjustment, at most final_adjustment_max_keyframes keyframes); beyond those,
+  // up to feature_adjustment_max_keyframes, the rounds run with the feature adjustment alone between
+  // them; else one round.
   // Measured on the 54 standard runs (the figures above are one round's): 1 / 4 / 8 rounds, depth within
   // 3% on 25 / 33 / 37, median 3.25 / 2.55 / 1.79%, geometric mean ATE 0.52 / 0.47 / 0.43% (46 runs
   // within 1% each), 3 / 15 / 37 s after the last frame on one thread (median; twelfth round, a slower
@@ -665,7 +668,7 @@ struct FeatureAdjustmentReport {
   bool applied = false;              // it succeeded and moved the keyframes
   std::string error;                 // why not, when it was tried and did not apply
   int runs = 0;                      // times it ran (Finish, and RefineKeyframeDepths' rounds)
-  FeatureAdjustmentSummary summary;  // of the last run (observations_by_keyframe cleared)
+  FeatureAdjustmentSummary summary;  // of the last run that applied (observations_by_keyframe cleared)
   int pairs_tried = 0;               // keyframe pairs matched (within the angle and overlap)
   double tracks_seconds = 0;         // wall time of finding and matching the features (once)
   int keyframes_rescaled = 0;        // keyframes whose depth unit followed the tracks in the last run
@@ -713,7 +716,9 @@ class SlamSystem {
   // SlamOptions::final_adjustment it then runs AdjustAllKeyframes.
   std::vector<SlamKeyframe> Finish();
   // The final adjustment (SlamOptions::final_adjustment): after Finish, the direct adjustment of every
-  // keyframe at once, when there are at most final_adjustment_max_keyframes (else nothing). Moves the
+  // keyframe at once, when there are at most final_adjustment_max_keyframes, then the feature adjustment
+  // (final_feature_adjustment); beyond that, up to feature_adjustment_max_keyframes, the feature
+  // adjustment alone (else nothing). Moves the
   // keyframes' poses and depth units (KeyframePoses, Trajectory), not the keyframes handed over. For a
   // caller that hands the last keyframes on first (the server's session pipeline: the map is done
   // without waiting for it) with final_adjustment off; runs once (later calls do nothing).
