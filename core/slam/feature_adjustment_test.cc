@@ -9,6 +9,7 @@
 
 #include "core/eval/alignment.h"
 #include "core/slam/depth_filter.h"
+#include "core/slam/slam_system.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
 #include "core/synth/trajectory.h"
@@ -39,9 +40,7 @@ Arc MakeArc(const std::string& preset) {
   const Trajectory traj = synth::MakeTrajectory(setup->trajectory);
   ThreadPool pool;
   a.camera = setup->rig.camera;
-  DepthFilterOptions depth;  // SlamOptions::depth's normalisation
-  depth.local_mean_radius_px = 12;
-  depth.local_mean_floor = 4.0;
+  const DepthFilterOptions depth = SlamOptions().depth;  // J as the SLAM normalises it
   for (int frame = 0; frame < 150; frame += 12) {
     const synth::RenderedFrame f = synth::RenderFrame(setup->scene, setup->rig, traj[frame].world_from_camera,
                                                       setup->render, 5000ull + frame, &pool);
