@@ -9,6 +9,7 @@ PACKAGES=(
   libopencv-dev libopencv-contrib-dev
   libpcl-dev
   libzmq3-dev cppzmq-dev
+  libmicrohttpd-dev nlohmann-json3-dev libcli11-dev
   libprotobuf-dev protobuf-compiler
   libdraco-dev draco
   libjpeg-dev

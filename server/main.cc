@@ -1,5 +1,10 @@
 // prism-server --bind tcp://127.0.0.1:5555 --data-dir DIR [--config FILE] [--key value ...]
 // Prints one JSON line on stdout once listening: {"endpoint": "...", "metrics": "..."}.
+#include <sys/resource.h>
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
+
 #include <csignal>
 #include <cstdio>
 #include <iostream>
@@ -65,7 +70,9 @@ int main(int argc, char** argv) {
                    "Serves reconstruction sessions over ZeroMQ (proto/prism/v1/session.proto). Options (flags\n"
                    "or 'key = value' lines in the config file):\n"
                 << ServerOptionsHelp()
-                << "  log-level debug|info|warning|error\n\nSIGTERM/SIGINT: stop accepting sessions, finish queued "
+                << "  log-level debug|info|warning|error\n"
+                   "  log-format text|json    one line per event; json: an object with time, level, source and "
+                   "the event's fields\n\nSIGTERM/SIGINT: stop accepting sessions, finish queued "
                    "work (shutdown-deadline-ms), persist maps, exit 0.\n";
       return 0;
     }
@@ -77,9 +84,27 @@ int main(int argc, char** argv) {
       if (!prism::SetMinLogLevel(value)) return Fail("bad --log-level '" + value + "'");
       continue;
     }
+    if (key == "log-format") {
+      if (!prism::SetLogFormat(value)) return Fail("bad --log-format '" + value + "' (text or json)");
+      continue;
+    }
     if (prism::Status s = ApplyServerOption(key, value, &options); !s.ok()) return Fail(s.message() + " (see --help)");
   }
   if (options.data_dir.empty()) return Fail("--data-dir is required (see --help)");
+#if defined(__GLIBC__)
+  // Frames and chunks of up to max-message-bytes come and go: blocks of 1 MiB and more are mapped and
+  // returned to the system when freed (glibc's default threshold rises with each large free, up to
+  // 32 MiB, after which such blocks stay in the heap and the RSS with them).
+  mallopt(M_MMAP_THRESHOLD, 1 << 20);
+  // Few malloc arenas: the sessions' threads come and go, and memory freed in one of many arenas stays
+  // with it (the RSS then drifts up after busy periods).
+  mallopt(M_ARENA_MAX, 2);
+#endif
+  // Every HTTP and ZeroMQ peer holds a descriptor: take the hard limit (containers often start at 1024).
+  if (rlimit lim{}; getrlimit(RLIMIT_NOFILE, &lim) == 0 && lim.rlim_cur < lim.rlim_max) {
+    lim.rlim_cur = lim.rlim_max;
+    setrlimit(RLIMIT_NOFILE, &lim);
+  }
   prism::StatusOr<std::unique_ptr<Server>> server = Server::Create(options);
   if (!server.ok()) return Fail(server.status().ToString());
   g_server = server->get();

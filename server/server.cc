@@ -4,6 +4,8 @@
 #include <fcntl.h>
 
 #include "server/curve.h"
+#include "server/http_endpoint.h"
+#include "server/metrics.h"
 #include "server/rig_wire.h"
 #include "server/session_store.h"
 #if defined(__GLIBC__)
@@ -88,30 +90,6 @@ void ToWire(const Rigid3d& pose, v1::Pose* out) {
   out->mutable_translation()->set_z(pose.translation.z());
 }
 
-// Prometheus text: counters and gauges with optional labels, transport thread only.
-class Metrics {
- public:
-  void Add(const std::string& name, double v = 1.0) { values_[name] += v; }
-  void Set(const std::string& name, double v) { values_[name] = v; }
-  std::string Render() const {
-    std::ostringstream out;
-    std::string last_family;
-    for (const auto& [name, value] : values_) {
-      const std::string family = name.substr(0, name.find('{'));
-      if (family != last_family) {
-        const bool counter = family.size() > 6 && family.compare(family.size() - 6, 6, "_total") == 0;
-        out << "# TYPE " << family << (counter ? " counter\n" : " gauge\n");
-        last_family = family;
-      }
-      out << name << " " << value << "\n";
-    }
-    return out.str();
-  }
-
- private:
-  std::map<std::string, double> values_;
-};
-
 std::string RandomHex(int bytes) {
   static thread_local std::mt19937_64 rng{std::random_device{}()};
   static const char* kHex = "0123456789abcdef";
@@ -170,6 +148,10 @@ struct Server::Impl {
     std::vector<uint64_t> chunk_sequences;  // persisted, ascending
     PoseLog pose_log;
     uint64_t next_frame_sequence = 0;  // 1 + the highest frame sequence number received
+    // Frames in the pipeline and when they arrived (for prism_frame_to_pose_seconds), oldest first.
+    std::deque<std::pair<uint64_t, Clock::time_point>> frame_arrivals;
+    uint64_t frames_dropped = 0;  // dropped or refused, for prism_session_frames_dropped
+    bool credits_exhausted_logged = false;
   };
   struct Outgoing {
     std::string session_id;
@@ -184,7 +166,17 @@ struct Server::Impl {
   std::set<std::string> allowed_clients;
   zmq::socket_t router{context, zmq::socket_type::router};
   std::string endpoint, metrics_endpoint;
-  int metrics_fd = -1;
+  std::unique_ptr<HttpEndpoint> http;  // its own thread; reads what PublishSnapshot hands it
+  Clock::time_point last_publish;
+  size_t published_sessions = 0;
+  bool published_draining = false;
+  // The ROUTER's connection events (zmq_socket_monitor), read on the transport thread.
+  zmq::socket_t monitor{context, zmq::socket_type::pair};
+  bool monitoring = false;
+  struct ConnectionWindow {
+    uint64_t accepted = 0, handshake_failures = 0;
+    Clock::time_point start;
+  } window;
   int wake_fd = -1;  // eventfd: pipeline events and stop requests
   std::atomic<bool> stop_requested{false};
   std::unique_ptr<ThreadPool> pool;
@@ -193,14 +185,16 @@ struct Server::Impl {
   std::mutex outbox_mutex;
   std::deque<Outgoing> outbox;  // Guarded by outbox_mutex.
   Metrics metrics;
+  OncePerPeer once;  // abusive peers are logged once, counted always
   bool draining = false;
   Clock::time_point drain_deadline;
   uint64_t session_counter = 0;
 
+  Impl() { DeclareServerMetrics(&metrics); }
   ~Impl() {
+    http.reset();      // no handler runs past here
     sessions.clear();  // pipelines stop before the workers and pool go
     workers.reset();
-    if (metrics_fd >= 0) ::close(metrics_fd);
     if (wake_fd >= 0) ::close(wake_fd);
   }
 
@@ -209,76 +203,96 @@ struct Server::Impl {
     (void)!::write(wake_fd, &one, sizeof(one));
   }
 
-  Status BindMetrics() {
+  Status StartHttp() {
     if (options.metrics_bind == "off") return Status::Ok();
-    const size_t colon = options.metrics_bind.rfind(':');
-    if (colon == std::string::npos)
-      return InvalidArgumentError("metrics must be HOST:PORT or off, got '" + options.metrics_bind + "'");
-    const std::string host = options.metrics_bind.substr(0, colon);
-    const int port = std::atoi(options.metrics_bind.c_str() + colon + 1);
-    sockaddr_in addr{};
-    addr.sin_family = AF_INET;
-    addr.sin_port = htons(static_cast<uint16_t>(port));
-    if (inet_pton(AF_INET, host.c_str(), &addr.sin_addr) != 1)
-      return InvalidArgumentError("metrics host must be an IPv4 address, got '" + host + "'");
-    metrics_fd = ::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
-    const int yes = 1;
-    ::setsockopt(metrics_fd, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
-    if (::bind(metrics_fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0 || ::listen(metrics_fd, 16) != 0)
-      return UnavailableError("cannot bind metrics listener " + options.metrics_bind + ": " + std::strerror(errno));
-    socklen_t len = sizeof(addr);
-    ::getsockname(metrics_fd, reinterpret_cast<sockaddr*>(&addr), &len);
-    metrics_endpoint = "http://" + host + ":" + std::to_string(ntohs(addr.sin_port));
+    HttpOptions ho;
+    ho.bind = options.metrics_bind;
+    ho.max_connections = options.http_max_connections;
+    ho.idle_timeout_s = options.http_idle_timeout_s;
+    ho.max_request_bytes = options.http_max_request_bytes;
+    PRISM_ASSIGN_OR_RETURN(http, HttpEndpoint::Start(ho));
+    metrics_endpoint = http->url();
+    PublishSnapshot();
     return Status::Ok();
   }
 
-  // One HTTP/1.0 request per connection: GET /metrics or GET /healthz. The read waits at most 200 ms
-  // (scrapes are rare and local).
-  void ServeHttp() {
-    for (;;) {
-      const int fd = ::accept4(metrics_fd, nullptr, nullptr, SOCK_CLOEXEC);
-      if (fd < 0) return;
-      timeval tv{0, 200000};
-      ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof(tv));
-      ::setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof(tv));
-      std::string request;
-      char buf[1024];
-      while (request.find("\r\n\r\n") == std::string::npos && request.size() < 8192) {
-        const ssize_t n = ::recv(fd, buf, sizeof(buf), 0);
-        if (n <= 0) break;
-        request.append(buf, static_cast<size_t>(n));
-      }
-      std::string status = "200 OK", body, type = "text/plain; version=0.0.4";
-      if (request.rfind("GET /metrics", 0) == 0) {
-        UpdateGauges();
-        body = metrics.Render();
-      } else if (request.rfind("GET /healthz", 0) == 0) {
-        body = draining ? "draining\n" : "ok\n";
-        if (draining) status = "503 Service Unavailable";
-      } else if (request.rfind("GET /allocate", 0) == 0) {
-        // Where a new session should go (the Agones pattern behind a Kubernetes Service): this server's
-        // advertised endpoint and free capacity; 503 when full or draining, so the caller asks another
-        // replica. Advisory: OpenSession's admission control stays the guard against races.
-        const int active = static_cast<int>(sessions.size());
-        const int free_slots = draining ? 0 : std::max(0, options.max_sessions - active);
-        type = "application/json";
-        body = "{\"endpoint\": \"" + (options.advertise.empty() ? endpoint : options.advertise) +
-               "\", \"sessions_active\": " + std::to_string(active) +
-               ", \"sessions_capacity\": " + std::to_string(options.max_sessions) +
-               ", \"free\": " + std::to_string(free_slots) + ", \"draining\": " + (draining ? "true" : "false") + "}\n";
-        if (free_slots == 0) status = "503 Service Unavailable";
-        metrics.Add("prism_allocate_requests_total");
-      } else {
-        status = "404 Not Found";
-        body = "GET /metrics, /healthz or /allocate\n";
-      }
-      const std::string response = "HTTP/1.0 " + status + "\r\nContent-Type: " + type +
-                                   "\r\nContent-Length: " + std::to_string(body.size()) +
-                                   "\r\nConnection: close\r\n\r\n" + body;
-      (void)!::send(fd, response.data(), response.size(), MSG_NOSIGNAL);
-      ::close(fd);
-      metrics.Add("prism_http_requests_total");
+  // Hands the HTTP thread what /metrics, /healthz, /readyz and /allocate read: at most every 100 ms,
+  // and at once when the session count or draining changed.
+  void PublishSnapshot(bool force = true) {
+    if (!http) return;
+    const auto now = Clock::now();
+    const bool changed = sessions.size() != published_sessions || draining != published_draining;
+    if (!force && !changed && now - last_publish < std::chrono::milliseconds(100)) return;
+    last_publish = now;
+    published_sessions = sessions.size();
+    published_draining = draining;
+    UpdateGauges();
+    auto snap = std::make_shared<HttpSnapshot>();
+    snap->metrics_text = metrics.Render();
+    snap->endpoint = options.advertise.empty() ? endpoint : options.advertise;
+    snap->sessions_active = static_cast<int>(sessions.size());
+    snap->sessions_capacity = options.max_sessions;
+    snap->draining = draining;
+    http->Publish(std::move(snap));
+  }
+
+  // Starts reading the ROUTER's connection events (accepts, disconnects, failed handshakes).
+  void StartMonitor() {
+    const char* address = "inproc://prism-router-monitor";
+    const int events = ZMQ_EVENT_ACCEPTED | ZMQ_EVENT_DISCONNECTED | ZMQ_EVENT_HANDSHAKE_FAILED_NO_DETAIL |
+                       ZMQ_EVENT_HANDSHAKE_FAILED_PROTOCOL | ZMQ_EVENT_HANDSHAKE_FAILED_AUTH;
+    if (zmq_socket_monitor(router.handle(), address, events) != 0) {
+      PRISM_LOG(WARNING) << "event=monitor_unavailable error=\"" << zmq_strerror(zmq_errno()) << "\"";
+      return;
     }
+    monitor.set(zmq::sockopt::linger, 0);
+    monitor.connect(address);
+    monitoring = true;
+    window.start = Clock::now();
+  }
+
+  void ReadMonitor() {
+    for (int n = 0; n < 4096; ++n) {
+      zmq::message_t event, address;
+      if (!monitor.recv(event, zmq::recv_flags::dontwait)) break;
+      if (event.more()) (void)monitor.recv(address, zmq::recv_flags::none);
+      if (event.size() < 6) continue;
+      uint16_t id = 0;
+      std::memcpy(&id, event.data(), sizeof(id));
+      switch (id) {
+        case ZMQ_EVENT_ACCEPTED:
+          metrics.Add("prism_zmq_connections_accepted_total");
+          metrics.Set("prism_zmq_connections_open", metrics.Value("prism_zmq_connections_open") + 1);
+          ++window.accepted;
+          break;
+        case ZMQ_EVENT_DISCONNECTED:
+          metrics.Add("prism_zmq_disconnects_total");
+          metrics.Set("prism_zmq_connections_open", std::max(0.0, metrics.Value("prism_zmq_connections_open") - 1));
+          break;
+        case ZMQ_EVENT_HANDSHAKE_FAILED_PROTOCOL:
+          metrics.Add("prism_zmq_handshake_failures_total{reason=\"protocol\"}");
+          ++window.handshake_failures;
+          break;
+        case ZMQ_EVENT_HANDSHAKE_FAILED_AUTH:
+          metrics.Add("prism_zmq_handshake_failures_total{reason=\"auth\"}");
+          ++window.handshake_failures;
+          break;
+        default:
+          metrics.Add("prism_zmq_handshake_failures_total{reason=\"no_detail\"}");
+          ++window.handshake_failures;
+          break;
+      }
+    }
+    // Connection events carry no peer identity worth logging one by one: one line per 10 s window when
+    // handshakes failed or connections churned (over 10 a second).
+    const auto now = Clock::now();
+    if (now - window.start < std::chrono::seconds(10)) return;
+    if (window.handshake_failures > 0 || window.accepted > 100) {
+      PRISM_LOG(WARNING) << "event=zmq_connection_churn accepted=" << window.accepted
+                         << " handshake_failures=" << window.handshake_failures
+                         << " window_s=" << std::chrono::duration<double>(now - window.start).count();
+    }
+    window = ConnectionWindow{0, 0, now};
   }
 
   void UpdateGauges() {
@@ -289,6 +303,13 @@ struct Server::Impl {
     for (const auto& [id, s] : sessions) {
       pending_chunks += s->pending_chunks.size();
       in_memory += s->pending_bytes_in_memory;
+      const std::string label = "{session=\"" + MetricLabel(id) + "\"}";
+      metrics.Set("prism_session_chunks_waiting" + label, static_cast<double>(s->pending_chunks.size()));
+      metrics.Set("prism_session_frames_dropped" + label, static_cast<double>(s->frames_dropped));
+      if (s->pipeline) {
+        metrics.Set("prism_session_frame_queue_depth" + label, static_cast<double>(s->pipeline->queued_frames()));
+        metrics.Set("prism_session_keyframe_queue_depth" + label, static_cast<double>(s->pipeline->queued_keyframes()));
+      }
     }
     metrics.Set("prism_chunks_waiting_for_credit", static_cast<double>(pending_chunks));
     metrics.Set("prism_chunk_bytes_waiting_in_memory", static_cast<double>(in_memory));
@@ -332,8 +353,13 @@ struct Server::Impl {
       e->set_frame_sequence_number(*frame);
     }
     metrics.Add(std::string("prism_errors_sent_total{code=\"") + v1::ErrorCode_Name(e->code()) + "\"}");
-    PRISM_LOG(INFO) << "event=error_sent session=" << (session_id.empty() ? "-" : session_id)
-                    << " code=" << v1::ErrorCode_Name(e->code()) << " message=\"" << status.message() << "\"";
+    // A flood of bad messages from one peer is one line; prism_errors_sent_total counts them all.
+    if (once.First(peer, v1::ErrorCode_Name(e->code()))) {
+      PRISM_LOG(INFO) << "event=error_sent peer=" << PeerName(peer)
+                      << " session=" << (session_id.empty() ? "-" : session_id)
+                      << " code=" << v1::ErrorCode_Name(e->code()) << " message=\"" << status.message()
+                      << "\" (logged once per peer and code)";
+    }
     Send(peer, env);
   }
 
@@ -344,6 +370,10 @@ struct Server::Impl {
     e->set_code(v1::ERROR_CODE_VERSION_MISMATCH);
     e->set_message("protocol version " + std::to_string(version) + " is not supported; this server speaks version 1");
     metrics.Add("prism_errors_sent_total{code=\"ERROR_CODE_VERSION_MISMATCH\"}");
+    if (once.First(peer, "version")) {
+      PRISM_LOG(INFO) << "event=error_sent peer=" << PeerName(peer)
+                      << " code=ERROR_CODE_VERSION_MISMATCH version=" << version << " (logged once per peer)";
+    }
     Send(peer, env);
   }
 
@@ -558,7 +588,7 @@ struct Server::Impl {
     o->set_map_grid_subdivisions(static_cast<uint32_t>(po.chunk.subdivisions));
     o->set_map_quantisation_m(po.dense.map.voxel_m / po.chunk.subdivisions);
     o->set_idle_timeout_ms(static_cast<uint32_t>(options.idle_timeout_ms));
-    o->set_max_message_bytes(static_cast<uint64_t>(options.max_message_bytes));
+    o->set_max_message_bytes(static_cast<uint64_t>(options.MessageLimit()));
   }
 
   void OpenSession(const std::string& peer, const v1::OpenSession& open) {
@@ -651,6 +681,7 @@ struct Server::Impl {
     const uint64_t seq = frame.sequence_number();
     auto refuse = [&](const Status& st, bool retryable) {
       ++s->frames_refused;
+      ++s->frames_dropped;
       ++s->frame_credits_to_grant;  // the frame never entered the queue: its credit comes back
       metrics.Add("prism_frames_refused_total");
       SendError(peer, Status(st.code(), "frame " + std::to_string(seq) + ": " + st.message()), s->id, retryable, false,
@@ -694,7 +725,10 @@ struct Server::Impl {
     if (!pushed.ok()) return refuse(pushed, pushed.code() == StatusCode::kResourceExhausted);
     metrics.Add("prism_frames_received_total");
     metrics.Add("prism_frame_bytes_total", static_cast<double>(payload->size()));
+    s->frame_arrivals.emplace_back(seq, Clock::now());
+    if (s->frame_arrivals.size() > 4096) s->frame_arrivals.pop_front();
     if (dropped) {
+      ++s->frames_dropped;
       ++s->frame_credits_to_grant;
       metrics.Add("prism_frames_dropped_total{reason=\"queue_full\"}");
     }
@@ -714,6 +748,13 @@ struct Server::Impl {
   }
 
   void FlushChunks(Session* s) {
+    if (s->chunk_credits <= 0 && s->pending_chunks.size() > static_cast<size_t>(options.default_chunk_credits) &&
+        !s->credits_exhausted_logged) {
+      s->credits_exhausted_logged = true;
+      PRISM_LOG(WARNING) << "event=chunk_credits_exhausted session=" << s->id << " waiting=" << s->pending_chunks.size()
+                         << " message=\"the client grants no chunk credits; chunks wait on disk (logged once per "
+                            "session, prism_session_chunks_waiting counts them)\"";
+    }
     while (s->chunk_credits > 0 && !s->pending_chunks.empty()) {
       Session::PendingChunk& c = s->pending_chunks.front();
       if (c.on_disk) {
@@ -774,6 +815,20 @@ struct Server::Impl {
           t->set_guess_correction(q.guess_correction);
         }
         s->pose_log.Append(*p);
+        if (!e.refined) {
+          // Frames before this one that got no pose were dropped or failed.
+          while (!s->frame_arrivals.empty() && s->frame_arrivals.front().first < e.frame_sequence_number)
+            s->frame_arrivals.pop_front();
+          if (!s->frame_arrivals.empty() && s->frame_arrivals.front().first == e.frame_sequence_number) {
+            metrics.Observe("prism_frame_to_pose_seconds",
+                            std::chrono::duration<double>(Clock::now() - s->frame_arrivals.front().second).count());
+            s->frame_arrivals.pop_front();
+          }
+          metrics.Set("prism_session_tracking_state{session=\"" + MetricLabel(s->id) + "\"}",
+                      e.slam.state == SlamState::kInitializing ? 0
+                      : e.slam.state == SlamState::kTracking   ? 1
+                                                               : 2);
+        }
         if (Send(s->peer, env)) {
           ++s->poses_sent;
           metrics.Add(e.refined ? "prism_poses_refined_total" : "prism_poses_sent_total");
@@ -791,6 +846,11 @@ struct Server::Impl {
         c->set_map_points(e.map_points);
         c->set_replaces_map(e.replaces_map);
         metrics.Add("prism_keyframes_merged_total");
+        if (e.keyframe_queued_at != Clock::time_point()) {
+          metrics.Observe("prism_keyframe_to_chunk_seconds",
+                          std::chrono::duration<double>(Clock::now() - e.keyframe_queued_at).count());
+          metrics.Observe("prism_dense_keyframe_seconds", e.dense_ms / 1000.0);
+        }
         // Persisted before it is queued: a chunk the client may have seen is always on disk.
         if (Status w = store.WriteChunk(s->id, *c, e.draco); !w.ok()) {
           metrics.Add("prism_persist_failures_total");
@@ -804,6 +864,7 @@ struct Server::Impl {
         pc.bytes = std::move(e.draco);
         QueueChunk(s, std::move(pc));
         FlushChunks(s);
+        if (!s->pending_chunks.empty() && s->chunk_credits <= 0) metrics.Add("prism_chunk_credit_stalls_total");
         // Memory per session: the map (voxels) and the chunks held for the client.
         const double session_mb = (static_cast<double>(e.map_voxels) * kMapBytesPerPoint +
                                    static_cast<double>(e.kept_points) * kKeptBytesPerPoint +
@@ -925,6 +986,10 @@ struct Server::Impl {
                            (draining && now > drain_deadline);
       if (s->finished && (s->pending_chunks.empty() || stalled)) {
         PersistAndSummarise(s);
+        for (const char* family :
+             {"prism_session_tracking_state", "prism_session_frames_dropped", "prism_session_frame_queue_depth",
+              "prism_session_keyframe_queue_depth", "prism_session_chunks_waiting"})
+          metrics.Remove(family, "session=\"" + MetricLabel(s->id) + "\"");
         it = sessions.erase(it);
 #if defined(__GLIBC__)
         // A session's buffers (frames, keyframe images, depth maps, clouds) were allocated by several
@@ -960,8 +1025,8 @@ struct Server::Impl {
       items.clear();
       items.push_back({router.handle(), 0, ZMQ_POLLIN, 0});
       items.push_back({nullptr, wake_fd, ZMQ_POLLIN, 0});
-      const size_t metrics_item = items.size();
-      if (metrics_fd >= 0) items.push_back({nullptr, metrics_fd, ZMQ_POLLIN, 0});
+      const size_t monitor_item = items.size();
+      if (monitoring) items.push_back({monitor.handle(), 0, ZMQ_POLLIN, 0});
       const size_t zap_item = items.size();
       if (zap) items.push_back({zap->handle(), 0, ZMQ_POLLIN, 0});
       try {
@@ -1009,8 +1074,9 @@ struct Server::Impl {
         std::lock_guard<std::mutex> lock(outbox_mutex);
         events.swap(outbox);
       }
+      metrics.Set("prism_transport_events_pending", static_cast<double>(events.size()));
       for (Outgoing& o : events) HandleEvent(o);
-      if (metrics_fd >= 0 && (items[metrics_item].revents & ZMQ_POLLIN)) ServeHttp();
+      if (monitoring && (items[monitor_item].revents & ZMQ_POLLIN)) ReadMonitor();
       if (zap && (items[zap_item].revents & ZMQ_POLLIN)) {
         std::string key;
         for (int n = 0; n < 64; ++n) {
@@ -1018,8 +1084,8 @@ struct Server::Impl {
             const bool admitted = HandleZapRequest(*zap, allowed_clients, &key);
             if (key.empty() && !admitted) break;  // nothing pending (or a non-CURVE request, refused)
             metrics.Add(admitted ? "prism_auth_accepted_total" : "prism_auth_refused_total");
-            if (!admitted) {
-              PRISM_LOG(WARNING) << "event=auth_refused client_key=" << key;
+            if (!admitted && once.First(key, "auth")) {
+              PRISM_LOG(WARNING) << "event=auth_refused client_key=" << key << " (logged once per key)";
             }
           } catch (const zmq::error_t& e) {
             PRISM_LOG(WARNING) << "event=zap_failed error=\"" << e.what() << "\"";
@@ -1028,7 +1094,9 @@ struct Server::Impl {
         }
       }
       Housekeeping();
+      PublishSnapshot(/*force=*/false);
     }
+    PublishSnapshot();
     PRISM_LOG(INFO) << "event=server_stopped";
     return Status::Ok();
   }
@@ -1064,7 +1132,8 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
     }
     r.set(zmq::sockopt::router_mandatory, 1);
     r.set(zmq::sockopt::linger, 0);
-    r.set(zmq::sockopt::maxmsgsize, options.max_message_bytes);
+    r.set(zmq::sockopt::maxmsgsize, options.MessageLimit());
+    r.set(zmq::sockopt::handshake_ivl, options.handshake_timeout_ms);
     r.set(zmq::sockopt::heartbeat_ivl, options.heartbeat_ivl_ms);
     r.set(zmq::sockopt::heartbeat_timeout, options.heartbeat_timeout_ms);
     r.set(zmq::sockopt::heartbeat_ttl, options.heartbeat_timeout_ms);
@@ -1080,9 +1149,10 @@ StatusOr<std::unique_ptr<Server>> Server::Create(const ServerOptions& options) {
   } catch (const zmq::error_t& e) {
     return UnavailableError("cannot bind " + options.bind + ": " + e.what());
   }
-  PRISM_RETURN_IF_ERROR(impl->BindMetrics());
-  impl->pool = std::make_unique<ThreadPool>(options.threads);
-  impl->workers = std::make_unique<DenseWorkers>(options.dense_workers, impl->pool.get());
+  impl->pool = std::make_unique<ThreadPool>(options.threads, options.dense_nice);
+  impl->workers = std::make_unique<DenseWorkers>(options.dense_workers, impl->pool.get(), options.dense_nice);
+  impl->StartMonitor();
+  PRISM_RETURN_IF_ERROR(impl->StartHttp());
   return std::unique_ptr<Server>(new Server(std::move(impl)));
 }
 

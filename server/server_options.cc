@@ -27,18 +27,24 @@ bool ParseDouble(const std::string& s, double* out) {
 const char* ServerOptionsHelp() {
   return R"(  bind ENDPOINT           ZeroMQ endpoint (default tcp://127.0.0.1:5555; tcp://127.0.0.1:* = free port)
   data-dir DIR            where sessions persist poses, chunks, map.ply and summary (required)
-  metrics HOST:PORT|off   HTTP /metrics (Prometheus text), /healthz and /allocate (default 127.0.0.1:0 = free port)
+  metrics HOST:PORT|off   HTTP /metrics (Prometheus text), /healthz, /readyz and /allocate (default 127.0.0.1:0 =
+                          free port; served on a thread of its own)
+  http-max-connections N  HTTP connections open at once; more wait in the backlog (default 1024)
+  http-idle-timeout-s S   close an HTTP connection silent for S seconds (default 5)
+  http-max-request-bytes B  largest HTTP request line + headers; larger gets 431 (default 16384)
+  handshake-timeout-ms MS drop a ZeroMQ peer that has not finished its handshake (default 10000)
   advertise ENDPOINT      endpoint GET /allocate hands to clients (default: the bound one)
   max-sessions N          concurrent sessions before RESOURCE_EXHAUSTED (default 4)
   dense-workers N         dense keyframe jobs at once over all sessions (default 1)
   threads N               process-wide worker pool for the dense loops (default 0 = all cores)
+  dense-nice N            niceness of the dense threads, 0-19: poses get the CPU first (default 5)
   idle-timeout-ms MS      close sessions silent for this long (default 30000)
   max-frame-bytes B       largest frame payload (default 16777216)
-  max-message-bytes B     ZMQ_MAXMSGSIZE (default 67108864)
+  max-message-bytes B     ZMQ_MAXMSGSIZE: larger messages drop their peer (default 0 = max-frame-bytes + 64 KiB)
   heartbeat-ivl-ms MS     ZMTP heartbeat interval (default 1000)
   heartbeat-timeout-ms MS ZMTP heartbeat timeout (default 5000)
   send-hwm N              ZMQ_SNDHWM (default 1000)
-  max-frame-rate-hz HZ    average frames/s per session, bursts up to frame-queue (default 120; 0 = off)
+  max-frame-rate-hz HZ    average frames/s per session, bursts up to frame-queue (default 60; 0 = off)
   max-session-memory-mb M a session's map + held chunks beyond this ends it with an error (default 1024)
   max-pending-chunks-in-memory N  chunks held in memory per session for a slow client; more wait on disk (default 16)
   chunk-credits N         map chunks in flight when the client grants none (default 8)
@@ -79,14 +85,22 @@ Status ServerOptions::Check() const {
   if (max_sessions < 1 || max_sessions > 1024) return bad("max_sessions", std::to_string(max_sessions), "in [1, 1024]");
   if (dense_workers < 1 || dense_workers > 64) return bad("dense_workers", std::to_string(dense_workers), "in [1, 64]");
   if (threads < 0 || threads > 256) return bad("threads", std::to_string(threads), "in [0, 256]");
+  if (dense_nice < 0 || dense_nice > 19) return bad("dense_nice", std::to_string(dense_nice), "in [0, 19]");
   if (idle_timeout_ms < 100) return bad("idle_timeout_ms", std::to_string(idle_timeout_ms), ">= 100");
   if (max_frame_bytes < 1024 || max_frame_bytes > (1ull << 30))
     return bad("max_frame_bytes", std::to_string(max_frame_bytes), "in [1024, 2^30]");
-  if (max_message_bytes < static_cast<int64_t>(max_frame_bytes) + 65536)
-    return bad("max_message_bytes", std::to_string(max_message_bytes), ">= max_frame_bytes + 64 KiB");
+  if (max_message_bytes != 0 && max_message_bytes < MinMessageLimit())
+    return bad("max_message_bytes", std::to_string(max_message_bytes), "0 (automatic) or >= max_frame_bytes + 64 KiB");
   if (heartbeat_ivl_ms < 10 || heartbeat_timeout_ms < heartbeat_ivl_ms)
     return bad("heartbeat_timeout_ms", std::to_string(heartbeat_timeout_ms), ">= heartbeat_ivl_ms >= 10");
   if (send_hwm < 1) return bad("send_hwm", std::to_string(send_hwm), ">= 1");
+  if (http_max_connections < 16 || http_max_connections > 65536)
+    return bad("http_max_connections", std::to_string(http_max_connections), "in [16, 65536]");
+  if (http_idle_timeout_s < 1 || http_idle_timeout_s > 3600)
+    return bad("http_idle_timeout_s", std::to_string(http_idle_timeout_s), "in [1, 3600]");
+  if (http_max_request_bytes < 1024 || http_max_request_bytes > (1 << 20))
+    return bad("http_max_request_bytes", std::to_string(http_max_request_bytes), "in [1024, 1048576]");
+  if (handshake_timeout_ms < 100) return bad("handshake_timeout_ms", std::to_string(handshake_timeout_ms), ">= 100");
   if (max_frame_rate_hz < 0 || max_frame_rate_hz > 1000)
     return bad("max_frame_rate_hz", std::to_string(max_frame_rate_hz), "in [0, 1000] (0 = no limit)");
   if (max_session_memory_mb < 16 || max_session_memory_mb > 65536)
@@ -126,6 +140,9 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   } else if (key == "dense-workers") {
     if (!is_int) return bad();
     o->dense_workers = static_cast<int>(i);
+  } else if (key == "dense-nice") {
+    if (!is_int) return bad();
+    o->dense_nice = static_cast<int>(i);
   } else if (key == "threads") {
     if (!is_int) return bad();
     o->threads = static_cast<int>(i);
@@ -144,6 +161,18 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   } else if (key == "heartbeat-timeout-ms") {
     if (!is_int) return bad();
     o->heartbeat_timeout_ms = static_cast<int>(i);
+  } else if (key == "http-max-connections") {
+    if (!is_int) return bad();
+    o->http_max_connections = static_cast<int>(i);
+  } else if (key == "http-idle-timeout-s") {
+    if (!is_int) return bad();
+    o->http_idle_timeout_s = static_cast<int>(i);
+  } else if (key == "http-max-request-bytes") {
+    if (!is_int) return bad();
+    o->http_max_request_bytes = static_cast<int>(i);
+  } else if (key == "handshake-timeout-ms") {
+    if (!is_int) return bad();
+    o->handshake_timeout_ms = static_cast<int>(i);
   } else if (key == "send-hwm") {
     if (!is_int) return bad();
     o->send_hwm = static_cast<int>(i);

@@ -19,6 +19,13 @@ struct ServerOptions {
   // HTTP metrics (/metrics, Prometheus text) and health (/healthz): "HOST:PORT" (port 0 = any free
   // port) or "off".
   std::string metrics_bind = "127.0.0.1:0";
+  // HTTP listener limits: connections open at once (in [16, 65536]), seconds a connection may stay
+  // silent (in [1, 3600]), bytes of a request's line and headers (in [1 KiB, 1 MiB]; larger gets 431).
+  int http_max_connections = 1024;
+  int http_idle_timeout_s = 5;
+  int http_max_request_bytes = 16 * 1024;
+  // A ZeroMQ peer that has not finished the ZMTP handshake after this long is dropped, ms, >= 100.
+  int handshake_timeout_ms = 10000;
   // The ZeroMQ endpoint GET /allocate tells clients to connect to, e.g. the pod's own DNS name behind a
   // Kubernetes headless Service; "" = the bound endpoint. A tcp:// endpoint or "".
   std::string advertise;
@@ -28,12 +35,19 @@ struct ServerOptions {
   int dense_workers = 1;
   // Threads of the process-wide pool the dense jobs' inner loops share (0 = all cores), in [0, 256].
   int threads = 0;
+  // Niceness of the dense workers and that pool, in [0, 19]: higher gives the SLAM threads (poses) the
+  // CPU first when cores are short, and the map lags instead.
+  int dense_nice = 5;
   // A session without any message from its client for this long is closed, ms, >= 100.
   int idle_timeout_ms = 30000;
   // Largest Frame payload accepted, bytes, in [1 KiB, 1 GiB].
   uint64_t max_frame_bytes = 16u << 20;
-  // ZMQ_MAXMSGSIZE: a peer sending a larger message part is disconnected by ZeroMQ, bytes, >= max_frame_bytes.
-  int64_t max_message_bytes = 64ll << 20;
+  // ZMQ_MAXMSGSIZE: a peer sending a larger message part is disconnected by ZeroMQ before it is read,
+  // bytes; 0 = max_frame_bytes + 64 KiB (an oversized frame then costs its sender the connection, not
+  // the server the copy), else >= that.
+  int64_t max_message_bytes = 0;
+  int64_t MessageLimit() const { return max_message_bytes > 0 ? max_message_bytes : MinMessageLimit(); }
+  int64_t MinMessageLimit() const { return static_cast<int64_t>(max_frame_bytes) + 65536; }
   // ZMTP heartbeats: interval, and the timeout after which a silent peer's connection is dropped, ms.
   int heartbeat_ivl_ms = 1000;
   int heartbeat_timeout_ms = 5000;
@@ -42,7 +56,7 @@ struct ServerOptions {
   int send_hwm = 1000;
   // Frames per second one session may send on average, bursts up to twice the frame queue (0 = no limit),
   // in [0, 1000]; faster frames are refused with RESOURCE_EXHAUSTED (retryable) and counted.
-  double max_frame_rate_hz = 120;
+  double max_frame_rate_hz = 60;
   // A session whose map and held chunks exceed this (MiB, estimated) is finished with an Error
   // (RESOURCE_EXHAUSTED) and its map so far, in [16, 65536].
   int max_session_memory_mb = 1024;

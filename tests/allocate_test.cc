@@ -6,6 +6,7 @@
 
 #include <filesystem>
 #include <memory>
+#include <regex>
 #include <string>
 
 #include <gtest/gtest.h>
@@ -51,9 +52,12 @@ TEST_F(AllocateTest, AdvertisesTheEndpointAndFreeCapacityThenRefusesWhenFull) {
 
   r = Execute(probe + "/allocate");
   ASSERT_EQ(r.exit_code, 0) << r.out;
-  EXPECT_NE(r.out.find("\"endpoint\": \"tcp://prism-0.prism-pods.default.svc:5555\""), std::string::npos) << r.out;
+  EXPECT_EQ(test::JsonString(r.out, "endpoint"), "tcp://prism-0.prism-pods.default.svc:5555") << r.out;
   EXPECT_EQ(JsonNumber(r.out, "free"), 1) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "sessions_capacity"), 1) << r.out;
+  r = Execute(probe + "/readyz");  // the readiness probe: the same test, not an allocation request
+  EXPECT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(r.out, "ready\n");
 
   // One open session fills the server: /allocate says 503 with free 0, so a
   // caller asks another replica.
@@ -64,6 +68,9 @@ TEST_F(AllocateTest, AdvertisesTheEndpointAndFreeCapacityThenRefusesWhenFull) {
   EXPECT_EQ(r.exit_code, 1) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "free"), 0) << r.out;
   EXPECT_EQ(JsonNumber(r.out, "sessions_active"), 1) << r.out;
+  r = Execute(probe + "/readyz");
+  EXPECT_EQ(r.exit_code, 1) << r.out;
+  EXPECT_EQ(r.out.rfind("full\n", 0), 0u) << r.out;  // prism-probe adds the status on stderr
 
   client::Summary summary;
   EXPECT_TRUE(session->Close(20000, &summary).ok());
@@ -74,6 +81,11 @@ TEST_F(AllocateTest, AdvertisesTheEndpointAndFreeCapacityThenRefusesWhenFull) {
 
   r = Execute(probe + "/nothing-here");
   EXPECT_EQ(r.exit_code, 1) << r.out;
+  // Three /allocate requests; the two /readyz probes are not among them.
+  r = Execute(probe + "/metrics");
+  std::smatch count;
+  ASSERT_TRUE(std::regex_search(r.out, count, std::regex("\nprism_allocate_requests_total ([0-9]+)\n"))) << r.out;
+  EXPECT_EQ(count[1], "3") << r.out;
   EXPECT_EQ(server.Stop(), 0);
   // Nobody listens any more: prism-probe says so with exit code 2.
   r = Execute(Bin("prism-probe") + " --timeout-ms 500 " + server.metrics() + "/healthz");

@@ -25,6 +25,7 @@
 #include <map>
 #include <mutex>
 #include <optional>
+#include <regex>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -208,7 +209,7 @@ TEST_F(FaultTest, ServerKilledAndRestartedMidSessionLosesNoFinishedChunk) {
   const std::string log = ReadAll(P("client.log"));
   // 3: the session was interrupted on the server; prism-client fetched what it had persisted.
   EXPECT_EQ(exit_code, 3) << log;
-  EXPECT_NE(log.find("\"reconnects\": 1"), std::string::npos) << log;
+  EXPECT_EQ(test::JsonNumber(log, "reconnects"), 1) << log;
   EXPECT_NE(log.find("interrupted"), std::string::npos) << log;
   // Chunk by chunk: every persisted chunk reached the client, byte for byte.
   const std::vector<fs::path> server_chunks = Files(dir_ / "data" / "sessions" / id / "chunks", ".drc");
@@ -229,8 +230,10 @@ TEST_F(FaultTest, ServerKilledAndRestartedMidSessionLosesNoFinishedChunk) {
   EXPECT_TRUE(fs::exists(dir_ / "data" / "sessions" / id / "map.ply"));  // rebuilt from the chunks
   // Later, `prism-client fetch` gets the same results again.
   const std::string session_json = ReadAll(P("out/session.json"));
-  const size_t t = session_json.find("\"token\": \"") + 10;
-  const std::string token = session_json.substr(t, session_json.find('"', t) - t);
+  std::smatch token_match;
+  ASSERT_TRUE(std::regex_search(session_json, token_match, std::regex("\"token\"\\s*:\\s*\"([^\"]*)\"")))
+      << session_json;
+  const std::string token = token_match[1];
   const ProcessResult fetched = Execute(Bin("prism-client") + " fetch --server " + endpoint + " --session " + id +
                                         " --token " + token + " --out " + P("fetched"));
   EXPECT_EQ(fetched.exit_code, 3) << fetched.out;
@@ -535,7 +538,7 @@ TEST_F(FaultTest, EightConcurrentSessionsForThreeMinutesKeepServerMemoryFlat) {
       const std::string name = "r" + std::to_string(r) + "s" + std::to_string(s);
       const int exit_code = WaitExit(clients[static_cast<size_t>(s)], 300000);
       const std::string log = ReadAll(P(name + ".log"));
-      if (exit_code != 0 || log.find("\"errors\": 0") == std::string::npos)
+      if (exit_code != 0 || test::JsonNumber(log, "errors") != 0)
         failures.push_back(name + " exit " + std::to_string(exit_code) + ": " + log);
       else fs::remove_all(P(name));  // keeps the test's disk use bounded
     }

@@ -136,4 +136,18 @@ inline std::string HttpGet(const std::string& url) {
   return resp;
 }
 
+// GET /metrics until it holds every needle (the server publishes its metrics at least every 100 ms),
+// at most timeout_ms; the last body either way.
+inline std::string MetricsHolding(const std::string& metrics_url, const std::vector<std::string>& needles,
+                                  int timeout_ms = 3000) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
+  for (;;) {
+    const std::string body = HttpGet(metrics_url + "/metrics");
+    bool all = true;
+    for (const std::string& n : needles) all = all && body.find(n) != std::string::npos;
+    if (all || std::chrono::steady_clock::now() > deadline) return body;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+}
+
 }  // namespace prism::test

@@ -293,7 +293,8 @@ TEST_F(ServerTest, AdmissionLimitRefusesWithResourceExhaustedUntilASessionCloses
   a.Send(close);
   ASSERT_TRUE(a.Await(v1::Envelope::kSessionSummary, 30000).has_value());
   EXPECT_TRUE(b.Open().has_value());
-  const std::string metrics = HttpGet(server->metrics() + "/metrics");
+  const std::string metrics = test::MetricsHolding(
+      server->metrics(), {"prism_sessions_rejected_total{reason=\"capacity\"} 1", "prism_sessions_opened_total 2"});
   EXPECT_NE(metrics.find("prism_sessions_rejected_total{reason=\"capacity\"} 1"), std::string::npos) << metrics;
   EXPECT_NE(metrics.find("prism_sessions_opened_total 2"), std::string::npos) << metrics;
   EXPECT_NE(HttpGet(server->metrics() + "/healthz").find("200 OK"), std::string::npos);
@@ -335,7 +336,9 @@ TEST_F(ServerTest, IdleSessionsAreReapedAndSigtermPersistsOpenSessions) {
   std::optional<v1::Envelope> summary = idle.Await(v1::Envelope::kSessionSummary, 5000);
   ASSERT_TRUE(summary.has_value());
   EXPECT_EQ(summary->session_summary().reason(), "idle timeout");
-  EXPECT_NE(HttpGet(server->metrics() + "/metrics").find("prism_sessions_reaped_total 1"), std::string::npos);
+  EXPECT_NE(
+      test::MetricsHolding(server->metrics(), {"prism_sessions_reaped_total 1"}).find("prism_sessions_reaped_total 1"),
+      std::string::npos);
 
   RawClient open(server->endpoint());
   std::optional<std::string> id = open.Open();

@@ -49,4 +49,12 @@ inline double JsonNumber(const std::string& json, const std::string& key) {
   return std::stod(m[1]);
 }
 
+// The string after "key": in a JSON text (no escapes inside; "" when absent).
+inline std::string JsonString(const std::string& json, const std::string& key) {
+  const std::regex re("\"" + key + "\"\\s*:\\s*\"([^\"]*)\"");
+  std::smatch m;
+  if (!std::regex_search(json, m, re)) return "";
+  return m[1];
+}
+
 }  // namespace prism::test

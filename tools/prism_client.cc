@@ -9,6 +9,7 @@
 #include <fstream>
 #include <iostream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <thread>
 #include <vector>
@@ -156,8 +157,13 @@ int main(int argc, char** argv) {
     if (!st.ok()) return Fail("cannot open a session on " + server + ": " + st.ToString());
   }
   std::cerr << "prism-client: session " << session->session_id() << " on " << server << "\n";
-  std::ofstream(out_dir + "/session.json") << "{\"session\": \"" << session->session_id() << "\", \"token\": \""
-                                           << session->resume_token() << "\", \"server\": \"" << server << "\"}\n";
+  {
+    nlohmann::ordered_json j;
+    j["session"] = session->session_id();
+    j["token"] = session->resume_token();
+    j["server"] = server;
+    std::ofstream(out_dir + "/session.json") << j.dump() << "\n";
+  }
 
   std::map<uint64_t, pc::Pose> poses;  // by frame sequence number: the latest (refined) pose wins
   size_t refined_poses = 0;
@@ -277,29 +283,36 @@ int main(int argc, char** argv) {
   }
   if (prism::Status w = prism::WritePointCloudPly(out_dir + "/map.ply", cloud); !w.ok()) return Fail(w.ToString());
   const size_t sent = n - skipped - unreadable;
-  char json[2048];
-  std::snprintf(
-      json, sizeof(json),
-      "{\"session\": \"%s\", \"frames_sent\": %zu, \"frames_skipped\": %zu, \"frames_unreadable\": %zu, "
-      "\"poses\": %zu, \"refined_poses\": %zu, "
-      "\"chunks\": %zu, \"chunk_bytes\": %zu, \"map_points\": %zu, \"map_replaced\": %s, \"errors\": %zu, "
-      "\"uplink_bytes\": %llu, \"uplink_bytes_per_frame\": %.1f, \"seconds\": %.3f, \"frames_per_s\": %.2f, "
-      "\"server_keyframes\": %llu, \"server_keyframes_failed\": %llu, \"server_map_points\": %llu, "
-      "\"server_frames_depth_update_skipped\": %llu, "
-      "\"metres_per_unit\": %.6g, \"shading_check\": \"%s\", \"shading_pair_spread\": %.4g, "
-      "\"start_check\": \"%s\", \"start_pair_spread\": %.4g, "
-      "\"reconnects\": %d, \"reason\": \"%s\"}\n",
-      session->session_id().c_str(), sent, skipped, unreadable, poses.size(), refined_poses, chunks, chunk_bytes,
-      map.size(), remapped ? "true" : "false", frame_errors, static_cast<unsigned long long>(session->bytes_sent()),
-      sent > 0 ? static_cast<double>(session->bytes_sent()) / static_cast<double>(sent) : 0.0, seconds,
-      seconds > 0 ? static_cast<double>(sent) / seconds : 0.0, static_cast<unsigned long long>(summary.keyframes),
-      static_cast<unsigned long long>(summary.keyframes_failed), static_cast<unsigned long long>(summary.map_points),
-      static_cast<unsigned long long>(summary.frames_depth_update_skipped), summary.metres_per_unit,
-      summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
-      : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
-                                                                       : "not_run",
-      summary.shading_pair_spread, pc::StartCheckName(summary.start_check), summary.start_pair_spread,
-      session->reconnects(), summary.reason.c_str());
+  nlohmann::ordered_json j;
+  j["session"] = session->session_id();
+  j["frames_sent"] = sent;
+  j["frames_skipped"] = skipped;
+  j["frames_unreadable"] = unreadable;
+  j["poses"] = poses.size();
+  j["refined_poses"] = refined_poses;
+  j["chunks"] = chunks;
+  j["chunk_bytes"] = chunk_bytes;
+  j["map_points"] = map.size();
+  j["map_replaced"] = remapped;
+  j["errors"] = frame_errors;
+  j["uplink_bytes"] = session->bytes_sent();
+  j["uplink_bytes_per_frame"] = sent > 0 ? static_cast<double>(session->bytes_sent()) / static_cast<double>(sent) : 0.0;
+  j["seconds"] = seconds;
+  j["frames_per_s"] = seconds > 0 ? static_cast<double>(sent) / seconds : 0.0;
+  j["server_keyframes"] = summary.keyframes;
+  j["server_keyframes_failed"] = summary.keyframes_failed;
+  j["server_map_points"] = summary.map_points;
+  j["server_frames_depth_update_skipped"] = summary.frames_depth_update_skipped;
+  j["metres_per_unit"] = summary.metres_per_unit;
+  j["shading_check"] = summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
+                       : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
+                                                                                        : "not_run";
+  j["shading_pair_spread"] = summary.shading_pair_spread;
+  j["start_check"] = pc::StartCheckName(summary.start_check);
+  j["start_pair_spread"] = summary.start_pair_spread;
+  j["reconnects"] = session->reconnects();
+  j["reason"] = summary.reason;
+  const std::string json = j.dump(-1, ' ', false, nlohmann::ordered_json::error_handler_t::replace) + "\n";
   std::cout << json;
   std::ofstream(out_dir + "/summary.json") << json;
   if (session->reconnects() > 0)

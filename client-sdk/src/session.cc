@@ -151,6 +151,7 @@ struct Session::Impl {
   bool read_only = false;
   // The server's per-session frame-rate limit (0 = none), kept here so frames are paced, not refused.
   double max_frame_rate_hz = 0, rate_tokens = 0, rate_burst = 1;
+  uint64_t max_frame_bytes = 0;  // from SessionOpened; 0 = unknown
   Clock::time_point rate_refilled = Clock::now();
   // Reply to the last OpenSession (new or resume).
   bool got_opened = false;
@@ -396,6 +397,7 @@ struct Session::Impl {
         if (o.map_voxel_m() > 0) voxel_m = o.map_voxel_m();
         read_only = o.read_only();
         max_frame_rate_hz = o.max_frame_rate_hz();
+        max_frame_bytes = o.max_frame_bytes();
         rate_burst = std::max<double>(1.0, o.initial_frame_credits());
         rate_tokens = std::min(rate_tokens, rate_burst);
         if (!o.resumed()) rate_tokens = rate_burst;
@@ -632,6 +634,11 @@ Status Session::PushEncoded(int64_t timestamp_ns, Codec codec, const std::vector
                             : std::string("the session is closed"));
   };
   if (m.closed || m.read_only) return ended();
+  // A larger frame would be refused (or, past the message limit, cost the connection).
+  if (m.max_frame_bytes > 0 && bytes.size() > m.max_frame_bytes)
+    return Make(Code::kInvalidArgument, "frame of " + std::to_string(bytes.size()) +
+                                            " bytes exceeds the server's max_frame_bytes " +
+                                            std::to_string(m.max_frame_bytes));
   const auto deadline = Clock::now() + std::chrono::milliseconds(m.options.timeout_ms);
   while (m.frame_credits <= 0 && !m.closed && !m.read_only && Clock::now() < deadline) m.Pump(5);
   if (m.closed || m.read_only) return ended();

@@ -4,9 +4,14 @@
 
 namespace prism {
 
-DenseWorkers::DenseWorkers(int num_workers, ThreadPool* pool) : pool_(pool) {
+DenseWorkers::DenseWorkers(int num_workers, ThreadPool* pool, int nice) : pool_(pool) {
   if (num_workers < 1) num_workers = 1;
-  for (int i = 0; i < num_workers; ++i) threads_.emplace_back([this] { WorkerLoop(); });
+  for (int i = 0; i < num_workers; ++i)
+    threads_.emplace_back([this, nice] {
+      SetCurrentThreadName("prism-dense");
+      if (nice != 0) SetCurrentThreadNice(nice);
+      WorkerLoop();
+    });
 }
 
 DenseWorkers::~DenseWorkers() {

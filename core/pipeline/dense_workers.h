@@ -21,8 +21,9 @@ class DenseWorkers {
  public:
   class Strand;
 
-  // num_workers >= 1 job threads; pool (not owned, may be null) runs the jobs' ParallelFor loops.
-  DenseWorkers(int num_workers, ThreadPool* pool);
+  // num_workers >= 1 job threads at niceness `nice` (ThreadPool); pool (not owned, may be null) runs
+  // the jobs' ParallelFor loops.
+  DenseWorkers(int num_workers, ThreadPool* pool, int nice = 0);
   // Runs the jobs already posted, then joins the workers.
   ~DenseWorkers();
   DenseWorkers(const DenseWorkers&) = delete;

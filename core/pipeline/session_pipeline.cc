@@ -7,6 +7,7 @@
 #include <utility>
 
 #include "core/util/logging.h"
+#include "core/util/thread_pool.h"
 
 namespace prism {
 namespace {
@@ -54,7 +55,10 @@ StatusOr<std::unique_ptr<SessionPipeline>> SessionPipeline::Create(const RigCali
   slam_options.final_adjustment = false;
   PRISM_ASSIGN_OR_RETURN(p->slam_, SlamSystem::Create(pinhole_rig, slam_options));
   PRISM_ASSIGN_OR_RETURN(p->dense_, DenseStage::Create(pinhole_rig, options.dense, workers->pool()));
-  p->slam_thread_ = std::thread([raw = p.get()] { raw->SlamLoop(); });
+  p->slam_thread_ = std::thread([raw = p.get()] {
+    SetCurrentThreadName("prism-slam");
+    raw->SlamLoop();
+  });
   return p;
 }
 
@@ -377,13 +381,19 @@ void SessionPipeline::QueueKeyframe(SlamKeyframe keyframe) {
         ++stats_.keyframes_dropped;
       }
     }
-    keyframes_.push_back(std::move(keyframe));
+    keyframes_.push_back({std::move(keyframe), std::chrono::steady_clock::now()});
   }
   strand_->Post([this] { DenseJob(); });
 }
 
+size_t SessionPipeline::queued_keyframes() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return keyframes_.size();
+}
+
 void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, const Rigid3d& world_from_keyframe,
-                                size_t map_points) {
+                                size_t map_points, std::chrono::steady_clock::time_point keyframe_queued_at,
+                                double dense_ms) {
   MapChunkCodecOptions chunk_options = options_.chunk;
   chunk_options.voxel_m = options_.dense.map.voxel_m;
   StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(changes.cloud, chunk_options);
@@ -405,6 +415,8 @@ void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, c
   e.replaces_map = changes.replaces_map;
   e.map_voxels = dense_->map().size();
   e.kept_points = dense_->kept_points();
+  e.keyframe_queued_at = keyframe_queued_at;
+  e.dense_ms = dense_ms;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     ++stats_.chunks;
@@ -417,10 +429,12 @@ void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, c
 
 void SessionPipeline::DenseJob() {
   SlamKeyframe kf;
+  std::chrono::steady_clock::time_point queued_at;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (keyframes_.empty()) return;  // dropped by the overflow policy or Abort
-    kf = std::move(keyframes_.front());
+    kf = std::move(keyframes_.front().keyframe);
+    queued_at = keyframes_.front().queued_at;
     keyframes_.pop_front();
     keyframe_room_.notify_all();
     if (aborted_ || failed_) {
@@ -457,8 +471,9 @@ void SessionPipeline::DenseJob() {
     metres_per_unit_ = r->metres_per_unit;
     if (r->changes.empty()) return;
     const double s = r->metres_per_unit;
+    const double dense_ms = MsSince(t0);
     EmitChunk(r->changes, dk.id, Rigid3d(kf.world_from_keyframe.rotation, s * kf.world_from_keyframe.translation),
-              map_points);
+              map_points, queued_at, dense_ms);
     std::lock_guard<std::mutex> lock(mutex_);
     stats_.dense_ms_total += MsSince(t0);
   } catch (const std::exception& ex) {

@@ -13,6 +13,7 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <functional>
@@ -131,6 +132,10 @@ struct PipelineEvent {
   // MapOptions::min_keyframes) and the points of the keyframe clouds kept for the rebuild.
   size_t map_voxels = 0;
   int64_t kept_points = 0;
+  // When the SLAM handed the keyframe to the dense stage, and the dense stage's time on it (0 for the
+  // rebuilt map and the last chunk of a stream).
+  std::chrono::steady_clock::time_point keyframe_queued_at;
+  double dense_ms = 0;
   // kError: a frame or keyframe failed (has_frame), or the session failed (fatal).
   Status status;
   bool has_frame = false;
@@ -166,6 +171,8 @@ class SessionPipeline {
   PipelineStats stats() const;
   // Frames in the queue, not yet taken by the SLAM thread.
   size_t queued_frames() const { return frames_.size(); }
+  // Finished keyframes waiting for the dense stage.
+  size_t queued_keyframes() const;
   // The merged map so far (call after kFinished, or accept a snapshot taken between keyframes).
   PointCloud MapSnapshot() const;
 
@@ -176,7 +183,8 @@ class SessionPipeline {
   void QueueKeyframe(SlamKeyframe keyframe);
   void DenseJob();
   // Encodes the changed voxels and hands the chunk to the sink (strand jobs only).
-  void EmitChunk(const MapChunk& changes, uint64_t keyframe_id, const Rigid3d& world_from_keyframe, size_t map_points);
+  void EmitChunk(const MapChunk& changes, uint64_t keyframe_id, const Rigid3d& world_from_keyframe, size_t map_points,
+                 std::chrono::steady_clock::time_point keyframe_queued_at = {}, double dense_ms = 0);
   void Fail(const Status& status);
 
   const RigCalibration rig_;
@@ -213,9 +221,13 @@ class SessionPipeline {
   std::atomic<double> final_metres_per_unit_{0.0};
   mutable std::mutex mutex_;
   std::condition_variable keyframe_room_;  // signalled when keyframes_ shrinks or on Abort/Fail
-  std::deque<SlamKeyframe> keyframes_;     // Guarded by mutex_.
-  PipelineStats stats_;                    // Guarded by mutex_.
-  mutable std::mutex map_mutex_;           // held by dense jobs while they write the map
+  struct QueuedKeyframe {
+    SlamKeyframe keyframe;
+    std::chrono::steady_clock::time_point queued_at;
+  };
+  std::deque<QueuedKeyframe> keyframes_;  // Guarded by mutex_.
+  PipelineStats stats_;                   // Guarded by mutex_.
+  mutable std::mutex map_mutex_;          // held by dense jobs while they write the map
   std::thread slam_thread_;
 };
 

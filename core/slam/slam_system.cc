@@ -1411,6 +1411,7 @@ void SlamSystem::Impl::StartPairShadingScales(size_t num_keyframes) {
   PendingStartCheck* p = job.get();
   // The thread reads its own copies and the rig (a copy too): nothing the frames change.
   job->done = std::async(std::launch::async, [p, rig = rig, pairs = ShadingPairs(num_keyframes, true)] {
+    SetCurrentThreadName("slam-start-chk");
     const auto start = std::chrono::steady_clock::now();
     if (AllPointLights(rig))
       for (const auto& [k, scale] : PairScales(rig, pairs)) p->scales.push_back(scale);
@@ -1559,6 +1560,7 @@ void SlamSystem::Impl::AdjustKeyframes(int first, const DirectBaOptions& ba_opti
     // else. One thread, no pool: the result is the same to the bit as with the pool (keyframe_ba.h).
     PendingAdjustment* p = job.get();
     job->done = std::async(std::launch::async, [p, used_options] {
+      SetCurrentThreadName("slam-adjust");
       const auto start = std::chrono::steady_clock::now();
       p->summary = AdjustKeyframeWindowDirect(used_options, &p->problem, nullptr);
       p->seconds = SecondsSince(start);

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <sstream>
+#include <string>
 
 namespace prism {
 
@@ -21,6 +22,7 @@ class LogMessage {
 
  private:
   LogLevel level_;
+  std::string time_, source_;
   std::ostringstream stream_;
 };
 }  // namespace internal

@@ -1,16 +1,44 @@
 #include "core/util/thread_pool.h"
 
+#include <pthread.h>
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <atomic>
 #include <exception>
 #include <memory>
+#include <string>
 
 namespace prism {
 
-ThreadPool::ThreadPool(int num_threads) {
+void SetCurrentThreadName(const char* name) {
+#if defined(__linux__)
+  pthread_setname_np(pthread_self(), std::string(name).substr(0, 15).c_str());
+#else
+  (void)name;
+#endif
+}
+
+bool SetCurrentThreadNice(int nice) {
+#if defined(__linux__)
+  return setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), nice) == 0;
+#else
+  (void)nice;
+  return false;
+#endif
+}
+
+ThreadPool::ThreadPool(int num_threads, int nice, const char* name) {
   if (num_threads <= 0) num_threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   // The calling thread also works in ParallelFor, so the pool needs one thread fewer.
-  for (int i = 0; i + 1 < num_threads; ++i) workers_.emplace_back([this] { WorkerLoop(); });
+  for (int i = 0; i + 1 < num_threads; ++i)
+    workers_.emplace_back([this, nice, name] {
+      SetCurrentThreadName(name);
+      if (nice != 0) SetCurrentThreadNice(nice);
+      WorkerLoop();
+    });
 }
 
 ThreadPool::~ThreadPool() {

@@ -12,10 +12,17 @@
 
 namespace prism {
 
+// Names the calling thread (at most 15 characters; shown by top -H, perf and /proc/PID/task/*/comm).
+void SetCurrentThreadName(const char* name);
+
+// Sets the calling thread's niceness (Linux; raising it needs no privilege). false when refused.
+bool SetCurrentThreadNice(int nice);
+
 class ThreadPool {
  public:
-  // num_threads <= 0 means std::thread::hardware_concurrency().
-  explicit ThreadPool(int num_threads = 0);
+  // num_threads <= 0 means std::thread::hardware_concurrency(). The workers run at `nice` (Linux
+  // niceness, 0-19; higher yields the CPU to other threads, e.g. background work beside latency-bound).
+  explicit ThreadPool(int num_threads = 0, int nice = 0, const char* name = "prism-pool");
   ~ThreadPool();
   ThreadPool(const ThreadPool&) = delete;
   ThreadPool& operator=(const ThreadPool&) = delete;

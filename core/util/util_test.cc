@@ -2,12 +2,14 @@
 #include <chrono>
 #include <future>
 #include <memory>
+#include <nlohmann/json.hpp>
 #include <thread>
 #include <vector>
 
 #include <gtest/gtest.h>
 
 #include "core/util/json_text.h"
+#include "core/util/log_level.h"
 #include "core/util/status.h"
 #include "core/util/thread_pool.h"
 
@@ -47,6 +49,37 @@ TEST(StatusTest, AssignOrReturnPropagates) {
   const Status s = UsesMacros(-1, &out);
   EXPECT_EQ(s.code(), StatusCode::kInvalidArgument);
   EXPECT_EQ(out, 3);
+}
+
+TEST(LogJsonTest, KeyValueMessagesBecomeFieldsAndOtherTextAMessage) {
+  const std::string line = FormatLogJson("2026-01-01T00:00:00.000Z", "INFO", "server.cc:12",
+                                         "event=session_opened session=s1-ab client=\"a \\\"quoted\\\" name\" "
+                                         "frames=300 ratio=0.5 ok=true");
+  const nlohmann::json j = nlohmann::json::parse(line);
+  EXPECT_EQ(j["level"], "INFO");
+  EXPECT_EQ(j["source"], "server.cc:12");
+  EXPECT_EQ(j["event"], "session_opened");
+  EXPECT_EQ(j["session"], "s1-ab");
+  EXPECT_EQ(j["client"], "a \"quoted\" name");
+  EXPECT_EQ(j["frames"], 300);
+  EXPECT_DOUBLE_EQ(j["ratio"].get<double>(), 0.5);
+  EXPECT_EQ(j["ok"], true);
+  // Free text (newlines, quotes, bytes that are not UTF-8) stays one valid JSON object on one line.
+  const std::string free_text = FormatLogJson("t", "WARN", "x.cc:1", "slam: \"odd\" text\nsecond line \xff end");
+  EXPECT_EQ(free_text.find('\n'), std::string::npos);
+  const nlohmann::json k = nlohmann::json::parse(free_text);
+  EXPECT_EQ(k["message"].get<std::string>().substr(0, 18), "slam: \"odd\" text\ns");
+  EXPECT_FALSE(k.contains("slam"));
+  // Pairs, then free text: both kept.
+  const nlohmann::json m = nlohmann::json::parse(FormatLogJson("t", "INFO", "x.cc:1", "event=a n=1 (logged once)"));
+  EXPECT_EQ(m["event"], "a");
+  EXPECT_EQ(m["message"], "(logged once)");
+}
+
+TEST(LogJsonTest, FormatNamesAreChecked) {
+  EXPECT_TRUE(SetLogFormat("json"));
+  EXPECT_TRUE(SetLogFormat("text"));
+  EXPECT_FALSE(SetLogFormat("xml"));
 }
 
 TEST(CheckTest, FailedCheckThrowsWithMessage) {
