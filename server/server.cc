@@ -167,7 +167,7 @@ struct Server::Impl {
   zmq::socket_t router{context, zmq::socket_type::router};
   std::string endpoint, metrics_endpoint;
   std::unique_ptr<HttpEndpoint> http;  // its own thread; reads what PublishSnapshot hands it
-  Clock::time_point last_publish;
+  Clock::time_point last_publish, last_trim;
   size_t published_sessions = 0;
   bool published_draining = false;
   // The ROUTER's connection events (zmq_socket_monitor), read on the transport thread.
@@ -991,17 +991,22 @@ struct Server::Impl {
               "prism_session_keyframe_queue_depth", "prism_session_chunks_waiting"})
           metrics.Remove(family, "session=\"" + MetricLabel(s->id) + "\"");
         it = sessions.erase(it);
-#if defined(__GLIBC__)
-        // A session's buffers (frames, keyframe images, depth maps, clouds) were allocated by several
-        // threads, in several malloc arenas; glibc keeps their freed pages, and on the soak (8 sessions at a
-        // time for 3.5 min) the RSS crept up by 11% (716 MiB at the end, 682 MiB idle after). Hand them
-        // back when a session ends. With MALLOC_ARENA_MAX=2 instead it stayed flat (+3.5%).
-        malloc_trim(0);
-#endif
+        TrimMemory();
       } else {
         ++it;
       }
     }
+    // Freed memory of peers that came and went (HTTP connections, ZeroMQ buffers) goes back too.
+    if (now - last_trim > std::chrono::seconds(10)) TrimMemory();
+  }
+
+  // Gives the pages malloc holds free back to the system (glibc keeps them otherwise): after a session
+  // ends, and every 10 s.
+  void TrimMemory() {
+    last_trim = Clock::now();
+#if defined(__GLIBC__)
+    malloc_trim(0);
+#endif
   }
 
   Status Run() {

@@ -11,6 +11,7 @@
 
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
+#include "core/synth/families.h"
 #include "core/synth/ground_truth_cloud.h"
 #include "core/synth/presets.h"
 #include "core/synth/synthesize.h"
@@ -21,6 +22,7 @@ namespace {
 constexpr char kUsage[] = R"(usage:
   prism-synth --list-presets
   prism-synth --preset NAME --out DIR [--frames N] [--size WxH] [--seed S] [options]
+  prism-synth --random SEED [--family NAME] [--world-lights] --out DIR [--frames N] [--size WxH] [options]
 
 Renders a synthetic sequence of the three-light rig in the TUM RGB-D layout (rgb/, depth/,
 normals/, mask/, groundtruth.txt, camera.yaml, scene.yaml) and prints a JSON summary.
@@ -29,8 +31,15 @@ options:
   --list-presets      print one preset name per line (the first is the demo scene)
   --describe          with --list-presets: add a tab and a description to each line
   --preset NAME       scene, material and trajectory (see --list-presets)
+  --random SEED       a scene drawn at random from a family's ranges instead (docs/scene_families.md):
+                      objects, albedo, ground, lights, crosstalk, path, jitter, noise; seeds 1-999 are
+                      for tuning, 100000-100999 are held out for reporting
+  --family NAME       with --random: the family (default mixed; --list-families)
+  --list-families     print one family name per line (with --describe: a tab and its ranges)
+  --world-lights      with --random: the rig's lights stay where they were at the first frame (ordinary
+                      lighting; camera.yaml then gives them intensity 0: none moves with the camera)
   --out DIR           output folder (created)
-  --frames N          number of frames at 30 fps (default 300)
+  --frames N          number of frames at 30 fps (default 300; with --random, drawn: 150-300)
   --size WxH          image size (default 512x512)
   --seed S            random seed for textures, jitter and noise (default 1)
   --threads T         worker threads (default: all cores)
@@ -71,7 +80,10 @@ int main(int argc, char** argv) {
   using namespace prism;
   synth::PresetOptions options;
   std::string preset, out, gt_cloud;
-  bool list = false, describe = false, no_shadows = false;
+  bool list = false, list_families = false, describe = false, no_shadows = false, world_lights = false;
+  std::string family = "mixed";
+  std::optional<uint32_t> random_seed;
+  bool frames_given = false;
   int threads = 0;
   double noise = -1, ambient = -1;
   int supersampling = 0;
@@ -92,17 +104,28 @@ int main(int argc, char** argv) {
       describe = true;
     } else if (a == "--no-shadows") {
       no_shadows = true;
+    } else if (a == "--list-families") {
+      list_families = true;
+    } else if (a == "--world-lights") {
+      world_lights = true;
     } else if (a == "--preset" || a == "--out" || a == "--frames" || a == "--size" || a == "--seed" ||
                a == "--threads" || a == "--mesh-dir" || a == "--noise" || a == "--ambient" || a == "--supersampling" ||
-               a == "--gt-cloud" || a == "--distortion") {
+               a == "--gt-cloud" || a == "--distortion" || a == "--random" || a == "--family") {
       const char* v = value(a.c_str());
       if (!v) return Fail(a + " needs a value (see --help)");
       if (a == "--preset") preset = v;
+      else if (a == "--family") family = v;
+      else if (a == "--random") {
+        int s;
+        if (!ParseInt(v, 0, 2147483647L, &s)) return Fail("--random must be a non-negative integer seed");
+        random_seed = static_cast<uint32_t>(s);
+      }
       else if (a == "--out") out = v;
       else if (a == "--mesh-dir") options.mesh_dir = v;
       else if (a == "--gt-cloud") gt_cloud = v;
       else if (a == "--frames") {
         if (!ParseInt(v, 2, 100000, &options.frames)) return Fail("--frames must be an integer in [2, 100000]");
+        frames_given = true;
       } else if (a == "--seed") {
         int s;
         if (!ParseInt(v, 0, 2147483647L, &s)) return Fail("--seed must be a non-negative integer");
@@ -141,10 +164,33 @@ int main(int argc, char** argv) {
     }
     return 0;
   }
-  if (preset.empty()) return Fail("--preset is required (see --list-presets)");
+  if (list_families) {
+    for (const synth::FamilyInfo& f : synth::ListFamilies()) {
+      std::cout << f.name;
+      if (describe) std::cout << "\t" << f.description;
+      std::cout << "\n";
+    }
+    return 0;
+  }
+  if (preset.empty() == !random_seed) return Fail("one of --preset or --random is required (see --help)");
+  if (world_lights && !random_seed) return Fail("--world-lights goes with --random");
   if (out.empty()) return Fail("--out is required");
 
-  StatusOr<synth::SynthSetup> setup = synth::MakePreset(preset, options);
+  StatusOr<synth::SynthSetup> setup = NotFoundError("no scene");
+  if (random_seed) {
+    synth::FamilyOptions fo;
+    fo.family = family;
+    fo.lights_fixed_in_world = world_lights;
+    fo.frames = frames_given ? options.frames : 0;
+    fo.width = options.width;
+    fo.height = options.height;
+    fo.mesh_dir = options.mesh_dir;
+    setup = synth::MakeRandomScene(*random_seed, fo);
+    options.seed = *random_seed;
+    preset = setup.ok() ? setup->preset : preset;
+  } else {
+    setup = synth::MakePreset(preset, options);
+  }
   if (!setup.ok()) return Fail(setup.status().ToString());
   if (noise >= 0) setup->render.noise_sigma = noise;
   if (ambient >= 0) setup->render.ambient = ambient;

@@ -427,15 +427,18 @@ int ZmqCorrupt(const Target& t) {
   const std::string id = d.Open(seq.rig, 8);
   if (id.empty()) return 1;
   std::mt19937 rng(3);
+  std::string noise(1 << 16, '\0');
+  for (char& c : noise) c = static_cast<char>(rng());
   Ready();
+  const auto start = Clock::now();
   Deadline deadline(t.seconds);
   uint64_t n = 0;
   while (!deadline.passed()) {
-    std::string junk(2000 + rng() % 20000, '\0');
-    for (char& c : junk) c = static_cast<char>(rng());
+    std::string junk = noise.substr(rng() % 32768, 2000 + rng() % 20000);
     if (n % 2 == 0) junk.replace(0, 8, "\x89PNG\r\n\x1a\n");  // half of them look like PNG
     d.Send(FrameEnvelope(id, n++), &junk);
-    d.Drain(10);
+    d.Drain();
+    std::this_thread::sleep_until(start + std::chrono::milliseconds(10 * n));
   }
   std::cerr << "zmq-corrupt: " << n << " frames\n";
   return 0;
