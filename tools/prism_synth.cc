@@ -119,8 +119,7 @@ int main(int argc, char** argv) {
         int s;
         if (!ParseInt(v, 0, 2147483647L, &s)) return Fail("--random must be a non-negative integer seed");
         random_seed = static_cast<uint32_t>(s);
-      }
-      else if (a == "--out") out = v;
+      } else if (a == "--out") out = v;
       else if (a == "--mesh-dir") options.mesh_dir = v;
       else if (a == "--gt-cloud") gt_cloud = v;
       else if (a == "--frames") {

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "core/io/calibration_io.h"
@@ -37,6 +38,20 @@ struct SynthSetup {
   RigCalibration rig;
   TrajectoryOptions trajectory;
   RenderOptions render;
+  // The camera path when not empty (scene families); else MakeTrajectory(trajectory). trajectory.fps
+  // applies either way.
+  Trajectory poses;
+  // Motion blur: each frame averages blur_samples renders spread over `exposure` (a fraction in
+  // [0, 1]) of the motion since the previous frame; 1 sample = none.
+  int blur_samples = 1;
+  double exposure = 0;
+  // The rig's lights stay where they were at the first frame instead of moving with the camera; the
+  // written camera.yaml then gives them intensity 0 (no light moves with the camera).
+  bool lights_fixed_in_world = false;
+  // Extra key/value lines for scene.yaml (what a scene family drew).
+  std::vector<std::pair<std::string, std::string>> notes;
+
+  Trajectory Poses() const { return poses.empty() ? MakeTrajectory(trajectory) : poses; }
 };
 
 // The presets in a fixed order; the first is the demo scene.

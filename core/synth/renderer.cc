@@ -202,4 +202,21 @@ RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const R
   return f;
 }
 
+cv::Mat QuantiseRadiance(const cv::Mat& radiance, const RenderOptions& options, uint64_t noise_seed) {
+  cv::Mat rgb(radiance.rows, radiance.cols, CV_8UC3);
+  for (int y = 0; y < radiance.rows; ++y) {
+    FastGaussian gauss(noise_seed * 0x9E3779B97F4A7C15ull + static_cast<uint64_t>(y) + 1);
+    const cv::Vec3f* rad = radiance.ptr<cv::Vec3f>(y);
+    cv::Vec3b* out = rgb.ptr<cv::Vec3b>(y);
+    for (int x = 0; x < radiance.cols; ++x)
+      for (int c = 0; c < 3; ++c) {
+        const double signal = 255.0 * rad[x][c];
+        const double sigma =
+            std::sqrt(options.noise_sigma * options.noise_sigma + options.shot_noise * std::max(0.0, signal));
+        out[x][c] = static_cast<uint8_t>(std::min(255.0, std::max(0.0, std::round(signal + sigma * gauss()))));
+      }
+  }
+  return rgb;
+}
+
 }  // namespace prism::synth

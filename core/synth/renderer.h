@@ -64,6 +64,10 @@ struct RenderedFrame {
 RenderedFrame RenderFrame(const Scene& scene, const RigCalibration& rig, const Rigid3d& world_from_camera,
                           const RenderOptions& options, uint64_t noise_seed, ThreadPool* pool = nullptr);
 
+// 8-bit RGB from linear radiance (CV_32FC3) with the sensor noise of `options`, as RenderFrame does:
+// for frames averaged over several renders (motion blur).
+cv::Mat QuantiseRadiance(const cv::Mat& radiance, const RenderOptions& options, uint64_t noise_seed);
+
 // The noise-free shading model above at one surface point, for tests and the photometric branch.
 Eigen::Vector3d ShadePoint(const Scene& scene, const RigCalibration& rig, const Rigid3d& world_from_camera,
                            const SurfaceHit& hit, const RenderOptions& options);

@@ -5,6 +5,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "core/io/sequence.h"
+#include "core/synth/families.h"
 #include "core/synth/mesh_bvh.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
@@ -335,6 +336,72 @@ TEST(PresetTest, EveryPresetBuildsAndShowsItsObject) {
   PresetOptions bad;
   bad.width = 3;
   EXPECT_EQ(MakePreset("sphere-uniform-sideways", bad).status().code(), StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace prism::synth
+
+namespace prism::synth {
+namespace {
+
+// Every family draws scenes whose objects are in view, lit and of the documented size, for many seeds.
+TEST(FamilyTest, DrawnScenesShowTheirObjectsLitAndMoveWithinTheRanges) {
+  constexpr int kSeeds = 12;
+  for (const FamilyInfo& family : ListFamilies()) {
+    for (uint32_t seed = 1; seed <= kSeeds; ++seed) {
+      FamilyOptions fo;
+      fo.family = family.name;
+      fo.width = fo.height = 128;
+      StatusOr<SynthSetup> setup = MakeRandomScene(seed, fo);
+      ASSERT_TRUE(setup.ok()) << family.name << " " << seed << ": " << setup.status();
+      const Trajectory traj = setup->Poses();
+      ASSERT_GE(traj.size(), 150u);
+      ASSERT_LE(traj.size(), 300u);
+      Eigen::Vector3d centre;
+      double radius = 0;
+      setup->scene.ObjectBounds(&centre, &radius);
+      ASSERT_TRUE(centre.allFinite() && radius > 0) << family.name << " " << seed;
+      for (size_t i : {size_t{0}, traj.size() / 2, traj.size() - 1}) {
+        const RenderedFrame f = RenderSequenceFrame(*setup, traj, i, 7);
+        const double object_fraction = cv::countNonZero(f.mask == 255) / static_cast<double>(f.mask.total());
+        const double surface_fraction = cv::countNonZero(f.mask) / static_cast<double>(f.mask.total());
+        const cv::Scalar mean = cv::mean(f.rgb, f.mask);
+        EXPECT_GT(object_fraction, /*min_object_in_view=*/0.01) << family.name << " seed " << seed << " frame " << i;
+        EXPECT_GT(surface_fraction, /*min_surface_in_view=*/0.5) << family.name << " seed " << seed << " frame " << i;
+        EXPECT_GT(mean[0] + mean[1] + mean[2], /*min_mean_grey_sum=*/60) << family.name << " seed " << seed;
+        EXPECT_LT(mean[0] + mean[1] + mean[2], /*max_mean_grey_sum=*/600) << family.name << " seed " << seed;
+      }
+      // Per-frame rotation within the family's bound (3 deg plus jitter of up to 1 deg twice).
+      for (size_t i = 1; i < traj.size(); ++i) {
+        const double step_deg =
+            Eigen::AngleAxisd(traj[i - 1].world_from_camera.rotation.conjugate() * traj[i].world_from_camera.rotation)
+                .angle() *
+            180 / M_PI;
+        EXPECT_LT(step_deg, /*max_rotation_per_frame_deg=*/3.0 + 2 * 3.0) << family.name << " seed " << seed;
+      }
+    }
+  }
+}
+
+TEST(FamilyTest, SameSeedSameSceneAndWorldLightsStayPut) {
+  FamilyOptions fo;
+  fo.width = fo.height = 96;
+  StatusOr<SynthSetup> a = MakeRandomScene(5, fo), b = MakeRandomScene(5, fo);
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_EQ(a->notes, b->notes);
+  const Trajectory ta = a->Poses(), tb = b->Poses();
+  ASSERT_EQ(ta.size(), tb.size());
+  EXPECT_TRUE(ta.back().world_from_camera.translation.isApprox(tb.back().world_from_camera.translation));
+  fo.lights_fixed_in_world = true;
+  StatusOr<SynthSetup> w = MakeRandomScene(5, fo);
+  ASSERT_TRUE(w.ok());
+  const Trajectory tw = w->Poses();
+  // The red light's place in the world is the same in every frame.
+  const Eigen::Vector3d first = tw[0].world_from_camera * RigAtFrame(*w, tw, 0).lights[0].position_in_camera;
+  const Eigen::Vector3d last =
+      tw.back().world_from_camera * RigAtFrame(*w, tw, tw.size() - 1).lights[0].position_in_camera;
+  EXPECT_LT((first - last).norm(), 1e-9);
+  EXPECT_EQ(MakeRandomScene(5, FamilyOptions{"no-such-family"}).status().code(), StatusCode::kNotFound);
 }
 
 }  // namespace

@@ -27,6 +27,12 @@ inline uint64_t FrameNoiseSeed(uint32_t seed, int64_t frame) {
   return static_cast<uint64_t>(seed) * 1000003ull + static_cast<uint64_t>(frame);
 }
 
+// Frame i of the setup's path as SynthesizeSequence renders it: the rig's lights where the setup has them
+// (fixed in the world or moving with the camera) and motion blur.
+RenderedFrame RenderSequenceFrame(const SynthSetup& setup, const Trajectory& traj, size_t i, uint64_t noise_seed);
+// The rig at frame i: setup.rig, or with the lights fixed in the world, their place in frame i's camera.
+RigCalibration RigAtFrame(const SynthSetup& setup, const Trajectory& traj, size_t i);
+
 // Frames are rendered in parallel on `pool` (one frame per task) when given. Deterministic for the
 // setup's seed whatever the thread count.
 StatusOr<SynthesizeSummary> SynthesizeSequence(const SynthSetup& setup, uint32_t seed, const std::string& out_dir,
