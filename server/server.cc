@@ -25,6 +25,7 @@
 #include <fstream>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <random>
 #include <set>
 #include <sstream>
@@ -90,6 +91,35 @@ void ToWire(const Rigid3d& pose, v1::Pose* out) {
   out->mutable_translation()->set_z(pose.translation.z());
 }
 
+// The last frame a session accepted into its queue: later frames' sequence numbers must be above its,
+// their timestamps not before its.
+struct AcceptedFrame {
+  uint64_t sequence_number = 0;
+  int64_t timestamp_ns = 0;
+};
+
+// The Frame fields the contract constrains (session.proto, Frame): a stated size equal to the camera's,
+// sequence numbers that increase (gaps allowed), timestamps that do not go back.
+Status CheckFrameFields(const v1::Frame& frame, int camera_width, int camera_height,
+                        const std::optional<AcceptedFrame>& last) {
+  if ((frame.width() != 0 && frame.width() != static_cast<uint32_t>(camera_width)) ||
+      (frame.height() != 0 && frame.height() != static_cast<uint32_t>(camera_height)))
+    return InvalidArgumentError("Frame.width x Frame.height = " + std::to_string(frame.width()) + "x" +
+                                std::to_string(frame.height()) + " differ from the session's camera " +
+                                std::to_string(camera_width) + "x" + std::to_string(camera_height) +
+                                " (0 = not stated)");
+  if (!last) return Status::Ok();
+  if (frame.sequence_number() <= last->sequence_number)
+    return InvalidArgumentError("Frame.sequence_number " + std::to_string(frame.sequence_number()) +
+                                " is not above the last accepted frame's " + std::to_string(last->sequence_number) +
+                                " (sequence numbers must increase; gaps are allowed)");
+  if (frame.timestamp_ns() < last->timestamp_ns)
+    return InvalidArgumentError("Frame.timestamp_ns " + std::to_string(frame.timestamp_ns()) +
+                                " is before the last accepted frame's " + std::to_string(last->timestamp_ns) +
+                                " (timestamps must not go back)");
+  return Status::Ok();
+}
+
 std::string RandomHex(int bytes) {
   static thread_local std::mt19937_64 rng{std::random_device{}()};
   static const char* kHex = "0123456789abcdef";
@@ -115,6 +145,9 @@ struct Server::Impl {
     std::string id;
     std::string peer;  // ZeroMQ routing id of the client's DEALER
     std::string client_name;
+    int camera_width = 0, camera_height = 0;                      // the calibration's
+    v1::InputPolicy input_policy = v1::INPUT_POLICY_UNSPECIFIED;  // in force (for a resumed SessionOpened)
+    std::optional<AcceptedFrame> last_accepted;
     std::unique_ptr<SessionPipeline> pipeline;
     int64_t chunk_credits = 0;
     // Chunks waiting for credits, in order. Persisted ones beyond the first
@@ -415,13 +448,12 @@ struct Server::Impl {
       case v1::Envelope::kFrame:
         return HandleFrame(peer, env.frame(), payload);
       case v1::Envelope::kChunkCredits: {
-        // Credits for a session that has just ended (granted for its last chunks) are harmless: no error.
+        // NOT_FOUND like Frame and Close; credits for a session that has just ended (granted for its
+        // last chunks) are common, and clients that have its summary ignore the error.
         auto it = sessions.find(env.chunk_credits().session_id());
-        if (it == sessions.end() || it->second->peer != peer) {
-          metrics.Add("prism_stale_credits_total");
-          return;
-        }
-        Session* s = it->second.get();
+        if (it == sessions.end() || it->second->peer != peer) metrics.Add("prism_stale_credits_total");
+        Session* s = FindSession(peer, env.chunk_credits().session_id());
+        if (!s) return;
         s->last_activity = Clock::now();
         s->chunk_credits = std::min<int64_t>(s->chunk_credits + env.chunk_credits().chunks(), 1 << 20);
         FlushChunks(s);
@@ -559,6 +591,10 @@ struct Server::Impl {
     FillSessionOpened(s, o);
     o->set_resumed(true);
     o->set_read_only(s->replay);
+    if (!s->replay) {
+      o->set_input_policy(s->input_policy);
+      o->set_max_frame_rate_hz(options.max_frame_rate_hz);
+    }
     o->set_next_frame_sequence(s->next_frame_sequence);
     o->set_initial_frame_credits(
         s->replay || s->closing
@@ -631,6 +667,10 @@ struct Server::Impl {
     session->id = "s" + std::to_string(++session_counter) + "-" + RandomHex(6);
     session->peer = peer;
     session->client_name = open.client_name();
+    session->camera_width = rig->camera.width;
+    session->camera_height = rig->camera.height;
+    session->input_policy =
+        po.input_policy == OverflowPolicy::kReject ? v1::INPUT_POLICY_UPLOAD : v1::INPUT_POLICY_LIVE;
     session->chunk_credits =
         open.initial_chunk_credits() > 0 ? open.initial_chunk_credits() : options.default_chunk_credits;
     session->last_activity = Clock::now();
@@ -665,7 +705,7 @@ struct Server::Impl {
     env.set_protocol_version(v1::PROTOCOL_VERSION_1);
     v1::SessionOpened* o = env.mutable_session_opened();
     FillSessionOpened(session.get(), o);
-    o->set_input_policy(po.input_policy == OverflowPolicy::kReject ? v1::INPUT_POLICY_UPLOAD : v1::INPUT_POLICY_LIVE);
+    o->set_input_policy(session->input_policy);
     o->set_max_frame_rate_hz(options.max_frame_rate_hz);
     sessions[id] = std::move(session);
     metrics.Add("prism_sessions_opened_total");
@@ -706,6 +746,8 @@ struct Server::Impl {
       }
       s->rate_tokens -= 1.0;
     }
+    if (Status fields = CheckFrameFields(frame, s->camera_width, s->camera_height, s->last_accepted); !fields.ok())
+      return refuse(fields, false);
     if (!payload || payload->size() == 0)
       return refuse(InvalidArgumentError("frame without image payload part"), false);
     if (payload->size() > options.max_frame_bytes)
@@ -723,6 +765,7 @@ struct Server::Impl {
     bool dropped = false;
     const Status pushed = s->pipeline->Push(std::move(ef), &dropped);
     if (!pushed.ok()) return refuse(pushed, pushed.code() == StatusCode::kResourceExhausted);
+    s->last_accepted = AcceptedFrame{seq, frame.timestamp_ns()};
     metrics.Add("prism_frames_received_total");
     metrics.Add("prism_frame_bytes_total", static_cast<double>(payload->size()));
     s->frame_arrivals.emplace_back(seq, Clock::now());

@@ -275,6 +275,77 @@ TEST_F(ServerTest, WrongSizeCorruptImagesAndUnknownSessionsAreErrorsAndTheSessio
   EXPECT_EQ(server->Stop(), 0);
 }
 
+// What the contract (session.proto, Frame) calls invalid is refused with INVALID_ARGUMENT naming the
+// field, and costs only that frame: a stated size other than the camera's, a duplicate or backwards
+// sequence number, a backwards timestamp. A jump forward in sequence numbers is accepted (a live client
+// drops frames). ChunkCredits for an unknown session gets NOT_FOUND, as Frame and Close do.
+TEST_F(ServerTest, FramesTheContractCallsInvalidAreRefusedNamingTheField) {
+  auto server = Start();
+  ASSERT_TRUE(server->ok());
+  RawClient c(server->endpoint());
+  std::optional<std::string> id = c.Open();
+  ASSERT_TRUE(id.has_value());
+  const std::string good = Png(kWidth, kHeight);
+  auto frame = [&](uint64_t seq, int64_t timestamp_ns, uint32_t width, uint32_t height) {
+    v1::Envelope env = RawClient::FrameEnvelope(*id, seq, v1::FRAME_CODEC_PNG);
+    env.mutable_frame()->set_timestamp_ns(timestamp_ns);
+    env.mutable_frame()->set_width(width);
+    env.mutable_frame()->set_height(height);
+    return env;
+  };
+  c.Send(frame(10, 1'000'000, kWidth, kHeight), &good);
+  std::optional<v1::Envelope> pose = c.Await(v1::Envelope::kPoseUpdate, 30000);
+  ASSERT_TRUE(pose.has_value());
+  EXPECT_EQ(pose->pose_update().frame_sequence_number(), 10u);
+  const struct {
+    v1::Envelope envelope;
+    const char* field;
+  } invalid[] = {
+      {frame(11, 2'000'000, 100, kHeight), "Frame.width"},   {frame(12, 2'000'000, kWidth, 100), "Frame.height"},
+      {frame(10, 2'000'000, 0, 0), "Frame.sequence_number"},  // a duplicate
+      {frame(9, 2'000'000, 0, 0), "Frame.sequence_number"},   // backwards
+      {frame(13, 999'999, 0, 0), "Frame.timestamp_ns"},       // backwards
+  };
+  for (const auto& [envelope, field] : invalid) {
+    SCOPED_TRACE(field);
+    c.Send(envelope, &good);
+    std::optional<v1::Envelope> e = c.Await(v1::Envelope::kError);
+    ASSERT_TRUE(e.has_value());
+    EXPECT_EQ(e->error().code(), v1::ERROR_CODE_INVALID_ARGUMENT);
+    EXPECT_NE(e->error().message().find(field), std::string::npos) << e->error().message();
+    EXPECT_TRUE(e->error().has_frame());
+    EXPECT_EQ(e->error().frame_sequence_number(), envelope.frame().sequence_number());
+    EXPECT_FALSE(e->error().session_closed());
+    EXPECT_FALSE(e->error().retryable());
+  }
+  // A refused frame's number is free: 11 goes again, then a jump forward and an equal timestamp.
+  for (const uint64_t seq : {11u, 20u}) {
+    c.Send(frame(seq, 2'000'000, 0, 0), &good);
+    pose = c.Await(v1::Envelope::kPoseUpdate, 30000);
+    ASSERT_TRUE(pose.has_value());
+    EXPECT_EQ(pose->pose_update().frame_sequence_number(), seq);
+  }
+  v1::Envelope credits;
+  credits.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  credits.mutable_chunk_credits()->set_session_id("s999-000000000000");
+  credits.mutable_chunk_credits()->set_chunks(4);
+  c.Send(credits);
+  std::optional<v1::Envelope> e = c.Await(v1::Envelope::kError);
+  ASSERT_TRUE(e.has_value());
+  EXPECT_EQ(e->error().code(), v1::ERROR_CODE_NOT_FOUND);
+  EXPECT_EQ(e->error().session_id(), "s999-000000000000");
+  EXPECT_TRUE(e->error().session_closed());
+  v1::Envelope close;
+  close.set_protocol_version(v1::PROTOCOL_VERSION_1);
+  close.mutable_close()->set_session_id(*id);
+  c.Send(close);
+  std::optional<v1::Envelope> summary = c.Await(v1::Envelope::kSessionSummary, 30000);
+  ASSERT_TRUE(summary.has_value());
+  EXPECT_EQ(summary->session_summary().frames_received(), 3u);
+  EXPECT_EQ(summary->session_summary().frames_rejected(), 5u);
+  EXPECT_EQ(server->Stop(), 0);
+}
+
 TEST_F(ServerTest, AdmissionLimitRefusesWithResourceExhaustedUntilASessionCloses) {
   auto server = Start({"--max-sessions", "1"});
   ASSERT_TRUE(server->ok());
@@ -394,6 +465,10 @@ TEST_F(ServerTest, ResumeReattachesAndReplaysPersistedSessionsAfterAKill) {
   EXPECT_TRUE(r->session_opened().resumed());
   EXPECT_FALSE(r->session_opened().read_only());
   EXPECT_EQ(r->session_opened().session_id(), *id);
+  // The policy and the rate limit in force, as the first SessionOpened said.
+  EXPECT_EQ(r->session_opened().input_policy(), opened.session_opened().input_policy());
+  EXPECT_EQ(r->session_opened().max_frame_rate_hz(), opened.session_opened().max_frame_rate_hz());
+  EXPECT_GT(r->session_opened().max_frame_rate_hz(), 0);
   // The old connection no longer owns the session.
   const std::string png = Png(kWidth, kHeight);
   first.Send(RawClient::FrameEnvelope(*id, 0, v1::FRAME_CODEC_PNG), &png);

@@ -516,6 +516,9 @@ struct Session::Impl {
           open_error = s;
           return;
         }
+        // The session is gone once its summary is here: a NOT_FOUND for it answers a message sent before
+        // the summary arrived (the credit for its last chunks), and changes nothing.
+        if (summary_received && w.code() == v1::ERROR_CODE_NOT_FOUND && w.session_id() == session_id) return;
         if (w.has_frame()) {
           for (auto it = unanswered.begin(); it != unanswered.end(); ++it)
             if (it->envelope.frame().sequence_number() == w.frame_sequence_number()) {
