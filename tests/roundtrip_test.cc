@@ -294,9 +294,13 @@ TEST_F(RoundTripTest, ALiveSessionBehindItsInputSkipsDepthUpdatesAndAnUploadSess
     // The latest pose of each tracked frame (a refined one replaces the first), by timestamp.
     std::map<int64_t, Rigid3d> tracked;
     size_t poses = 0;
+    // The scales of the refined poses after the last frame's pose: those of the session's end.
+    std::vector<double> end_refined_scales;
     session->SetEventCallback([&](const client::Event& e) {
       if (e.kind != client::Event::Kind::kPose) return;
       poses += !e.pose.refined;
+      if (e.pose.refined) end_refined_scales.push_back(e.pose.metres_per_unit);
+      else end_refined_scales.clear();
       if (e.pose.state != client::TrackingState::kTracking) {
         tracked.erase(e.pose.timestamp_ns);
         return;
@@ -327,6 +331,11 @@ TEST_F(RoundTripTest, ALiveSessionBehindItsInputSkipsDepthUpdatesAndAnUploadSess
               << est.size() << " tracked, ATE " << percent << "% of the path\n";
     // A frame the live queue dropped has no pose; every other one has.
     EXPECT_EQ(poses + summary.frames_dropped, static_cast<size_t>(kFrames));
+    // One scale at the end: the refined poses carry the summary's (the rebuilt map's), not an earlier
+    // estimate. The initialisation frames' poses, provisional when sent, are always among them.
+    EXPECT_GT(summary.metres_per_unit, 0);
+    EXPECT_FALSE(end_refined_scales.empty());
+    for (const double scale : end_refined_scales) EXPECT_EQ(scale, summary.metres_per_unit);
     if (live) {
       EXPECT_GT(summary.frames_depth_update_skipped, 0u);
     } else {

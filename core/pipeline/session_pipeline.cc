@@ -224,17 +224,23 @@ void SessionPipeline::SlamLoop() {
                                                        r->world_from_camera};
       }
       sink_(std::move(e));
-      UpdateStartCheck();
+      if (UpdateStartCheck()) {
+        for (PipelineEvent& refined : RefinedPoses(/*untracked_too=*/true)) {
+          refined.metres_per_unit = metres_per_unit_;
+          sink_(std::move(refined));
+        }
+      }
       for (SlamKeyframe& kf : slam_->TakeFinishedKeyframes()) QueueKeyframe(std::move(kf));
     } catch (const std::exception& ex) {
       Fail(InternalError(std::string("SLAM failed: ") + ex.what()));
     }
   }
   std::vector<Sim3d> final_keyframe_poses;
+  std::vector<PipelineEvent> refined;  // sent with the session's final scale, by the strand's last job
   if (!aborted_ && !failed_) {
     try {
       for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
-      UpdateStartCheck();
+      const bool second_start_at_finish = UpdateStartCheck();
       if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
       if (options_.slam.scale_drift_correction) {
         StatusOr<ScaleDriftCorrection> drift = slam_->CorrectScaleDrift();
@@ -264,7 +270,7 @@ void SessionPipeline::SlamLoop() {
           PRISM_LOG(INFO) << "pipeline: no metric scale from the co-moving lights: " << metric.status();
         }
       }
-      EmitRefinedPoses();
+      refined = RefinedPoses(/*untracked_too=*/second_start_at_finish);
       if (options_.remap_at_end) final_keyframe_poses = slam_->KeyframePoses();
     } catch (const std::exception& ex) {
       Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));
@@ -272,8 +278,16 @@ void SessionPipeline::SlamLoop() {
   }
   // Last job of the strand: after every keyframe queued above. Clouds still waiting for the session
   // scale (it had not settled: DenseStageOptions::scale_keyframes) enter the map now; then the map is
-  // rebuilt at the final keyframe poses when they moved (remap_at_end).
-  strand_->Post([this, final_keyframe_poses = std::move(final_keyframe_poses)] {
+  // rebuilt at the final keyframe poses when they moved (remap_at_end). The refined poses go out once
+  // the session's final scale is known (the summary's and the rebuilt map's), before the rebuilt map.
+  strand_->Post([this, final_keyframe_poses = std::move(final_keyframe_poses), refined = std::move(refined)]() mutable {
+    auto send_refined = [&] {
+      for (PipelineEvent& e : refined) {
+        e.metres_per_unit = metres_per_unit_;
+        sink_(std::move(e));
+      }
+      refined.clear();
+    };
     if (!aborted_ && !failed_) {
       try {
         StatusOr<MapChunk> rest = InternalError("not run");
@@ -284,9 +298,9 @@ void SessionPipeline::SlamLoop() {
           map_points = dense_->map().output_size();
         }
         if (rest.ok() && !rest->empty()) EmitChunk(*rest, 0, Rigid3d(), map_points);
+        StatusOr<MapChunk> rebuilt = InternalError("not run");
         if (options_.remap_at_end && !final_keyframe_poses.empty() && dense_->kept_clouds() > 0) {
           const auto t0 = std::chrono::steady_clock::now();
-          StatusOr<MapChunk> rebuilt = InternalError("not run");
           {
             std::lock_guard<std::mutex> lock(map_mutex_);
             rebuilt = dense_->Remap(final_keyframe_poses, 1e-6, final_metres_per_unit_);
@@ -294,20 +308,21 @@ void SessionPipeline::SlamLoop() {
           }
           if (!rebuilt.ok()) {
             PRISM_LOG(WARNING) << "pipeline: map not rebuilt at the final keyframe poses: " << rebuilt.status();
-          } else if (!rebuilt->empty()) {
-            if (rebuilt->replaces_map) {
-              PRISM_LOG(INFO) << "pipeline: map rebuilt at the final keyframe poses, " << map_points << " voxels from "
-                              << dense_->kept_clouds() << " keyframe clouds in " << MsSince(t0) << " ms";
-              // The rebuilt map is at the SLAM's metric scale when there was one: the summary says so.
-              if (final_metres_per_unit_ > 0) metres_per_unit_ = final_metres_per_unit_.load();
-            }
-            EmitChunk(*rebuilt, 0, Rigid3d(), map_points);
+          } else if (rebuilt->replaces_map) {
+            PRISM_LOG(INFO) << "pipeline: map rebuilt at the final keyframe poses, " << map_points << " voxels from "
+                            << dense_->kept_clouds() << " keyframe clouds in " << MsSince(t0) << " ms";
+            // The rebuilt map is at the SLAM's metric scale when there was one: the summary says so.
+            if (final_metres_per_unit_ > 0) metres_per_unit_ = final_metres_per_unit_.load();
           }
         }
+        send_refined();
+        if (rebuilt.ok() && !rebuilt->empty()) EmitChunk(*rebuilt, 0, Rigid3d(), map_points);
       } catch (const std::exception& ex) {
         Fail(InternalError(std::string("dense stage failed at the end: ") + ex.what()));
       }
     }
+    // The SLAM's refined poses do not depend on the map: they go out even when its end failed.
+    if (!aborted_) send_refined();
     PipelineEvent e;
     e.kind = PipelineEvent::Kind::kFinished;
     e.stats = stats();
@@ -315,9 +330,9 @@ void SessionPipeline::SlamLoop() {
   });
 }
 
-void SessionPipeline::EmitRefinedPoses(bool untracked_too) {
+std::vector<PipelineEvent> SessionPipeline::RefinedPoses(bool untracked_too) {
   const std::vector<SlamFrameResult> final_poses = slam_->Trajectory();
-  size_t refined = 0;
+  std::vector<PipelineEvent> refined;
   for (size_t i = 0; i < final_poses.size() && i < reported_.size(); ++i) {
     const SlamFrameResult& f = final_poses[i];
     const ReportedPose& sent = reported_[i];
@@ -333,20 +348,19 @@ void SessionPipeline::EmitRefinedPoses(bool untracked_too) {
     e.frame_sequence_number = sent.sequence_number;
     e.timestamp_ns = sent.timestamp_ns;
     e.slam = f;
-    e.metres_per_unit = metres_per_unit_;
     e.refined = true;
-    sink_(std::move(e));
+    refined.push_back(std::move(e));
     reported_[i].state = f.state;
     reported_[i].world_from_camera = f.world_from_camera;
-    ++refined;
   }
-  PRISM_LOG(INFO) << "pipeline: " << refined << " of " << reported_.size() << " poses refined";
+  PRISM_LOG(INFO) << "pipeline: " << refined.size() << " of " << reported_.size() << " poses refined";
+  return refined;
 }
 
-void SessionPipeline::UpdateStartCheck() {
-  if (start_check_done_) return;
+bool SessionPipeline::UpdateStartCheck() {
+  if (start_check_done_) return false;
   const StartCheckReport r = slam_->start_check();
-  if (!r.done) return;
+  if (!r.done) return false;
   start_check_done_ = true;
   const int state = !r.checked ? 0 : r.passed ? 1 : r.second_kept ? 2 : 3;
   {
@@ -355,11 +369,10 @@ void SessionPipeline::UpdateStartCheck() {
     stats_.start_pair_spread = r.first_spread;
   }
   // The second start replaced the first: every pose sent so far was of the first.
-  if (state == 2) {
-    PRISM_LOG(WARNING) << "pipeline: the SLAM's first start disagreed with the shading (pair spread " << r.first_spread
-                       << "); the second start replaced it, every pose is sent again";
-    EmitRefinedPoses(/*untracked_too=*/true);
-  }
+  if (state != 2) return false;
+  PRISM_LOG(WARNING) << "pipeline: the SLAM's first start disagreed with the shading (pair spread " << r.first_spread
+                     << "); the second start replaced it, every pose is sent again";
+  return true;
 }
 
 void SessionPipeline::QueueKeyframe(SlamKeyframe keyframe) {

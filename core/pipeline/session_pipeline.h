@@ -64,8 +64,8 @@ struct SessionPipelineOptions {
   // With remap_at_end: the map is rebuilt at the SLAM's metric scale from the co-moving lights
   // (SlamSystem::EstimateMetricScale, after the final adjustment; median error 1.9% on 27 preset runs
   // against 11.2% for the dense stage's own estimate, see the README), which the session's summary then
-  // carries as metres_per_unit (poses sent before, the refined ones included, carry the dense stage's).
-  // When it fails, or the map is not rebuilt, the dense stage's scale stays.
+  // carries as metres_per_unit, as do the refined poses of the end (poses sent before carry the dense
+  // stage's). When it fails, or the map is not rebuilt, the dense stage's scale stays.
   bool metric_scale_at_end = true;
 
   Status Check() const;
@@ -204,12 +204,12 @@ class SessionPipeline {
     Rigid3d world_from_camera;
   };
   std::vector<ReportedPose> reported_;
-  // Sends every pose that moved since it was sent (refined); with untracked_too also those sent as
-  // tracked that are no longer (with their new state).
-  void EmitRefinedPoses(bool untracked_too = false);
-  // After each frame: the SLAM's start check into the stats, once it is done; the poses sent again when
-  // the second start replaced the first.
-  void UpdateStartCheck();
+  // The refined pose events (metres_per_unit not set) of every pose that moved since it was sent; with
+  // untracked_too also those sent as tracked that are no longer (with their new state). Marks them sent.
+  std::vector<PipelineEvent> RefinedPoses(bool untracked_too);
+  // After each frame and at the end: the SLAM's start check into the stats, once it is done. true when
+  // the second start has just replaced the first (every pose so far is to be sent again).
+  bool UpdateStartCheck();
   bool start_check_done_ = false;
   std::unique_ptr<DenseStage> dense_;  // strand jobs only (one at a time)
   BoundedQueue<EncodedFrame> frames_;
