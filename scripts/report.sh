@@ -1,11 +1,30 @@
 #!/usr/bin/env bash
 # Prints the tables docs/ shows, each with the command, machine and date that made it. Usage:
-#   scripts/report.sh metrics   the metrics prism-server exports (docs/operations.md)
-#   scripts/report.sh abuse     prism-bench-abuse: a session beside each misbehaving peer (~10 min)
-# BUILD_DIR (default build) holds the binaries.
+#   scripts/report.sh metrics [--write]   the metrics prism-server exports (docs/operations.md)
+#   scripts/report.sh abuse [--write]     prism-bench-abuse: a session beside each misbehaving peer (~12 min)
+# --write also replaces the table in its document: the lines between "<!-- report.sh NAME -->" and
+# "<!-- end report.sh NAME -->". BUILD_DIR (default build) holds the binaries.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${BUILD_DIR:-build}/bin
+if [ "${2:-}" = "--write" ]; then
+  doc=""
+  case "$1" in
+    metrics | abuse) doc=docs/operations.md ;;
+  esac
+  table=$(mktemp)
+  bash "$0" "$1" "${@:3}" | tee "$table"
+  python3 - "$doc" "$1" "$table" <<'PY'
+import sys
+doc, name, table = sys.argv[1], sys.argv[2], open(sys.argv[3]).read().rstrip("\n")
+text = open(doc).read()
+begin, end = f"<!-- report.sh {name} -->", f"<!-- end report.sh {name} -->"
+a, b = text.index(begin) + len(begin), text.index(end)
+open(doc, "w").write(text[:a] + "\n" + table + "\n" + text[b:])
+PY
+  rm -f "$table"
+  exit 0
+fi
 machine() { echo "$(nproc) cores, $(awk -F': ' '/model name/{print $2; exit}' /proc/cpuinfo), $(date -u +%Y-%m-%d)"; }
 
 case "${1:-}" in
