@@ -1,44 +1,63 @@
-// prism-client: streams a sequence to prism-server and writes what comes back.
+// prism-client: streams a sequence or a live source to prism-server and writes what comes back.
 //   prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [--realtime] [--codec png|jpeg|raw]
+//   prism-client stream --server tcp://HOST:PORT --source SRC --camera camera.yaml --out DIR [--record DIR]
 //   prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR
+//   prism-client view DIR [--view HOST:PORT]
+// Any stream or fetch serves the live 3D view with --view HOST:PORT.
 #include <prism/client/client.h>
+#include <signal.h>
+#include <unistd.h>
 
+#include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
-#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <thread>
 #include <vector>
 
-#include "core/io/ply_io.h"
 #include "core/io/sequence.h"
+#include "tools/capture/live_stream.h"
+#include "tools/capture/video_source.h"
+#include "tools/client/client_output.h"
+#include "tools/client/folder_view.h"
 #include "tools/client_rig.h"
+#include "tools/view/view_server.h"
 
 namespace {
 
-constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [options]
-       prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR [options]
+namespace pc = prism::client;
+namespace fs = std::filesystem;
 
-Streams the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth output) to
-prism-server and writes to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera,
-metres once the server has estimated the scale; tracked frames only, as prism-slam), tracking.txt (how
-each frame aligned against its keyframe, as prism-slam writes it), map.ply (the running map: positions, normals,
+constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [options]
+       prism-client stream --server tcp://HOST:PORT --source SRC --camera FILE --out DIR [options]
+       prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR [options]
+       prism-client view DIR [--view HOST:PORT]
+
+stream --sequence sends the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth
+output); stream --source captures them live from SRC, anything OpenCV's VideoCapture opens: a V4L2
+device (/dev/video0, or its index 0), a video file, a GStreamer pipeline ending in appsink, an RTSP URL.
+Both write to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera, metres once
+the server has estimated the scale; tracked frames only, as prism-slam), tracking.txt (how each frame
+aligned against its keyframe, as prism-slam writes it), map.ply (the running map: positions, normals,
 colours; at the end the server rebuilds it at the final keyframe poses and sends it as one chunk that
-replaces the map, "map_replaced" in the summary), chunks/<sequence>.drc (the Draco map chunks as received; Debian's draco_decoder reads
-them) and summary.json (also printed). Progress goes to stderr. DIR/session.json (written as soon as
-the session is open) holds the session id and resume token: if the connection drops the client resumes
-by itself (every missed chunk is resent); `fetch` gets the persisted results of an ended or interrupted
-session later, into the same files. Exit 0 = finished, 3 = the session was interrupted on the server
-(its persisted results are written), 1 = failure.
+replaces the map, "map_replaced" in the summary), chunks/<sequence>.drc (the Draco map chunks as
+received; Debian's draco_decoder reads them), chunks.json (each chunk's points and whether it replaced
+the map) and summary.json (also printed). Progress goes to stderr. DIR/session.json (written as soon
+as the session is open) holds the session id and resume token: if the connection drops the client
+resumes by itself (every missed chunk is resent); `fetch` gets the persisted results of an ended or
+interrupted session later, into the same files. `view DIR` shows such a folder in the browser.
+Exit 0 = finished, 3 = the session was interrupted on the server (its persisted results are written),
+1 = failure. Ctrl-C (SIGINT) or SIGTERM during a stream stops sending and closes the session normally.
 
 options:
-  --realtime            send at the sequence's frame rate as a live camera: the server drops the oldest
-                        queued frame when behind, and frames without credit are skipped here (counted)
-  --codec C             png (lossless, default), jpeg (4:4:4) or raw
+  --realtime            send at the sequence's (or video file's) frame rate as a live camera: frames
+                        the server has no room for are skipped here (counted in frames_skipped)
+  --codec C             png (lossless; default for --sequence), jpeg (4:4:4; default for --source) or raw
   --jpeg-quality Q      1..100 (default 95)
   --max-frames N        stop after N frames
   A frame of the sequence that cannot be read or decoded is not sent (a warning names it; counted in
@@ -50,177 +69,204 @@ options:
   --server-key KEY      the server's CURVE public key (Z85); enables CURVE
   --client-keys FILE    this client's CURVE key pair (a file from `prism-server keygen`)
   --help                this text
+
+live capture (--source):
+  --camera FILE         the rig calibration (camera.yaml) of the camera at the size it captures (required)
+  --exposure V          set and lock the exposure (driver units; V4L2: 100 us)
+  --lock-exposure       lock the exposure where it is now
+  --white-balance K     set and lock the white balance, kelvin
+  --lock-white-balance  lock the white balance where it is now
+                        (photometric stereo reads the lights from the colours: docs/rig.md says why
+                        exposure and white balance must not change during a run; where the driver
+                        refuses, a warning says so)
+  --record DIR          also write the captured frames as a sequence folder (rgb.txt, rgb/, camera.yaml)
+                        that `stream --sequence DIR` replays
+  A video file is read as fast as the server takes its frames (nothing lost; time stamps are the file's
+  own, frame index / frame rate) unless --realtime; a live source is time-stamped at capture (steady
+  clock) and a frame captured while the server has no room for it is dropped (the newest frame wins).
+
+live 3D view:
+  --view HOST:PORT      serve the view at http://HOST:PORT/ (port 0 = a free one; the URL is printed):
+                        the map growing chunk by chunk, the camera's path and frustum, the session's
+                        state, frames/s and points. Bind 127.0.0.1 unless others should see it.
+  --view-linger S       after the session ends, keep serving the view S seconds (or until Ctrl-C)
 )";
+
+std::atomic<bool> g_stop{false};
+std::atomic<prism::LiveStream*> g_live{nullptr};
+
+void OnSignal(int) {
+  g_stop = true;
+  if (prism::LiveStream* live = g_live.load()) live->Stop();
+}
 
 int Fail(const std::string& m) {
   std::cerr << "prism-client: " << m << "\n";
   return 1;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  namespace pc = prism::client;
-  if (argc >= 2 && (std::string(argv[1]) == "--help" || std::string(argv[1]) == "-h")) {
-    std::cout << kUsage;
-    return 0;
-  }
-  const std::string command = argc >= 2 ? argv[1] : "";
-  if (command != "stream" && command != "fetch") return Fail("expected the 'stream' or 'fetch' command (see --help)");
-  std::string server, sequence_dir, out_dir, fetch_id, fetch_token, client_keys;
-  bool realtime = false;
+struct Args {
+  std::string command, server, sequence_dir, source, camera, record_dir, out_dir, fetch_id, fetch_token, client_keys;
+  std::string view_address, view_dir;
+  bool realtime = false, codec_given = false;
+  prism::VideoSourceOptions capture;
   pc::SessionOptions options;
-  options.timeout_ms = 20000;
-  int max_frames = 1 << 30, close_timeout_ms = 300000;
+  int max_frames = 1 << 30, close_timeout_ms = 300000, view_linger_s = 0;
+};
+
+// Parses argv into args; "" or the error.
+std::string Parse(int argc, char** argv, Args* args) {
+  args->command = argc >= 2 ? argv[1] : "";
+  if (args->command != "stream" && args->command != "fetch" && args->command != "view")
+    return "expected the 'stream', 'fetch' or 'view' command (see --help)";
+  args->options.timeout_ms = 20000;
   for (int i = 2; i < argc; ++i) {
     const std::string a = argv[i];
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
+    if (a == "--realtime") args->realtime = true;
+    else if (a == "--lock-exposure") args->capture.lock_exposure = true;
+    else if (a == "--lock-white-balance") args->capture.lock_white_balance = true;
+    else if (args->command == "view" && a.rfind("--", 0) != 0 && args->view_dir.empty()) args->view_dir = a;
+    else if (i + 1 >= argc) return "unknown argument or missing value: '" + a + "' (see --help)";
+    else {
+      const std::string v = argv[++i];
+      char* end = nullptr;
+      const long n = std::strtol(v.c_str(), &end, 10);
+      const bool is_int = !v.empty() && *end == '\0';
+      const double x = std::strtod(v.c_str(), &end);
+      const bool is_number = !v.empty() && *end == '\0' && std::isfinite(x);
+      pc::SessionOptions& o = args->options;
+      if (a == "--server") args->server = v;
+      else if (a == "--sequence") args->sequence_dir = v;
+      else if (a == "--source") args->source = v;
+      else if (a == "--camera") args->camera = v;
+      else if (a == "--record") args->record_dir = v;
+      else if (a == "--out") args->out_dir = v;
+      else if (a == "--view") args->view_address = v;
+      else if (a == "--view-linger" && is_int && n >= 0) args->view_linger_s = static_cast<int>(n);
+      else if (a == "--exposure" && is_number) args->capture.exposure = x;
+      else if (a == "--white-balance" && is_number) args->capture.white_balance_k = x;
+      else if (a == "--codec" && v == "png") o.codec = pc::Codec::kPng, args->codec_given = true;
+      else if (a == "--codec" && (v == "jpeg" || v == "jpg")) o.codec = pc::Codec::kJpeg, args->codec_given = true;
+      else if (a == "--codec" && v == "raw") o.codec = pc::Codec::kRaw, args->codec_given = true;
+      else if (a == "--jpeg-quality" && is_int && n >= 1 && n <= 100) o.jpeg_quality = static_cast<int>(n);
+      else if (a == "--max-frames" && is_int && n >= 1) args->max_frames = static_cast<int>(n);
+      else if (a == "--timeout-ms" && is_int && n >= 1) o.timeout_ms = static_cast<int>(n);
+      else if (a == "--close-timeout-ms" && is_int && n >= 1) args->close_timeout_ms = static_cast<int>(n);
+      else if (a == "--reconnect-timeout-ms" && is_int && n >= 0) o.reconnect_timeout_ms = static_cast<int>(n);
+      else if (a == "--session") args->fetch_id = v;
+      else if (a == "--token") args->fetch_token = v;
+      else if (a == "--server-key") o.server_public_key = v;
+      else if (a == "--client-keys") args->client_keys = v;
+      else return "unknown argument or bad value: '" + a + " " + v + "' (see --help)";
     }
-    if (a == "--realtime") {
-      realtime = true;
-      continue;
-    }
-    if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
-    const std::string v = argv[++i];
-    char* end = nullptr;
-    const long n = std::strtol(v.c_str(), &end, 10);
-    const bool is_int = !v.empty() && *end == '\0';
-    if (a == "--server") server = v;
-    else if (a == "--sequence") sequence_dir = v;
-    else if (a == "--out") out_dir = v;
-    else if (a == "--codec" && v == "png") options.codec = pc::Codec::kPng;
-    else if (a == "--codec" && (v == "jpeg" || v == "jpg")) options.codec = pc::Codec::kJpeg;
-    else if (a == "--codec" && v == "raw") options.codec = pc::Codec::kRaw;
-    else if (a == "--jpeg-quality" && is_int && n >= 1 && n <= 100) options.jpeg_quality = static_cast<int>(n);
-    else if (a == "--max-frames" && is_int && n >= 1) max_frames = static_cast<int>(n);
-    else if (a == "--timeout-ms" && is_int && n >= 1) options.timeout_ms = static_cast<int>(n);
-    else if (a == "--close-timeout-ms" && is_int && n >= 1) close_timeout_ms = static_cast<int>(n);
-    else if (a == "--reconnect-timeout-ms" && is_int && n >= 0) options.reconnect_timeout_ms = static_cast<int>(n);
-    else if (a == "--session") fetch_id = v;
-    else if (a == "--token") fetch_token = v;
-    else if (a == "--server-key") options.server_public_key = v;
-    else if (a == "--client-keys") client_keys = v;
-    else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
   }
-  if (!client_keys.empty()) {
-    // "public = KEY" and "secret = KEY" lines (prism-server keygen's format).
-    std::ifstream in(client_keys);
-    if (!in) return Fail("cannot read --client-keys '" + client_keys + "'");
-    std::string line;
-    while (std::getline(in, line)) {
-      const size_t eq = line.find('=');
-      if (eq == std::string::npos || line[0] == '#') continue;
-      std::string key = line.substr(0, eq), value = line.substr(eq + 1);
-      auto trim = [](std::string& x) {
-        x.erase(0, x.find_first_not_of(" \t"));
-        x.erase(x.find_last_not_of(" \t\r") + 1);
-      };
-      trim(key);
-      trim(value);
-      if (key == "public") options.client_public_key = value;
-      else if (key == "secret") options.client_secret_key = value;
-    }
-    if (options.client_public_key.empty() || options.client_secret_key.empty())
-      return Fail("--client-keys '" + client_keys + "' needs 'public = ...' and 'secret = ...' lines");
+  if (args->command == "view") return args->view_dir.empty() ? "view needs a folder (see --help)" : "";
+  if (args->command == "fetch") {
+    if (args->server.empty() || args->fetch_id.empty() || args->fetch_token.empty() || args->out_dir.empty())
+      return "fetch needs --server, --session, --token and --out (see --help)";
+    return "";
   }
-  if (command == "fetch") {
-    if (server.empty() || fetch_id.empty() || fetch_token.empty() || out_dir.empty())
-      return Fail("fetch needs --server, --session, --token and --out (see --help)");
-  } else if (server.empty() || sequence_dir.empty() || out_dir.empty()) {
-    return Fail("--server, --sequence and --out are required (see --help)");
-  }
-  options.live = realtime;
-  options.client_name = "prism-client";
-  std::error_code ec;
-  std::filesystem::create_directories(out_dir + "/chunks", ec);
-  if (ec) return Fail("cannot create '" + out_dir + "/chunks': " + ec.message());
-  std::unique_ptr<pc::Session> session;
-  if (command == "fetch") {
-    pc::Status st = pc::Session::Resume(server, fetch_id, fetch_token, options, &session);
-    if (!st.ok()) return Fail("cannot fetch session " + fetch_id + " from " + server + ": " + st.ToString());
-  }
+  if (args->server.empty() || args->out_dir.empty()) return "--server and --out are required (see --help)";
+  if (args->sequence_dir.empty() == args->source.empty())
+    return "stream needs either --sequence DIR or --source SRC (see --help)";
+  if (!args->source.empty() && args->camera.empty())
+    return "--source needs --camera FILE, the rig calibration (camera.yaml) of the camera at its capture size";
+  if (args->source.empty() && (!args->camera.empty() || !args->record_dir.empty()))
+    return "--camera and --record go with --source (a --sequence brings its own camera.yaml)";
+  return "";
+}
 
-  prism::Sequence empty_sequence;
-  prism::StatusOr<prism::Sequence> seq =
-      command == "fetch" ? prism::StatusOr<prism::Sequence>(empty_sequence) : prism::LoadSequence(sequence_dir);
-  if (!seq.ok()) return Fail(seq.status().ToString());
-  if (command == "stream" && !seq->has_calibration)
-    return Fail("sequence '" + sequence_dir + "' has no camera.yaml (the rig calibration)");
-
-  const pc::Rig rig = prism::ToClientRig(seq->calibration);
-
-  pc::Status st;
-  if (!session) {
-    st = pc::Session::Open(server, rig, options, &session);
-    if (!st.ok()) return Fail("cannot open a session on " + server + ": " + st.ToString());
-  }
-  std::cerr << "prism-client: session " << session->session_id() << " on " << server << "\n";
-  {
-    nlohmann::ordered_json j;
-    j["session"] = session->session_id();
-    j["token"] = session->resume_token();
-    j["server"] = server;
-    std::ofstream(out_dir + "/session.json") << j.dump() << "\n";
-  }
-
-  std::map<uint64_t, pc::Pose> poses;  // by frame sequence number: the latest (refined) pose wins
-  size_t refined_poses = 0;
-  size_t chunks = 0, chunk_bytes = 0, frame_errors = 0, skipped = 0, unreadable = 0;
-  bool remapped = false;  // a chunk replaced the map (rebuilt at the final keyframe poses)
-  std::string fatal;
-  auto drain = [&](int timeout_ms) {
-    pc::Event e;
-    while (session->Poll(&e, timeout_ms)) {
-      timeout_ms = 0;
-      if (e.kind == pc::Event::Kind::kPose) {
-        refined_poses += e.pose.refined ? 1 : 0;
-        poses[e.pose.frame_sequence_number] = e.pose;
-      } else if (e.kind == pc::Event::Kind::kChunk) {
-        char name[64];
-        std::snprintf(name, sizeof(name), "/chunks/%06llu.drc",
-                      static_cast<unsigned long long>(e.chunk.sequence_number));
-        std::ofstream(out_dir + name, std::ios::binary)
-            .write(reinterpret_cast<const char*>(e.chunk.draco.data()),
-                   static_cast<std::streamsize>(e.chunk.draco.size()));
-        ++chunks;
-        chunk_bytes += e.chunk.draco.size();
-        remapped = remapped || e.chunk.replaces_map;
-        std::cerr << "prism-client: chunk " << e.chunk.sequence_number;
-        if (e.chunk.replaces_map) std::cerr << " (the map rebuilt at the final keyframe poses)";
-        else std::cerr << " (keyframe " << e.chunk.keyframe_id << ")";
-        std::cerr << ": " << e.chunk.points.size() << " points, " << e.chunk.draco.size() << " bytes\n";
-      } else if (e.kind == pc::Event::Kind::kError) {
-        ++frame_errors;
-        std::cerr << "prism-client: server error: " << e.error.ToString() << "\n";
-        if (e.error.code == pc::Code::kNotFound || e.error.code == pc::Code::kInternal ||
-            e.error.code == pc::Code::kUnavailable)
-          fatal = e.error.ToString();
-      }
-    }
+// "public = KEY" and "secret = KEY" lines (prism-server keygen's format).
+std::string ReadClientKeys(const std::string& path, pc::SessionOptions* options) {
+  std::ifstream in(path);
+  if (!in) return "cannot read --client-keys '" + path + "'";
+  std::string line;
+  auto trim = [](std::string& x) {
+    x.erase(0, x.find_first_not_of(" \t"));
+    x.erase(x.find_last_not_of(" \t\r") + 1);
   };
+  while (std::getline(in, line)) {
+    const size_t eq = line.find('=');
+    if (eq == std::string::npos || line[0] == '#') continue;
+    std::string key = line.substr(0, eq), value = line.substr(eq + 1);
+    trim(key);
+    trim(value);
+    if (key == "public") options->client_public_key = value;
+    else if (key == "secret") options->client_secret_key = value;
+  }
+  if (options->client_public_key.empty() || options->client_secret_key.empty())
+    return "--client-keys '" + path + "' needs 'public = ...' and 'secret = ...' lines";
+  return "";
+}
 
+// Progress on one refreshing stderr line (a terminal), or a line every few seconds (a log file).
+class ProgressLine {
+ public:
+  ProgressLine() : tty_(isatty(2) == 1) {}
+  void Show(const prism::LiveStats& s) {
+    char line[256];
+    std::snprintf(line, sizeof(line),
+                  "prism-client: %5.1f frames/s, %llu sent, %llu dropped, %s, %zu map points, %llu chunks, %.0f s",
+                  s.frames_per_s, static_cast<unsigned long long>(s.sent), static_cast<unsigned long long>(s.dropped()),
+                  prism::TrackingStateName(s.tracking), s.map_points, static_cast<unsigned long long>(s.chunks),
+                  s.seconds);
+    if (tty_) {
+      std::fprintf(stderr, "\r%-110s", line);
+      open_ = true;
+    } else if (s.seconds >= next_log_s_) {
+      std::fprintf(stderr, "%s\n", line);
+      next_log_s_ = s.seconds + kLogIntervalS;
+    }
+  }
+  void End() {
+    if (open_) std::fprintf(stderr, "\n");
+    open_ = false;
+  }
+
+ private:
+  static constexpr double kLogIntervalS = 5.0;
+  bool tty_, open_ = false;
+  double next_log_s_ = 0;
+};
+
+struct StreamCounts {
+  size_t frames = 0, sent = 0, skipped = 0, unreadable = 0;
+};
+
+// Sends the frames of a sequence folder (as fast as credits allow, or at its frame rate).
+std::string StreamSequence(const Args& args, const prism::Sequence& seq, pc::Session* session,
+                           prism::ClientOutput* output, prism::ViewServer* view, StreamCounts* counts) {
   const auto start = std::chrono::steady_clock::now();
-  const size_t n = std::min(seq->frames.size(), static_cast<size_t>(max_frames));
-  const double t0 = n ? seq->frames[0].timestamp_s : 0.0;
-  for (size_t i = 0; i < n && fatal.empty() && !session->read_only(); ++i) {
-    prism::StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
+  const size_t n = std::min(seq.frames.size(), static_cast<size_t>(args.max_frames));
+  counts->frames = n;
+  const double t0 = n ? seq.frames[0].timestamp_s : 0.0;
+  auto drain = [&] {
+    pc::Event e;
+    while (session->Poll(&e, 0)) output->OnEvent(e);
+  };
+  prism::ViewStatus status;
+  status.session = session->session_id();
+  status.source = args.sequence_dir;
+  status.state = "streaming";
+  size_t chunks_seen = 0;
+  for (size_t i = 0; i < n && output->fatal().empty() && !session->read_only() && !g_stop; ++i) {
+    prism::StatusOr<cv::Mat> rgb = seq.ReadRgb(i);
     if (!rgb.ok()) {  // the session goes on without it (counted; summary.json's frames_unreadable)
-      ++unreadable;
+      ++counts->unreadable;
       std::cerr << "prism-client: frame " << i << ": " << rgb.status().ToString() << "; not sent\n";
       continue;
     }
-    if (realtime) {
-      std::this_thread::sleep_until(start + std::chrono::duration<double>(seq->frames[i].timestamp_s - t0));
-      drain(0);
+    if (args.realtime) {
+      std::this_thread::sleep_until(start + std::chrono::duration<double>(seq.frames[i].timestamp_s - t0));
+      drain();
       if (session->frame_credits() <= 0) {  // a live camera does not wait
-        ++skipped;
+        ++counts->skipped;
         continue;
       }
     }
-    const int64_t ts = static_cast<int64_t>(seq->frames[i].timestamp_s * 1e9 + 0.5);
-    st = session->PushFrame(ts, rgb->ptr<uint8_t>(), rgb->cols, rgb->rows, static_cast<int>(rgb->step));
+    const int64_t ts = static_cast<int64_t>(seq.frames[i].timestamp_s * 1e9 + 0.5);
+    const pc::Status st =
+        session->PushFrame(ts, rgb->ptr<uint8_t>(), rgb->cols, rgb->rows, static_cast<int>(rgb->step));
     if (!st.ok() && (session->read_only() || st.code == pc::Code::kFailedPrecondition)) {
       // The session ended on the server (interrupted, failed or reaped): collect what arrived and what
       // it persisted, then report.
@@ -228,94 +274,277 @@ int main(int argc, char** argv) {
                 << ", reconnects " << session->reconnects() << ")\n";
       break;
     }
-    if (!st.ok()) return Fail("frame " + std::to_string(i) + ": " + st.ToString());
-    drain(0);
+    if (!st.ok()) return "frame " + std::to_string(i) + ": " + st.ToString();
+    ++counts->sent;
+    drain();
     if ((i + 1) % 10 == 0 || i + 1 == n)
-      std::cerr << "prism-client: sent " << (i + 1) << "/" << n << " frames, " << poses.size() << " poses, " << chunks
-                << " chunks\n";
+      std::cerr << "prism-client: sent " << (i + 1) << "/" << n << " frames, " << output->poses() << " poses, "
+                << output->chunks() << " chunks\n";
+    if (view) {
+      const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      if (output->chunks() != chunks_seen) {
+        chunks_seen = output->chunks();
+        status.map_points = session->Map().size();
+      }
+      status.tracking = prism::TrackingStateName(output->tracking());
+      status.frames_sent = counts->sent;
+      status.frames_dropped = counts->skipped;
+      status.poses = output->poses();
+      status.frames_per_s = seconds > 0 ? static_cast<double>(counts->sent) / seconds : 0.0;
+      status.seconds = seconds;
+      view->SetStatus(status);
+    }
   }
-  if (!fatal.empty()) return Fail("the session failed: " + fatal);
-  if (session->read_only() && command == "stream")
+  return "";
+}
+
+// The live source (--source) and its recording (--record), opened before the session so that a bad
+// source or folder fails at once.
+struct Capture {
+  std::unique_ptr<prism::VideoSource> source;
+  std::unique_ptr<prism::SequenceRecorder> recorder;
+};
+
+std::string OpenCapture(const Args& args, const pc::Rig& rig, Capture* capture) {
+  prism::VideoSourceOptions options = args.capture;
+  options.source = args.source;
+  options.width = rig.camera.width;
+  options.height = rig.camera.height;
+  prism::StatusOr<std::unique_ptr<prism::VideoSource>> source = prism::VideoSource::Open(options);
+  if (!source.ok()) return source.status().ToString();
+  capture->source = std::move(*source);
+  std::cerr << "prism-client: capturing from '" << args.source << "' (" << capture->source->backend() << ", "
+            << (capture->source->is_file() ? "video file" : "live") << ", " << capture->source->frames_per_s()
+            << " frames/s)\n";
+  for (const std::string& note : capture->source->notes()) std::cerr << "prism-client: " << note << "\n";
+  int width = 0, height = 0;
+  if (prism::Status s = capture->source->PeekSize(&width, &height); !s.ok())
+    return "source '" + args.source + "' gave no frame: " + s.ToString();
+  if (width != rig.camera.width || height != rig.camera.height)
+    return "source '" + args.source + "' gives " + std::to_string(width) + "x" + std::to_string(height) +
+           " frames, but --camera '" + args.camera + "' is calibrated for " + std::to_string(rig.camera.width) + "x" +
+           std::to_string(rig.camera.height) +
+           " (calibrate the camera at the size it captures, or make it capture the calibrated size)";
+  if (!args.record_dir.empty()) {
+    prism::StatusOr<std::unique_ptr<prism::SequenceRecorder>> r =
+        prism::SequenceRecorder::Create(args.record_dir, args.camera);
+    if (!r.ok()) return r.status().ToString();
+    capture->recorder = std::move(*r);
+  }
+  return "";
+}
+
+// Streams the capture (tools/capture/live_stream.h); the capture's fields go into j.
+std::string StreamSource(const Args& args, const pc::Rig& rig, Capture* capture, pc::Session* session,
+                         prism::ClientOutput* output, prism::ViewServer* view, nlohmann::ordered_json* j) {
+  prism::SequenceRecorder* recorder = capture->recorder.get();
+  prism::LiveStreamOptions live;
+  live.realtime = args.realtime;
+  live.max_frames = args.max_frames;
+  live.width = rig.camera.width;
+  live.height = rig.camera.height;
+  prism::LiveStream stream(session, capture->source.get(), recorder, live);
+  g_live = &stream;
+  if (g_stop) stream.Stop();
+  ProgressLine progress;
+  prism::ViewStatus status;
+  status.session = session->session_id();
+  status.source = args.source;
+  status.state = "streaming";
+  const prism::Status st = stream.Run([&](const pc::Event& e) { output->OnEvent(e); },
+                                      [&](const prism::LiveStats& s) {
+                                        progress.Show(s);
+                                        if (!view) return;
+                                        status.frames_per_s = s.frames_per_s;
+                                        status.frames_sent = s.sent;
+                                        status.frames_dropped = s.dropped();
+                                        status.poses = s.poses;
+                                        status.tracking = prism::TrackingStateName(s.tracking);
+                                        status.map_points = s.map_points;
+                                        status.seconds = s.seconds;
+                                        view->SetStatus(status);
+                                      });
+  g_live = nullptr;
+  progress.End();
+  const prism::LiveStats& s = stream.stats();
+  std::cerr << "prism-client: capture ended (" << s.end << ")\n";
+  std::string error = st.ok() ? "" : st.ToString();
+  if (recorder) {
+    const prism::Status r = recorder->Finish();
+    std::cerr << "prism-client: recorded " << recorder->written() << " frames into " << args.record_dir
+              << (recorder->dropped() ? " (" + std::to_string(recorder->dropped()) + " not recorded: disk too slow)"
+                                      : std::string())
+              << "\n";
+    if (!r.ok() && error.empty()) error = r.ToString();
+  }
+  (*j)["source"] = args.source;
+  (*j)["frames_captured"] = s.captured;
+  (*j)["frames_sent"] = s.sent;
+  (*j)["frames_skipped"] = s.dropped();
+  (*j)["frames_skipped_no_credit"] = s.skipped_no_credit;
+  (*j)["frames_skipped_stale"] = s.skipped_stale;
+  (*j)["frames_per_s"] = s.frames_per_s;
+  (*j)["capture_end"] = s.end;
+  (*j)["exposure_locked"] = capture->source->exposure_locked();
+  (*j)["white_balance_locked"] = capture->source->white_balance_locked();
+  if (recorder) {
+    (*j)["recorded"] = recorder->written();
+    (*j)["record_dropped"] = recorder->dropped();
+  }
+  return error;
+}
+
+// After the session: keep the view up for a while (or until Ctrl-C) so a person can look at it.
+void Linger(prism::ViewServer* view, int seconds) {
+  if (!view || seconds <= 0) return;
+  std::cerr << "prism-client: the view stays at " << view->url() << " for " << seconds << " s (Ctrl-C ends it)\n";
+  const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(seconds);
+  while (!g_stop && std::chrono::steady_clock::now() < until)
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+}
+
+int Run(Args& args) {
+  if (!args.client_keys.empty())
+    if (std::string e = ReadClientKeys(args.client_keys, &args.options); !e.empty()) return Fail(e);
+  const bool live = !args.source.empty();
+  if (live && !args.codec_given) args.options.codec = pc::Codec::kJpeg;  // JPEG 4:4:4 for live capture
+  args.options.client_name = "prism-client";
+
+  // The rig: the sequence's camera.yaml, or --camera for a live source.
+  pc::Rig rig;
+  prism::Sequence seq;
+  if (args.command == "stream" && !live) {
+    prism::StatusOr<prism::Sequence> s = prism::LoadSequence(args.sequence_dir);
+    if (!s.ok()) return Fail(s.status().ToString());
+    if (!s->has_calibration)
+      return Fail("sequence '" + args.sequence_dir + "' has no camera.yaml (the rig calibration)");
+    seq = std::move(*s);
+    rig = prism::ToClientRig(seq.calibration);
+  }
+  Capture capture;
+  if (live) {
+    if (pc::Status s = pc::LoadRig(args.camera, &rig); !s.ok()) return Fail("--camera: " + s.ToString());
+    if (std::string e = OpenCapture(args, rig, &capture); !e.empty()) return Fail(e);
+  }
+  // The live policy (the server drops the oldest queued frame, and skips depth updates sooner when
+  // behind) for a camera and for --realtime. A video file read as fast as the server takes it waits
+  // for credits and loses nothing, as an upload: it gets the upload policy, so that it streams as its
+  // frames stored in a folder would.
+  args.options.live = args.realtime || (live && !capture.source->is_file());
+  std::error_code ec;
+  fs::create_directories(args.out_dir + "/chunks", ec);
+  if (ec) return Fail("cannot create '" + args.out_dir + "/chunks': " + ec.message());
+
+  std::unique_ptr<prism::ViewServer> view;
+  if (!args.view_address.empty()) {
+    prism::StatusOr<std::string> web = prism::ViewServer::FindWebDir();
+    if (!web.ok()) return Fail(web.status().ToString());
+    prism::StatusOr<std::unique_ptr<prism::ViewServer>> v = prism::ViewServer::Start(args.view_address, *web);
+    if (!v.ok()) return Fail(v.status().ToString());
+    view = std::move(*v);
+    view->SetCamera(rig.camera);
+    std::cerr << "prism-client: live view at " << view->url() << "\n";
+  }
+
+  std::unique_ptr<pc::Session> session;
+  pc::Status st = args.command == "fetch"
+                      ? pc::Session::Resume(args.server, args.fetch_id, args.fetch_token, args.options, &session)
+                      : pc::Session::Open(args.server, rig, args.options, &session);
+  if (!st.ok())
+    return Fail((args.command == "fetch" ? "cannot fetch session " + args.fetch_id + " from "
+                                         : std::string("cannot open a session on ")) +
+                args.server + ": " + st.ToString());
+  std::cerr << "prism-client: session " << session->session_id() << " on " << args.server << "\n";
+  {
+    nlohmann::ordered_json j;
+    j["session"] = session->session_id();
+    j["token"] = session->resume_token();
+    j["server"] = args.server;
+    std::ofstream(args.out_dir + "/session.json") << j.dump() << "\n";
+  }
+  signal(SIGINT, OnSignal);
+  signal(SIGTERM, OnSignal);
+
+  prism::ClientOutput output(args.out_dir, view.get());
+  nlohmann::ordered_json capture_fields;
+  StreamCounts counts;
+  const auto start = std::chrono::steady_clock::now();
+  std::string error;
+  if (args.command == "stream")
+    error = live ? StreamSource(args, rig, &capture, session.get(), &output, view.get(), &capture_fields)
+                 : StreamSequence(args, seq, session.get(), &output, view.get(), &counts);
+  if (!error.empty() && session->bytes_sent() == 0) return Fail(error);  // nothing sent: nothing to collect
+  if (!error.empty()) std::cerr << "prism-client: " << error << "; closing the session\n";
+  if (!output.fatal().empty()) return Fail("the session failed: " + output.fatal());
+  if (session->read_only() && args.command == "stream")
     std::cerr << "prism-client: the server lost the running session (restart); fetching what it persisted\n";
-  pc::Summary summary;
+  if (view) {
+    prism::ViewStatus status;
+    status.session = session->session_id();
+    status.state = "closing";
+    status.poses = output.poses();
+    view->SetStatus(status);
+  }
   std::cerr << "prism-client: stream done; waiting for the last keyframes\n";
   // Close, handling events as they come (chunks keep arriving while the server finishes).
-  st = session->Close(close_timeout_ms, &summary);
-  drain(0);
+  pc::Summary summary;
+  st = session->Close(args.close_timeout_ms, &summary);
+  pc::Event e;
+  while (session->Poll(&e, 0)) output.OnEvent(e);
   if (!st.ok()) return Fail("close: " + st.ToString());
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 
-  // Trajectory, scaled to metres by the final session scale when known.
-  const double s = summary.metres_per_unit > 0 ? summary.metres_per_unit : 1.0;
-  {
-    std::ofstream traj(out_dir + "/trajectory.txt");
-    traj << "# timestamp tx ty tz qx qy qz qw (world_from_camera, metres per unit " << s << ")\n";
-    char line[256];
-    for (const auto& [sequence, p] : poses) {
-      if (p.state != pc::TrackingState::kTracking) continue;  // provisional (initialising) or lost
-      std::snprintf(line, sizeof(line), "%.6f %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", p.timestamp_ns * 1e-9,
-                    p.translation[0] * s, p.translation[1] * s, p.translation[2] * s, p.rotation_xyzw[0],
-                    p.rotation_xyzw[1], p.rotation_xyzw[2], p.rotation_xyzw[3]);
-      traj << line;
-    }
+  prism::StatusOr<nlohmann::ordered_json> j = output.Write(*session, summary);
+  if (!j.ok()) return Fail(j.status().ToString());
+  if (live) {
+    for (auto& [k, v] : capture_fields.items()) (*j)[k] = v;
+  } else if (args.command == "stream") {
+    (*j)["frames_sent"] = counts.sent;
+    (*j)["frames_skipped"] = counts.skipped;
+    (*j)["frames_unreadable"] = counts.unreadable;
+    (*j)["frames_per_s"] = seconds > 0 ? static_cast<double>(counts.sent) / seconds : 0.0;
   }
-  {
-    // As prism-slam's tracking.txt: each frame aligned against a keyframe, as the server tracked it.
-    std::ofstream tracking(out_dir + "/tracking.txt");
-    tracking << "# timestamp keyframe_id residual_rms visible_fraction inlier_fraction iterations retried step "
-                "rotation_deg guess_correction\n";
-    char line[256];
-    for (const auto& [sequence, p] : poses) {
-      if (!p.has_tracking) continue;
-      const pc::TrackingQuality& q = p.tracking;
-      std::snprintf(line, sizeof(line), "%.6f %lld %g %g %g %u %d %g %g %g\n", p.timestamp_ns * 1e-9,
-                    static_cast<long long>(p.keyframe_id), q.residual_rms, q.visible_fraction, q.inlier_fraction,
-                    q.iterations, q.retried ? 1 : 0, q.step, q.rotation_deg, q.guess_correction);
-      tracking << line;
-    }
-  }
-  const std::vector<pc::Point> map = session->Map();
-  prism::PointCloud cloud;
-  for (const pc::Point& p : map) {
-    cloud.positions.emplace_back(p.position[0], p.position[1], p.position[2]);
-    cloud.normals.emplace_back(p.normal[0], p.normal[1], p.normal[2]);
-    cloud.colors.emplace_back(p.color[0], p.color[1], p.color[2]);
-  }
-  if (prism::Status w = prism::WritePointCloudPly(out_dir + "/map.ply", cloud); !w.ok()) return Fail(w.ToString());
-  const size_t sent = n - skipped - unreadable;
-  nlohmann::ordered_json j;
-  j["session"] = session->session_id();
-  j["frames_sent"] = sent;
-  j["frames_skipped"] = skipped;
-  j["frames_unreadable"] = unreadable;
-  j["poses"] = poses.size();
-  j["refined_poses"] = refined_poses;
-  j["chunks"] = chunks;
-  j["chunk_bytes"] = chunk_bytes;
-  j["map_points"] = map.size();
-  j["map_replaced"] = remapped;
-  j["errors"] = frame_errors;
-  j["uplink_bytes"] = session->bytes_sent();
-  j["uplink_bytes_per_frame"] = sent > 0 ? static_cast<double>(session->bytes_sent()) / static_cast<double>(sent) : 0.0;
-  j["seconds"] = seconds;
-  j["frames_per_s"] = seconds > 0 ? static_cast<double>(sent) / seconds : 0.0;
-  j["server_keyframes"] = summary.keyframes;
-  j["server_keyframes_failed"] = summary.keyframes_failed;
-  j["server_map_points"] = summary.map_points;
-  j["server_frames_depth_update_skipped"] = summary.frames_depth_update_skipped;
-  j["metres_per_unit"] = summary.metres_per_unit;
-  j["shading_check"] = summary.shading_check == pc::Summary::ShadingCheck::kConsistent  ? "consistent"
-                       : summary.shading_check == pc::Summary::ShadingCheck::kDistorted ? "distorted"
-                                                                                        : "not_run";
-  j["shading_pair_spread"] = summary.shading_pair_spread;
-  j["start_check"] = pc::StartCheckName(summary.start_check);
-  j["start_pair_spread"] = summary.start_pair_spread;
-  j["reconnects"] = session->reconnects();
-  j["reason"] = summary.reason;
-  const std::string json = j.dump(-1, ' ', false, nlohmann::ordered_json::error_handler_t::replace) + "\n";
-  std::cout << json;
-  std::ofstream(out_dir + "/summary.json") << json;
+  const double sent = (*j).value("frames_sent", 0.0);
+  (*j)["uplink_bytes_per_frame"] = sent > 0 ? static_cast<double>(session->bytes_sent()) / sent : 0.0;
+  (*j)["seconds"] = seconds;
+  if (prism::Status w = output.WriteSummary(*j); !w.ok()) return Fail(w.ToString());
   if (session->reconnects() > 0)
     std::cerr << "prism-client: resumed after " << session->reconnects() << " lost connection(s)\n";
+  if (view) {
+    view->SetMetresPerUnit(summary.metres_per_unit);
+    prism::ViewStatus status;
+    status.session = session->session_id();
+    status.source = live ? args.source : args.sequence_dir;
+    status.state = error.empty() ? "finished" : "failed: " + error;
+    status.frames_sent = static_cast<uint64_t>(sent);
+    status.poses = output.poses();
+    status.map_points = session->Map().size();
+    status.seconds = seconds;
+    view->SetStatus(status);
+    Linger(view.get(), args.view_linger_s);
+  }
+  if (!error.empty()) return 1;
   return summary.reason.rfind("interrupted", 0) == 0 ? 3 : 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc >= 2 && (std::string(argv[1]) == "--help" || std::string(argv[1]) == "-h")) {
+    std::cout << kUsage;
+    return 0;
+  }
+  for (int i = 2; i < argc; ++i)
+    if (std::string(argv[i]) == "--help" || std::string(argv[i]) == "-h") {
+      std::cout << kUsage;
+      return 0;
+    }
+  Args args;
+  if (std::string e = Parse(argc, argv, &args); !e.empty()) return Fail(e);
+  if (args.command == "view") {
+    signal(SIGINT, OnSignal);
+    signal(SIGTERM, OnSignal);
+    return prism::ServeFolderView(args.view_dir, args.view_address.empty() ? "127.0.0.1:0" : args.view_address, g_stop);
+  }
+  return Run(args);
 }

@@ -1,9 +1,10 @@
 // libprism_client: stream frames to prism-server, get poses and the dense map back.
 //
-//   prism::client::Rig rig = ...;                       // camera + the three lights
+//   prism::client::Rig rig;                             // camera + the three lights
+//   prism::client::Status s = prism::client::LoadRig("camera.yaml", &rig);
 //   std::unique_ptr<prism::client::Session> session;
-//   prism::client::Status s = prism::client::Session::Open("tcp://127.0.0.1:5555", rig, {}, &session);
-//   s = session->PushFrame(timestamp_ns, rgb, width, height, width * 3);   // encoded inside (PNG default)
+//   s = prism::client::Session::Open("tcp://127.0.0.1:5555", rig, {}, &session);
+//   s = session->PushFrame(timestamp_ns, rgb, width, height, width * 3);   // RGB (not OpenCV's BGR), encoded inside
 //   prism::client::Event event;
 //   while (session->Poll(&event, 0)) { ... event.pose / event.chunk ... }
 //   prism::client::Summary summary;
@@ -202,7 +203,10 @@ class Session {
   Session(const Session&) = delete;
   Session& operator=(const Session&) = delete;
 
-  // Encodes and sends one RGB frame (8-bit, R first; rows `stride_bytes` apart). Waits up to
+  // Encodes and sends one RGB frame (8-bit, R first; rows `stride_bytes` apart). OpenCV captures and
+  // decodes BGR (cv::VideoCapture, cv::imread): convert first (cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB)),
+  // else red and blue swap, and with them the red and blue lights the photometric stereo tells apart.
+  // The frame must be the calibration's size (Rig::camera), else the server refuses it. Waits up to
   // timeout_ms for a frame credit, handling incoming messages meanwhile. kResourceExhausted (retryable)
   // when no credit came in time.
   Status PushFrame(int64_t timestamp_ns, const uint8_t* rgb, int width, int height, int stride_bytes);
@@ -239,6 +243,11 @@ class Session {
   explicit Session(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
+
+// Reads a rig calibration file (camera.yaml, OpenCV FileStorage YAML: width height fx fy cx cy,
+// distortion, three lights, crosstalk; the format prism-synth writes, README "Calibration") into `rig`.
+// kNotFound when the file cannot be opened, kInvalidArgument (naming the field) when it is malformed.
+Status LoadRig(const std::string& path, Rig* rig);
 
 // Reads a Draco map chunk (a .drc from the server) into points.
 Status DecodeChunk(const uint8_t* data, size_t size, std::vector<Point>* points);
