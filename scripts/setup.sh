@@ -18,6 +18,7 @@ PACKAGES=(
   clang-format  # the format_check test
   libcgal-demo
   python3 python3-numpy python3-dev pybind11-dev python3-yaml
+  python3-zmq python3-protobuf  # tests/protocol_contract_test.py: a client from the .proto alone
   python3-open3d docker-compose
 )
 
