@@ -16,12 +16,12 @@
 
 #include <opencv2/core.hpp>
 
-#include "core/io/calibration_io.h"
 #include "core/io/colmap_io.h"
 #include "core/io/image_io.h"
 #include "core/io/sequence.h"
 #include "prism/client/client.h"
-#include "tools/client_rig.h"
+#include "tools/capture/live_stream.h"
+#include "tools/capture/video_source.h"
 
 namespace py = pybind11;
 namespace pc = prism::client;
@@ -106,6 +106,46 @@ py::dict PoseToDict(const pc::Pose& pose) {
     d["tracking"] = py::none();
   }
   return d;
+}
+
+py::dict LiveStatsToDict(const prism::LiveStats& s) {
+  py::dict d;
+  d["captured"] = s.captured;
+  d["sent"] = s.sent;
+  d["dropped"] = s.dropped();
+  d["skipped_no_credit"] = s.skipped_no_credit;
+  d["skipped_stale"] = s.skipped_stale;
+  d["frames_per_s"] = s.frames_per_s;
+  d["poses"] = s.poses;
+  d["chunks"] = s.chunks;
+  d["tracking"] = StateName(s.tracking);
+  d["map_points"] = s.map_points;
+  d["seconds"] = s.seconds;
+  d["end"] = s.end;
+  return d;
+}
+
+// A core Status as the SDK's (the Python error's code and message).
+pc::Status ToClientStatus(const prism::Status& s) {
+  pc::Code code = pc::Code::kInternal;
+  switch (s.code()) {
+    case prism::StatusCode::kInvalidArgument:
+    case prism::StatusCode::kOutOfRange:
+      code = pc::Code::kInvalidArgument;
+      break;
+    case prism::StatusCode::kNotFound:
+      code = pc::Code::kNotFound;
+      break;
+    case prism::StatusCode::kFailedPrecondition:
+      code = pc::Code::kFailedPrecondition;
+      break;
+    case prism::StatusCode::kUnavailable:
+      code = pc::Code::kUnavailable;
+      break;
+    default:
+      break;
+  }
+  return {code, s.message(), false};
 }
 
 py::dict SummaryToDict(const pc::Summary& s) {
@@ -223,6 +263,96 @@ class PySession {
     }
     Check(s);
     return sent;
+  }
+
+  // Captures from `source` (anything cv::VideoCapture opens) and streams it as prism-client stream
+  // --source does (tools/capture/live_stream.h); returns the capture's counts. progress(dict) is called
+  // about every progress_interval_ms; Ctrl-C stops the capture and returns normally.
+  py::dict StreamSource(const std::string& source, int64_t max_frames, bool realtime, py::object exposure,
+                        py::object white_balance, bool lock_exposure, bool lock_white_balance,
+                        const std::string& record, const std::string& camera_yaml, py::object progress,
+                        int progress_interval_ms) {
+    prism::VideoSourceOptions capture;
+    capture.source = source;
+    capture.width = width_;
+    capture.height = height_;
+    if (!exposure.is_none()) capture.exposure = exposure.cast<double>();
+    if (!white_balance.is_none()) capture.white_balance_k = white_balance.cast<double>();
+    capture.lock_exposure = lock_exposure;
+    capture.lock_white_balance = lock_white_balance;
+    prism::StatusOr<std::unique_ptr<prism::VideoSource>> src = [&] {
+      py::gil_scoped_release release;
+      return prism::VideoSource::Open(capture);
+    }();
+    if (!src.ok()) Raise(ToClientStatus(src.status()));
+    int w = 0, h = 0;
+    if (prism::Status s = (*src)->PeekSize(&w, &h); !s.ok()) Raise(ToClientStatus(s));
+    if (w != width_ || h != height_)
+      Raise({pc::Code::kInvalidArgument,
+             "source '" + source + "' gives " + std::to_string(w) + "x" + std::to_string(h) +
+                 " frames, but the session's camera is " + std::to_string(width_) + "x" + std::to_string(height_),
+             false});
+    std::unique_ptr<prism::SequenceRecorder> recorder;
+    if (!record.empty()) {
+      if (camera_yaml.empty())
+        Raise({pc::Code::kInvalidArgument, "record needs camera_yaml (the rig's camera.yaml, copied into it)", false});
+      prism::StatusOr<std::unique_ptr<prism::SequenceRecorder>> r =
+          prism::SequenceRecorder::Create(record, camera_yaml);
+      if (!r.ok()) Raise(ToClientStatus(r.status()));
+      recorder = std::move(*r);
+    }
+    prism::LiveStreamOptions options;
+    options.realtime = realtime;
+    options.max_frames = max_frames;
+    options.width = width_;
+    options.height = height_;
+    options.progress_interval_ms = progress_interval_ms;
+    prism::LiveStream stream(Live(), src->get(), recorder.get(), options);
+    bool interrupted = false;
+    std::unique_ptr<py::error_already_set> callback_error;
+    auto on_progress = [&](const prism::LiveStats& stats) {
+      py::gil_scoped_acquire acquire;
+      if (PyErr_CheckSignals() != 0) {  // Ctrl-C: stop capturing, close normally
+        PyErr_Clear();
+        interrupted = true;
+        stream.Stop();
+      }
+      if (progress.is_none() || callback_error) return;
+      try {
+        progress(LiveStatsToDict(stats));
+      } catch (py::error_already_set& e) {
+        callback_error = std::make_unique<py::error_already_set>(std::move(e));
+        stream.Stop();
+      }
+    };
+    prism::Status st;
+    {
+      py::gil_scoped_release release;
+      st = stream.Run(
+          [this](const pc::Event& e) {
+            if (e.kind == pc::Event::Kind::kPose) KeepPose(e.pose);
+            pending_.push_back(e);
+          },
+          on_progress);
+      if (recorder) {
+        const prism::Status r = recorder->Finish();
+        if (st.ok()) st = r;
+      }
+    }
+    if (callback_error) throw *callback_error;
+    if (!st.ok()) Raise(ToClientStatus(st));
+    py::dict d = LiveStatsToDict(stream.stats());
+    d["interrupted"] = interrupted;
+    d["exposure_locked"] = (*src)->exposure_locked();
+    d["white_balance_locked"] = (*src)->white_balance_locked();
+    py::list notes;
+    for (const std::string& n : (*src)->notes()) notes.append(n);
+    d["notes"] = notes;
+    if (recorder) {
+      d["recorded"] = recorder->written();
+      d["record_dropped"] = recorder->dropped();
+    }
+    return d;
   }
 
   // Next event or None (waits up to timeout_ms). Events that arrived during stream_folder or close
@@ -352,9 +482,9 @@ PYBIND11_MODULE(_native, m) {
   m.def(
       "load_rig",
       [](const std::string& path) {
-        prism::StatusOr<prism::RigCalibration> c = prism::ReadCalibrationYaml(path);
-        if (!c.ok()) Raise({pc::Code::kInvalidArgument, c.status().ToString(), false});
-        return prism::ToClientRig(*c);
+        pc::Rig rig;
+        Check(pc::LoadRig(path, &rig));  // the SDK's reader, as C++ clients use it
+        return rig;
       },
       py::arg("path"), "Reads a rig calibration (camera.yaml, OpenCV FileStorage) into a Rig.");
   m.def(
@@ -445,6 +575,10 @@ PYBIND11_MODULE(_native, m) {
            py::arg("client_public_key") = "", py::arg("client_secret_key") = "")
       .def("push_frame", &PySession::PushFrame, py::arg("rgb"), py::arg("timestamp_ns"))
       .def("stream_folder", &PySession::StreamFolder, py::arg("sequence_dir"), py::arg("max_frames") = size_t(-1))
+      .def("stream_source", &PySession::StreamSource, py::arg("source"), py::arg("max_frames") = 0,
+           py::arg("realtime") = false, py::arg("exposure") = py::none(), py::arg("white_balance") = py::none(),
+           py::arg("lock_exposure") = false, py::arg("lock_white_balance") = false, py::arg("record") = "",
+           py::arg("camera_yaml") = "", py::arg("progress") = py::none(), py::arg("progress_interval_ms") = 500)
       .def("poll", &PySession::Poll, py::arg("timeout_ms") = 0)
       .def("close", &PySession::Close, py::arg("timeout_ms") = 300000)
       .def("poses", &PySession::Poses, py::arg("tracked_only") = true, py::arg("keyframes_only") = false)

@@ -4,6 +4,8 @@
     rig = prism_client.load_rig("sequence/camera.yaml")
     with prism_client.Session("tcp://127.0.0.1:5555", rig) as session:
         session.stream_folder("sequence")          # or session.stream((t_ns, rgb) for ...) with numpy frames
+        # or live: Session(..., live=True) and session.stream_source("/dev/video0", lock_exposure=True,
+        #          lock_white_balance=True, record="capture", camera_yaml="camera.yaml")
         summary = session.close()
         poses = session.poses()                    # (N, 8): t tx ty tz qx qy qz qw, world_from_camera
         cloud = session.map()                      # positions/normals (N, 3) float32, colors (N, 3) uint8
@@ -11,6 +13,12 @@
 With CURVE (a server started with --curve-keys/--allowed-clients): Session(..., server_public_key=...,
 client_public_key=..., client_secret_key=...); generate_key_pair() makes a client's keys. A key the
 server does not admit raises PrismError("UNAUTHENTICATED").
+
+stream_source(source, ...) captures from anything OpenCV's VideoCapture opens (a V4L2 device path or
+index, a video file, a GStreamer pipeline, an RTSP URL) as `prism-client stream --source` does: RGB
+frames time-stamped at capture, frames the server has no room for dropped (a video file waits instead),
+exposure and white balance locked where the driver allows (docs/rig.md), optionally recorded as a
+sequence folder; it returns the capture's counts and calls progress(dict) on the way.
 
 Errors raise PrismError (code, message, retryable).
 """
