@@ -89,6 +89,7 @@ live 3D view:
   --view HOST:PORT      serve the view at http://HOST:PORT/ (port 0 = a free one; the URL is printed):
                         the map growing chunk by chunk, the camera's path and frustum, the session's
                         state, frames/s and points. Bind 127.0.0.1 unless others should see it.
+  --view-wait S         before streaming, wait up to S seconds for a browser to open the view
   --view-linger S       after the session ends, keep serving the view S seconds (or until Ctrl-C)
 )";
 
@@ -111,7 +112,7 @@ struct Args {
   bool realtime = false, codec_given = false;
   prism::VideoSourceOptions capture;
   pc::SessionOptions options;
-  int max_frames = 1 << 30, close_timeout_ms = 300000, view_linger_s = 0;
+  int max_frames = 1 << 30, close_timeout_ms = 300000, view_linger_s = 0, view_wait_s = 0;
 };
 
 // Parses argv into args; "" or the error.
@@ -143,6 +144,7 @@ std::string Parse(int argc, char** argv, Args* args) {
       else if (a == "--out") args->out_dir = v;
       else if (a == "--view") args->view_address = v;
       else if (a == "--view-linger" && is_int && n >= 0) args->view_linger_s = static_cast<int>(n);
+      else if (a == "--view-wait" && is_int && n >= 0) args->view_wait_s = static_cast<int>(n);
       else if (a == "--exposure" && is_number) args->capture.exposure = x;
       else if (a == "--white-balance" && is_number) args->capture.white_balance_k = x;
       else if (a == "--codec" && v == "png") o.codec = pc::Codec::kPng, args->codec_given = true;
@@ -404,6 +406,8 @@ void Linger(prism::ViewServer* view, int seconds) {
 }
 
 int Run(Args& args) {
+  signal(SIGINT, OnSignal);
+  signal(SIGTERM, OnSignal);
   if (!args.client_keys.empty())
     if (std::string e = ReadClientKeys(args.client_keys, &args.options); !e.empty()) return Fail(e);
   const bool live = !args.source.empty();
@@ -444,6 +448,11 @@ int Run(Args& args) {
     view = std::move(*v);
     view->SetCamera(rig.camera);
     std::cerr << "prism-client: live view at " << view->url() << "\n";
+    if (args.view_wait_s > 0) {
+      std::cerr << "prism-client: waiting up to " << args.view_wait_s << " s for a browser to open it\n";
+      if (!view->WaitForPage(args.view_wait_s * 1000, g_stop))
+        std::cerr << "prism-client: no browser came; streaming anyway\n";
+    }
   }
 
   std::unique_ptr<pc::Session> session;
@@ -462,9 +471,6 @@ int Run(Args& args) {
     j["server"] = args.server;
     std::ofstream(args.out_dir + "/session.json") << j.dump() << "\n";
   }
-  signal(SIGINT, OnSignal);
-  signal(SIGTERM, OnSignal);
-
   prism::ClientOutput output(args.out_dir, view.get());
   nlohmann::ordered_json capture_fields;
   StreamCounts counts;
@@ -488,8 +494,12 @@ int Run(Args& args) {
   std::cerr << "prism-client: stream done; waiting for the last keyframes\n";
   // Close, handling events as they come (chunks keep arriving while the server finishes).
   pc::Summary summary;
-  st = session->Close(args.close_timeout_ms, &summary);
+  // Events handled as they arrive inside Close (the last keyframes' chunks reach the view one by one).
   pc::Event e;
+  while (session->Poll(&e, 0)) output.OnEvent(e);
+  session->SetEventCallback([&output](const pc::Event& event) { output.OnEvent(event); });
+  st = session->Close(args.close_timeout_ms, &summary);
+  session->SetEventCallback(nullptr);
   while (session->Poll(&e, 0)) output.OnEvent(e);
   if (!st.ok()) return Fail("close: " + st.ToString());
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -517,6 +527,8 @@ int Run(Args& args) {
     status.source = live ? args.source : args.sequence_dir;
     status.state = error.empty() ? "finished" : "failed: " + error;
     status.frames_sent = static_cast<uint64_t>(sent);
+    status.frames_per_s = (*j).value("frames_per_s", 0.0);
+    status.tracking = prism::TrackingStateName(output.tracking());
     status.poses = output.poses();
     status.map_points = session->Map().size();
     status.seconds = seconds;

@@ -15,8 +15,26 @@ const view = (window.prismView = {
   chunksShown: 0,
   posesShown: 0,
   status: null,       // the last /api/state
+  statesSeen: [],     // every session state the page has shown ("streaming", "closing", "finished", ...)
+  mismatches: [],     // chunks whose decoded points differ from the points prism-client says they hold
   done: false,        // the session has ended and every chunk it lists is shown
   errors: [],
+  // Pixels of the drawn scene that differ from the background (read back from the WebGL canvas).
+  drawnPixels() {
+    const c = renderer.domElement;
+    const copy = document.createElement('canvas');
+    copy.width = c.width;
+    copy.height = c.height;
+    const g = copy.getContext('2d');
+    g.drawImage(c, 0, 0);
+    const d = g.getImageData(0, 0, c.width, c.height).data;
+    const background = [d[d.length - 4], d[d.length - 3], d[d.length - 2]]; // a corner
+    let drawn = 0;
+    for (let i = 0; i < d.length; i += 4) {
+      if (Math.abs(d[i] - background[0]) + Math.abs(d[i + 1] - background[1]) + Math.abs(d[i + 2] - background[2]) > 24) ++drawn;
+    }
+    return { drawn, total: c.width * c.height };
+  },
 });
 
 const $ = (id) => document.getElementById(id);
@@ -109,6 +127,8 @@ async function loadChunk(draco, chunk) {
     const response = await fetch(`api/chunks/${chunk.sequence}.drc`);
     if (!response.ok) return; // replaced meanwhile
     const decoded = decodeChunk(draco, await response.arrayBuffer());
+    if (decoded.count !== chunk.points) view.mismatches.push({ sequence: chunk.sequence, expected: chunk.points, decoded: decoded.count });
+    if (chunk.replaces_map) fitted = false; // the rebuilt map: fit the view to it once
     view.pointsDecoded += decoded.count;
     view.chunksDecoded += 1;
     const geometry = new THREE.BufferGeometry();
@@ -190,7 +210,7 @@ function showStatus(s) {
   $('session').textContent = s.session || '-';
   $('source').textContent = s.source || '-';
   $('state').textContent = s.state;
-  $('tracking').textContent = s.tracking;
+  $('tracking').textContent = s.mode === 'folder' ? '-' : s.tracking;
   $('fps').textContent = s.mode === 'folder' ? '-' : s.frames_per_s.toFixed(1);
   $('frames').textContent = `${s.frames_sent} / ${s.frames_dropped}`;
   $('poses').textContent = String(s.poses);
@@ -202,6 +222,7 @@ async function poll(draco) {
   try {
     const s = await (await fetch('api/state')).json();
     view.status = s;
+    if (!view.statesSeen.includes(s.state)) view.statesSeen.push(s.state);
     metresPerUnit = s.metres_per_unit > 0 ? s.metres_per_unit : 1;
     cameraModel = s.camera;
     await syncChunks(draco, s.chunks);

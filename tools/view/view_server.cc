@@ -6,12 +6,14 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <sstream>
+#include <thread>
 
 #include "tools/capture/live_stream.h"
 
@@ -67,6 +69,7 @@ struct StoredChunk {
 struct ViewServer::Impl {
   MHD_Daemon* daemon = nullptr;
   std::map<std::string, std::string> files;  // URL path -> content; read once at Start, then const
+  std::atomic<uint64_t> state_requests{0};
 
   std::mutex mutex;
   ViewStatus status;                                // Guarded by mutex.
@@ -146,7 +149,10 @@ struct ViewServer::Impl {
 
   MHD_Result Handle(MHD_Connection* c, const std::string& url, const std::string& method) {
     if (method != "GET" && method != "HEAD") return Text(c, MHD_HTTP_METHOD_NOT_ALLOWED, "text/plain", "GET only\n");
-    if (url == "/api/state") return Text(c, MHD_HTTP_OK, "application/json", StateJson());
+    if (url == "/api/state") {
+      ++state_requests;
+      return Text(c, MHD_HTTP_OK, "application/json", StateJson());
+    }
     if (url == "/api/poses") {
       const char* since = MHD_lookup_connection_value(c, MHD_GET_ARGUMENT_KIND, "since");
       return Text(c, MHD_HTTP_OK, "application/json", PosesJson(since ? std::strtoull(since, nullptr, 10) : 0));
@@ -263,6 +269,13 @@ StatusOr<std::unique_ptr<ViewServer>> ViewServer::Start(const std::string& addre
   const std::string shown_host = bind_host == "0.0.0.0" ? "127.0.0.1" : bind_host;
   server->url_ = "http://" + shown_host + ":" + std::to_string(info ? info->port : port) + "/";
   return server;
+}
+
+bool ViewServer::WaitForPage(int timeout_ms, const std::atomic<bool>& stop) const {
+  const auto until = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
+  while (impl_->state_requests == 0 && !stop && std::chrono::steady_clock::now() < until)
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  return impl_->state_requests > 0;
 }
 
 ViewServer::~ViewServer() {

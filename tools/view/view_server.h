@@ -12,6 +12,7 @@
 #include <prism/client/client.h>
 
 #include <array>
+#include <atomic>
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -49,6 +50,9 @@ class ViewServer {
 
   // "http://HOST:PORT/".
   const std::string& url() const { return url_; }
+  // Waits until a page has asked for the state (a browser has the view open), at most timeout_ms, or
+  // until `stop` is set; true when one has.
+  bool WaitForPage(int timeout_ms, const std::atomic<bool>& stop) const;
 
   // The model, from the streaming thread.
   void SetCamera(const client::Camera& camera);
