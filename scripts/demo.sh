@@ -8,7 +8,9 @@
 # eval_traj.json / eval_map.json (against ground truth), sequence/ (the rendered input, TUM layout),
 # gt_cloud.ply (the true surface), server.log.
 # Environment: FRAMES (default 300), OUT (default out/demo), REFERENCE=1 also runs the dense stage
-# alone with ground-truth poses (prism-fuse) into $OUT/reference/ for comparison.
+# alone with ground-truth poses (prism-fuse) into $OUT/reference/ for comparison, VIEW=HOST:PORT where
+# prism-client serves the live 3D view while it streams (default 127.0.0.1 on a free port; the URL is
+# printed; VIEW=off for none).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -33,7 +35,14 @@ ENDPOINT=$(sed -n 's/.*"endpoint": "\([^"]*\)".*/\1/p' "$OUT/server.json")
 echo "   listening on $ENDPOINT"
 
 echo "== streaming the sequence with prism-client"
-$BIN/prism-client stream --server "$ENDPOINT" --sequence "$OUT/sequence" --out "$OUT" | tee "$OUT/client_summary.json"
+VIEW=${VIEW:-127.0.0.1:0}
+VIEW_FLAGS=()
+if [ "$VIEW" != off ]; then
+  VIEW_FLAGS=(--view "$VIEW")
+  echo "   watch the map grow in a browser at the 'live view' URL prism-client prints below"
+fi
+$BIN/prism-client stream --server "$ENDPOINT" --sequence "$OUT/sequence" --out "$OUT" "${VIEW_FLAGS[@]}" \
+  | tee "$OUT/client_summary.json"
 kill -TERM $SERVER_PID
 wait $SERVER_PID || true
 trap - EXIT
@@ -51,4 +60,4 @@ if [ "${REFERENCE:-0}" = 1 ]; then
 fi
 echo
 echo "Done. Open $OUT/map.ply in any PLY viewer (MeshLab, CloudCompare, Open3D) or look at $OUT/map.png;"
-echo "$OUT/gt_cloud.ply is the true surface."
+echo "$OUT/gt_cloud.ply is the true surface. In a browser: $BIN/prism-client view $OUT (it prints the URL)."
