@@ -23,20 +23,17 @@
 #include "core/slam/slam_config.h"
 #include "core/slam/slam_system.h"
 #include "core/slam/undistort.h"
-#include "core/util/json_text.h"
 #include "core/util/log_level.h"
 #include "core/util/logging.h"
 #include "core/util/thread_pool.h"
+#include "tools/cli.h"
+#include "tools/json_output.h"
 
 namespace {
 
 using namespace prism;
 
-constexpr char kUsage[] = R"(usage: prism-slam --sequence DIR --out DIR [options]
-       prism-slam --kitti DIR --out DIR [options]
-
-Semi-dense direct monocular SLAM on a sequence folder (rgb.txt + rgb/ + camera.yaml; see README).
-Writes to DIR:
+constexpr char kNotes[] = R"(Writes to DIR:
   trajectory.txt   every frame's world_from_camera (TUM format, SLAM scale; frames before the
                    initialisation and lost frames are left out)
   states.txt       per frame: timestamp, state (initializing|tracking|lost), keyframe id, message
@@ -59,83 +56,42 @@ Writes to DIR:
                    and the net rotation (first to last frame, estimate and truth), and the keyframe
                    depth error (printed too)
 
---camera FILE takes the camera intrinsics and lens distortion from FILE instead of the sequence's
-camera.yaml: an OpenCV calibration YAML, a ROS camera_info YAML, a DSO / LSD-SLAM camera.txt or a
-Prism camera.yaml (core/io/camera_info_io.h).
-
---kitti DIR reads a KITTI odometry folder instead: image_0/*.png (greyscale), calib.txt (P0, with or
-without the 'P0:' label), times.txt and, when present, poses.txt as ground truth.
-
-options:
-  --dense          also run the dense stage (photometric stereo, fusion, ICP map; core/pipeline) on
-                   every keyframe at the end, with its refined depth at its final pose, and write
-                   map.ply (metres, by the scale of trajectory_metres.txt)
-  --dense-online   run it instead on each keyframe as it is finished (as prism-server does), then
-                   rebuild map.ply at the final keyframe poses (DenseStage::Remap)
-  --slam-config FILE  SLAM options from FILE, one 'key = value' per line (core/slam/slam_config.h); the
-                   same keys as prism-server's slam.KEY and the written slam_config.txt
-  --set KEY=VALUE  one SLAM option, e.g. --set tracker.min_gradient=5 (applied in command-line order
-                   with --slam-config and the switches below)
-  --no-loop-closure  no loop-closure edges in the keyframe pose graph (= --set loop_closure=false)
-  --no-keyframe-adjustment  no windowed direct adjustment of the keyframes (= --set keyframe_adjustment=false)
-  --no-repropagation  a new keyframe keeps the depth propagated along the tracked pose
-                   (= --set repropagate_after_adjustment=false)
-  --no-final-adjustment  no adjustment of all keyframes at the end (= --set final_adjustment=false)
-  --no-metric-scale  skip the metres per world unit from the co-moving lights (SlamSystem::
-                   EstimateMetricScale, 2-7 s after the last frame), which trajectory_metres.txt and
-                   map.ply use when it succeeds (else the dense stage's scale, with --dense)
-  --set scale_drift_correction=true  after the refinement rounds, re-measure each keyframe's depth unit
-                   from the co-moving lights (SlamSystem::CorrectScaleDrift; off by default: it helps
-                   grey scenes that drift and hurts multi-coloured ones; summary.json then has
-                   scale_drift_correction)
-  --no-remap       with --dense-online: write map.ply as the keyframe clouds were merged (at their
-                   poses when handed over) instead of rebuilt at the final keyframe poses
-  --remap-icp      with --dense-online: register each keyframe cloud again with ICP as map.ply is
-                   rebuilt at the final poses
-  --position-weight W  the dense stage's fusion position weight (FusionOptions::position_weight)
-  --min-brightness B   the dense stage leaves pixels darker than B (0-255) out of the map
-  --max-frames N   process at most N frames
-  --on-bad-frame skip|stop  a frame that cannot be read or decoded, or has the wrong size: skip it
-                   with a warning (default; summary.json counts and lists the skipped frames) or stop
-                   there (exit status 1 after writing every output for the frames before it)
-  --threads N      threads for the depth filter and the keyframe adjustments (default: all cores)
-  --log-level L    debug, info, warning or error (default: info); debug prints each keyframe
-                   adjustment's points, residuals, RMS and iterations
-  --no-eval        skip the evaluation against ground truth
-)";
+--slam-config, --set and the --no-* switches of SLAM options apply in command-line order.
+--set scale_drift_correction=true re-measures each keyframe's depth unit from the co-moving lights
+after the refinement rounds (SlamSystem::CorrectScaleDrift; off by default: it helps grey scenes that
+drift and hurts multi-coloured ones; summary.json then has scale_drift_correction).)";
 
 // SlamSystem::start_check() as a JSON object (null for a spread that is not a number).
-std::string StartCheckJson(const StartCheckReport& r) {
-  auto number = [](double v) {
-    std::ostringstream o;
-    if (std::isfinite(v)) {
-      o << v;
-    } else {
-      o << "null";
-    }
-    return o.str();
-  };
-  std::ostringstream j;
-  j << "{\"checked\": " << (r.checked ? "true" : "false") << ", \"first_spread\": " << number(r.first_spread)
-    << ", \"passed\": " << (r.passed ? "true" : "false") << ", \"retried\": " << (r.retried ? "true" : "false")
-    << ", \"second_checked\": " << (r.second_checked ? "true" : "false")
-    << ", \"second_spread\": " << number(r.second_spread) << ", \"second_kept\": " << (r.second_kept ? "true" : "false")
-    << ", \"ms\": " << 1000 * r.seconds << ", \"thread_ms\": " << 1000 * r.thread_seconds << "}";
-  return j.str();
+Json StartCheckJson(const StartCheckReport& r) {
+  return Json{{"checked", r.checked},
+              {"first_spread", r.first_spread},
+              {"passed", r.passed},
+              {"retried", r.retried},
+              {"second_checked", r.second_checked},
+              {"second_spread", r.second_spread},
+              {"second_kept", r.second_kept},
+              {"ms", 1000 * r.seconds},
+              {"thread_ms", 1000 * r.thread_seconds}};
 }
 
 // SlamSystem::feature_adjustment() as a JSON object.
-std::string FeatureAdjustmentJson(const FeatureAdjustmentReport& r) {
-  std::ostringstream j;
+Json FeatureAdjustmentJson(const FeatureAdjustmentReport& r) {
   const FeatureAdjustmentSummary& s = r.summary;
-  j << "{\"ran\": " << (r.ran ? "true" : "false") << ", \"applied\": " << (r.applied ? "true" : "false")
-    << ", \"error\": " << JsonQuote(r.error) << ", \"runs\": " << r.runs << ", \"features\": " << s.features
-    << ", \"pairs_tried\": " << r.pairs_tried << ", \"pairs_matched\": " << s.pairs_matched
-    << ", \"tracks\": " << s.tracks << ", \"observations\": " << s.observations
-    << ", \"initial_median_px\": " << s.initial_median_px << ", \"final_median_px\": " << s.final_median_px
-    << ", \"final_rms_px\": " << s.final_rms_px << ", \"keyframes_rescaled\": " << r.keyframes_rescaled
-    << ", \"tracks_ms\": " << 1000 * r.tracks_seconds << ", \"ms\": " << 1000 * r.seconds << "}";
-  return j.str();
+  return Json{{"ran", r.ran},
+              {"applied", r.applied},
+              {"error", r.error},
+              {"runs", r.runs},
+              {"features", s.features},
+              {"pairs_tried", r.pairs_tried},
+              {"pairs_matched", s.pairs_matched},
+              {"tracks", s.tracks},
+              {"observations", s.observations},
+              {"initial_median_px", s.initial_median_px},
+              {"final_median_px", s.final_median_px},
+              {"final_rms_px", s.final_rms_px},
+              {"keyframes_rescaled", r.keyframes_rescaled},
+              {"tracks_ms", 1000 * r.tracks_seconds},
+              {"ms", 1000 * r.seconds}};
 }
 
 int Fail(const std::string& m) {
@@ -192,68 +148,101 @@ StatusOr<Sequence> LoadKitti(const std::string& dir) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string sequence_dir, kitti_dir, out_dir, camera_file;
+  std::string sequence_dir, kitti_dir, out_dir, camera_file, on_bad_frame = "skip", log_level = "info";
   long max_frames = -1;
   int threads = 0;
-  bool eval = true;
-  bool dense = false;
-  bool remap = true;
-  bool metric_scale = true;
-  bool dense_online = false;
-  bool stop_on_bad_frame = false;
+  bool no_eval = false, dense = false, no_remap = false, no_metric_scale = false, dense_online = false;
   SlamOptions options;
   DenseStageOptions dense_options;
-  // Switches without a value: the flag sets its bool to the given value.
+  CLI::App app{"", "prism-slam"};
+  cli::Setup(&app, "semi-dense direct monocular SLAM on a sequence folder or a KITTI odometry folder",
+             {"prism-slam --sequence DIR --out DIR [options]", "prism-slam --kitti DIR --out DIR [options]"}, kNotes);
+  app.add_option("--sequence", sequence_dir, "sequence folder: rgb.txt, rgb/, camera.yaml (see README)")
+      ->type_name("DIR");
+  app.add_option("--kitti", kitti_dir,
+                 "a KITTI odometry folder instead: image_0/*.png (grey), calib.txt (P0,\n"
+                 "with or without 'P0:'), times.txt and, when present, poses.txt (truth)")
+      ->type_name("DIR");
+  app.add_option("--out", out_dir, "output folder (created)")->type_name("DIR");
+  app.add_option("--camera", camera_file,
+                 "intrinsics and lens distortion from FILE instead of camera.yaml's: OpenCV\n"
+                 "or ROS camera_info YAML, DSO / LSD-SLAM camera.txt, Prism camera.yaml")
+      ->type_name("FILE");
+  app.add_flag("--dense", dense,
+               "also run the dense stage (photometric stereo, fusion, ICP map) on every\n"
+               "keyframe at the end, at its final pose, and write map.ply (metres)");
+  app.add_flag("--dense-online", dense_online,
+               "run it instead on each keyframe as it is finished (as prism-server\n"
+               "does), then rebuild map.ply at the final keyframe poses");
+  // SLAM options: --slam-config, --set and the switches apply in command-line order (below).
+  CLI::Option* slam_config =
+      app.add_option("--slam-config", "SLAM options, 'key = value' lines (core/slam/slam_config.h)")->type_name("FILE");
+  CLI::Option* set =
+      app.add_option("--set", "one SLAM option, e.g. --set tracker.min_gradient=5")->type_name("KEY=VALUE");
   const struct {
     const char* flag;
-    bool* target;
-    bool value;
-  } kSwitches[] = {
-      {"--no-eval", &eval, false},
-      {"--dense", &dense, true},
-      {"--dense-online", &dense_online, true},
-      {"--no-remap", &remap, false},
-      {"--no-metric-scale", &metric_scale, false},
-      {"--remap-icp", &dense_options.remap_icp, true},
-      {"--no-keyframe-adjustment", &options.keyframe_adjustment, false},
-      {"--no-repropagation", &options.repropagate_after_adjustment, false},
-      {"--no-final-adjustment", &options.final_adjustment, false},
-      {"--no-loop-closure", &options.loop_closure, false},
+    const char* key;
+    const char* help;
+  } kSlamSwitches[] = {
+      {"--no-loop-closure", "loop_closure", "no loop-closure edges (= --set loop_closure=false)"},
+      {"--no-keyframe-adjustment", "keyframe_adjustment",
+       "no windowed direct adjustment of the keyframes\n(= --set keyframe_adjustment=false)"},
+      {"--no-repropagation", "repropagate_after_adjustment",
+       "a new keyframe keeps the depth propagated along the tracked pose\n"
+       "(= --set repropagate_after_adjustment=false)"},
+      {"--no-final-adjustment", "final_adjustment",
+       "no adjustment of all keyframes at the end (= --set final_adjustment=false)"},
   };
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
+  std::map<const CLI::Option*, const char*> slam_switch;
+  for (const auto& sw : kSlamSwitches) slam_switch[app.add_flag(sw.flag, sw.help)] = sw.key;
+  app.add_flag("--no-metric-scale", no_metric_scale,
+               "skip the metres per world unit from the co-moving lights (2-7 s at the\n"
+               "end; trajectory_metres.txt and map.ply use it, else the dense stage's)");
+  app.add_flag("--no-remap", no_remap,
+               "with --dense-online: write map.ply as the keyframe clouds were merged,\n"
+               "not rebuilt at the final keyframe poses");
+  app.add_flag("--remap-icp", dense_options.remap_icp,
+               "with --dense-online: register each keyframe cloud again with ICP as\nmap.ply is rebuilt");
+  app.add_option("--position-weight", dense_options.fusion.position_weight,
+                 "the dense stage's fusion position weight, >= 0")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--min-brightness", dense_options.min_brightness,
+                 "the dense stage leaves pixels darker than this (0-255) out of the map")
+      ->check(CLI::Range(0.0, 255.0));
+  app.add_option("--max-frames", max_frames, "process at most N frames (default: all)")
+      ->type_name("N")
+      ->default_str("")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--on-bad-frame", on_bad_frame,
+                 "skip|stop: a frame that cannot be read or decoded, or has the wrong\n"
+                 "size, is skipped with a warning (listed in summary.json) or ends the\n"
+                 "run (exit 1 after writing the outputs of the frames before it)")
+      ->check(CLI::IsMember({"skip", "stop"}));
+  app.add_option("--threads", threads, "threads for the depth filter and the adjustments, 1-256 (default: all)")
+      ->type_name("N")
+      ->default_str("")
+      ->check(CLI::Range(1, 256));
+  app.add_option("--log-level", log_level,
+                 "debug|info|warning|error; debug prints each keyframe adjustment's\npoints, residuals and RMS")
+      ->check(CLI::IsMember({"debug", "info", "warning", "error"}));
+  app.add_flag("--no-eval", no_eval, "skip the evaluation against ground truth");
+  if (const int exit = cli::Parse(&app, argc, argv, /*usage_exit=*/1); exit != cli::kContinue) return exit;
+  for (const auto& [option, value] : cli::InCommandLineOrder(app)) {
+    Status st;
+    if (option == slam_config) {
+      st = ApplySlamConfigFile(value, &options);
+    } else if (option == set) {
+      const size_t eq = value.find('=');
+      if (eq == std::string::npos) return Fail("--set expects KEY=VALUE, got '" + value + "'");
+      st = SetSlamOption(value.substr(0, eq), value.substr(eq + 1), &options);
+    } else if (const auto sw = slam_switch.find(option); sw != slam_switch.end()) {
+      st = SetSlamOption(sw->second, "false", &options);
     }
-    bool is_switch = false;
-    for (const auto& sw : kSwitches)
-      if (a == sw.flag) *sw.target = sw.value, is_switch = true;
-    if (is_switch) continue;
-    if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
-    const std::string v = argv[++i];
-    char* end = nullptr;
-    const double num = std::strtod(v.c_str(), &end);
-    const bool is_num = end && *end == '\0' && !v.empty();
-    if (a == "--sequence") sequence_dir = v;
-    else if (a == "--kitti") kitti_dir = v;
-    else if (a == "--out") out_dir = v;
-    else if (a == "--camera") camera_file = v;
-    else if (a == "--position-weight" && is_num && num >= 0) dense_options.fusion.position_weight = num;
-    else if (a == "--min-brightness" && is_num && num >= 0 && num <= 255) dense_options.min_brightness = num;
-    else if (a == "--slam-config") {
-      if (Status st = ApplySlamConfigFile(v, &options); !st.ok()) return Fail(st.ToString());
-    } else if (a == "--set") {
-      const size_t eq = v.find('=');
-      if (eq == std::string::npos) return Fail("--set expects KEY=VALUE, got '" + v + "'");
-      if (Status st = SetSlamOption(v.substr(0, eq), v.substr(eq + 1), &options); !st.ok()) return Fail(st.ToString());
-    } else if (a == "--on-bad-frame" && (v == "skip" || v == "stop")) stop_on_bad_frame = v == "stop";
-    else if (a == "--max-frames" && is_num && num >= 1) max_frames = static_cast<long>(num);
-    else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
-    else if (a == "--log-level") {
-      if (!SetMinLogLevel(v)) return Fail("--log-level expects debug, info, warning or error, got '" + v + "'");
-    } else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
+    if (!st.ok()) return Fail(st.ToString());
   }
+  SetMinLogLevel(log_level);
+  const bool eval = !no_eval, remap = !no_remap, metric_scale = !no_metric_scale;
+  const bool stop_on_bad_frame = on_bad_frame == "stop";
   if (sequence_dir.empty() == kitti_dir.empty() || out_dir.empty())
     return Fail("--out and one of --sequence or --kitti are required (see --help)");
   if (Status st = options.Check(); !st.ok()) return Fail("SLAM options: " + st.ToString());
@@ -490,66 +479,73 @@ int main(int argc, char** argv) {
 
   const SlamTimings timings = (*slam)->timings();
   const double nf = static_cast<double>(std::max<size_t>(1, n));
-  std::ostringstream json;
-  json << std::setprecision(6) << "{\n  \"frames\": " << results.size() << ",\n  \"keyframes\": " << keyframes.size()
-       << ",\n  \"initializing_frames\": " << counts[0] << ",\n  \"tracking_frames\": " << counts[1]
-       << ",\n  \"lost_frames\": " << counts[2] << ",\n  \"skipped_frames\": " << skipped.size()
-       << ",\n  \"loop_closures\": " << (*slam)->num_loop_closures()
-       << ",\n  \"keyframe_adjustments\": " << (*slam)->num_keyframe_adjustments()
-       << ",\n  \"start_check\": " << StartCheckJson((*slam)->start_check())
-       << ",\n  \"feature_adjustment\": " << FeatureAdjustmentJson((*slam)->feature_adjustment())
-       << ",\n  \"semidense_points\": " << cloud.size()
-       << ",\n  \"undistorted\": " << (undistorter->identity() ? "false" : "true")
-       << ",\n  \"slam_ms_per_frame\": " << 1000.0 * slam_seconds / std::max<size_t>(1, n)
-       << ",\n  \"slam_ms_per_frame_parts\": {\"initialisation\": " << 1000.0 * timings.initialisation / nf
-       << ", \"tracking\": " << 1000.0 * timings.tracking / nf
-       << ", \"depth_update\": " << 1000.0 * timings.depth_update / nf
-       << ", \"keyframes\": " << 1000.0 * timings.keyframes / nf
-       << ", \"keyframe_adjustment\": " << 1000.0 * timings.keyframe_adjustment / nf
-       << ", \"keyframe_adjustment_thread\": " << 1000.0 * timings.keyframe_adjustment_thread / nf
-       << ", \"keyframe_adjustment_wait\": " << 1000.0 * timings.keyframe_adjustment_wait / nf
-       << ", \"loop_search\": " << 1000.0 * timings.loop_search / nf
-       << ", \"relocalisation\": " << 1000.0 * timings.relocalisation / nf << "}"
-       << ",\n  \"mapping_ms_per_tracked_frame\": "
-       << 1000.0 * (timings.depth_update + timings.keyframes) / std::max(1, timings.tracked_frames)
-       << ",\n  \"tracking_ms_per_tracked_frame\": " << 1000.0 * timings.tracking / std::max(1, timings.tracked_frames)
-       << ",\n  \"depth_updates\": " << timings.depth_updates
-       << ",\n  \"depth_updates_over_budget\": " << timings.depth_updates_over_budget
-       << ",\n  \"keyframes_made_before_adjustment\": " << timings.keyframes_made_before_adjustment
-       << ",\n  \"adjustments_started_late\": " << timings.adjustments_started_late
-       << ",\n  \"depth_pixels_searched\": " << timings.depth_pixels_searched
-       << ",\n  \"depth_pixels_skipped\": " << timings.depth_pixels_skipped
-       << ",\n  \"slam_finish_ms\": " << 1000.0 * finish_seconds
-       << ",\n  \"depth_refinement_ms\": " << 1000.0 * refine_seconds;
-  if (metres_per_unit > 0)
-    json << ",\n  \"metres_per_unit\": " << metres_per_unit << ",\n  \"metres_per_unit_source\": \""
-         << (shading_scale ? "shading" : "dense_stage") << "\"";
+  Json json;
+  json["frames"] = results.size();
+  json["keyframes"] = keyframes.size();
+  json["initializing_frames"] = counts[0];
+  json["tracking_frames"] = counts[1];
+  json["lost_frames"] = counts[2];
+  json["skipped_frames"] = skipped.size();
+  json["loop_closures"] = (*slam)->num_loop_closures();
+  json["keyframe_adjustments"] = (*slam)->num_keyframe_adjustments();
+  json["start_check"] = StartCheckJson((*slam)->start_check());
+  json["feature_adjustment"] = FeatureAdjustmentJson((*slam)->feature_adjustment());
+  json["semidense_points"] = cloud.size();
+  json["undistorted"] = !undistorter->identity();
+  json["slam_ms_per_frame"] = 1000.0 * slam_seconds / nf;
+  json["slam_ms_per_frame_parts"] =
+      Json{{"initialisation", 1000.0 * timings.initialisation / nf},
+           {"tracking", 1000.0 * timings.tracking / nf},
+           {"depth_update", 1000.0 * timings.depth_update / nf},
+           {"keyframes", 1000.0 * timings.keyframes / nf},
+           {"keyframe_adjustment", 1000.0 * timings.keyframe_adjustment / nf},
+           {"keyframe_adjustment_thread", 1000.0 * timings.keyframe_adjustment_thread / nf},
+           {"keyframe_adjustment_wait", 1000.0 * timings.keyframe_adjustment_wait / nf},
+           {"loop_search", 1000.0 * timings.loop_search / nf},
+           {"relocalisation", 1000.0 * timings.relocalisation / nf}};
+  const double tracked = std::max(1, timings.tracked_frames);
+  json["mapping_ms_per_tracked_frame"] = 1000.0 * (timings.depth_update + timings.keyframes) / tracked;
+  json["tracking_ms_per_tracked_frame"] = 1000.0 * timings.tracking / tracked;
+  json["depth_updates"] = timings.depth_updates;
+  json["depth_updates_over_budget"] = timings.depth_updates_over_budget;
+  json["keyframes_made_before_adjustment"] = timings.keyframes_made_before_adjustment;
+  json["adjustments_started_late"] = timings.adjustments_started_late;
+  json["depth_pixels_searched"] = timings.depth_pixels_searched;
+  json["depth_pixels_skipped"] = timings.depth_pixels_skipped;
+  json["slam_finish_ms"] = 1000.0 * finish_seconds;
+  json["depth_refinement_ms"] = 1000.0 * refine_seconds;
+  if (metres_per_unit > 0) {
+    json["metres_per_unit"] = metres_per_unit;
+    json["metres_per_unit_source"] = shading_scale ? "shading" : "dense_stage";
+  }
   if (drift) {
-    json << ",\n  \"scale_drift_correction\": {\"pairs\": " << drift->pairs << ", \"min_factor\": " << drift->min_factor
-         << ", \"max_factor\": " << drift->max_factor << ", \"loop_edges\": " << drift->loop_edges
-         << ", \"ms\": " << 1000.0 * drift_seconds << "}";
+    json["scale_drift_correction"] = Json{{"pairs", drift->pairs},
+                                          {"min_factor", drift->min_factor},
+                                          {"max_factor", drift->max_factor},
+                                          {"loop_edges", drift->loop_edges},
+                                          {"ms", 1000.0 * drift_seconds}};
   } else if (options.scale_drift_correction) {
-    json << ",\n  \"scale_drift_correction_error\": " << JsonQuote(drift_error);
+    json["scale_drift_correction_error"] = drift_error;
   }
   if (shading_scale) {
-    json << ",\n  \"shading_metres_per_unit\": " << shading_scale->metres_per_world_unit
-         << ",\n  \"shading_metres_per_unit_start\": " << shading_scale->start_metres_per_world_unit
-         << ",\n  \"shading_scale_passes\": " << shading_scale->passes
-         << ",\n  \"shading_scale_ms\": " << 1000.0 * shading_scale_seconds
-         << ",\n  \"shading_scale_pairs\": " << shading_scale->pairs
-         << ",\n  \"shading_scale_pair_spread\": " << shading_scale->pair_spread
-         << ",\n  \"shading_scale_consistent\": " << (shading_scale->consistent ? "true" : "false");
+    json["shading_metres_per_unit"] = shading_scale->metres_per_world_unit;
+    json["shading_metres_per_unit_start"] = shading_scale->start_metres_per_world_unit;
+    json["shading_scale_passes"] = shading_scale->passes;
+    json["shading_scale_ms"] = 1000.0 * shading_scale_seconds;
+    json["shading_scale_pairs"] = shading_scale->pairs;
+    json["shading_scale_pair_spread"] = shading_scale->pair_spread;
+    json["shading_scale_consistent"] = shading_scale->consistent;
   } else if (metric_scale) {
-    json << ",\n  \"shading_scale_error\": " << JsonQuote(shading_scale_error);
+    json["shading_scale_error"] = shading_scale_error;
   }
   if (dense_stage) {
-    json << ",\n  \"dense_ms_per_keyframe\": " << 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size())
-         << ",\n  \"dense_failed_keyframes\": " << dense_failed
-         << ",\n  \"dense_metres_per_unit\": " << dense_metres_per_unit
-         << ",\n  \"map_points\": " << dense_stage->map().output_size()
-         << ",\n  \"map_remapped\": " << (remapped ? "true" : "false")
-         << ",\n  \"remap_ms\": " << 1000.0 * remap_seconds;
-    if (dense_failed) json << ",\n  \"dense_first_error\": " << JsonQuote(dense_first_error);
+    json["dense_ms_per_keyframe"] = 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size());
+    json["dense_failed_keyframes"] = dense_failed;
+    json["dense_metres_per_unit"] = dense_metres_per_unit;
+    json["map_points"] = dense_stage->map().output_size();
+    json["map_remapped"] = remapped;
+    json["remap_ms"] = 1000.0 * remap_seconds;
+    if (dense_failed) json["dense_first_error"] = dense_first_error;
   }
 
   if (eval && !seq->groundtruth.empty() && estimate.size() >= 3) {
@@ -557,22 +553,20 @@ int main(int argc, char** argv) {
     eo.alignment = AlignmentModel::kSim3;
     StatusOr<AteResult> ate = ComputeAte(seq->groundtruth, estimate, eo);
     if (ate.ok()) {
-      json << ",\n  \"ate_rmse_m\": " << ate->error_m.rmse << ",\n  \"path_length_m\": " << ate->trajectory_length_m
-           << ",\n  \"ate_percent_of_path\": " << 100.0 * ate->error_m.rmse / std::max(1e-12, ate->trajectory_length_m)
-           << ",\n  \"sim3_scale\": " << ate->gt_from_est.scale
-           << ",\n  \"orientation_rmse_deg\": " << ate->orientation_error_deg.rmse
-           << ",\n  \"orientation_max_deg\": " << ate->orientation_error_deg.max
-           << ",\n  \"net_rotation_gt_deg\": " << ate->net_rotation_deg_gt
-           << ",\n  \"net_rotation_est_deg\": " << ate->net_rotation_deg_est;
+      json["ate_rmse_m"] = ate->error_m.rmse;
+      json["path_length_m"] = ate->trajectory_length_m;
+      json["ate_percent_of_path"] = 100.0 * ate->error_m.rmse / std::max(1e-12, ate->trajectory_length_m);
+      json["sim3_scale"] = ate->gt_from_est.scale;
+      json["orientation_rmse_deg"] = ate->orientation_error_deg.rmse;
+      json["orientation_max_deg"] = ate->orientation_error_deg.max;
+      json["net_rotation_gt_deg"] = ate->net_rotation_deg_gt;
+      json["net_rotation_est_deg"] = ate->net_rotation_deg_est;
       if (shading_scale)
-        json << ",\n  \"shading_metres_per_unit_rel_error\": "
-             << shading_scale->metres_per_world_unit / ate->gt_from_est.scale - 1.0;
+        json["shading_metres_per_unit_rel_error"] = shading_scale->metres_per_world_unit / ate->gt_from_est.scale - 1.0;
       // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
       DepthErrorAccumulator acc;
       long claimed = 0;
-      std::ostringstream per_keyframe, per_keyframe_fused;
-      per_keyframe << std::setprecision(4);
-      per_keyframe_fused << std::setprecision(4);
+      Json per_keyframe = Json::array(), per_keyframe_fused = Json::array();
       for (const SlamKeyframe& k : keyframes) {
         if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq_index.size()) continue;
         const size_t frame = seq_index[static_cast<size_t>(k.frame_id)];  // in the sequence
@@ -595,43 +589,38 @@ int main(int argc, char** argv) {
         auto fused = fused_depth.find(k.id);
         if (fused != fused_depth.end() && !fused->second.empty()) {
           StatusOr<DepthErrorStats> f = ComputeDepthError(fused->second, *gt, cv::Mat(), per);
-          if (f.ok()) {
-            per_keyframe_fused << (per_keyframe_fused.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id
-                               << ", \"coverage\": " << f->coverage
-                               << ", \"median_rel_error_own_scale\": " << f->median_rel_error << "}";
-          }
+          if (f.ok())
+            per_keyframe_fused.push_back(
+                Json{{"id", k.id}, {"coverage", f->coverage}, {"median_rel_error_own_scale", f->median_rel_error}});
         }
-        if (one.ok()) {
-          per_keyframe << (per_keyframe.tellp() > 0 ? ", " : "") << "{\"id\": " << k.id
-                       << ", \"points\": " << one->pixels << ", \"scale\": " << one->scale
-                       << ", \"median_rel_error_own_scale\": " << one->median_rel_error << "}";
-        }
+        if (one.ok())
+          per_keyframe.push_back(Json{{"id", k.id},
+                                      {"points", one->pixels},
+                                      {"scale", one->scale},
+                                      {"median_rel_error_own_scale", one->median_rel_error}});
       }
       DepthEvalOptions de;
       de.scale_alignment = DepthScaleAlignment::kNone;
       StatusOr<DepthErrorStats> ds = acc.Summarize(de);
       if (ds.ok()) {
-        json << ",\n  \"depth_pixels\": " << ds->pixels << ",\n  \"depth_median_rel_error\": " << ds->median_rel_error
-             << ",\n  \"depth_coverage_of_image\": " << ds->coverage;
+        json["depth_pixels"] = ds->pixels;
+        json["depth_median_rel_error"] = ds->median_rel_error;
+        json["depth_coverage_of_image"] = ds->coverage;
         DepthEvalOptions dm;
         StatusOr<DepthErrorStats> dsm = acc.Summarize(dm);
-        if (dsm.ok()) json << ",\n  \"depth_median_rel_error_median_scaled\": " << dsm->median_rel_error;
-        json << ",\n  \"keyframe_depth\": [" << per_keyframe.str() << "]";
-        if (!fused_depth.empty()) json << ",\n  \"keyframe_fused_depth\": [" << per_keyframe_fused.str() << "]";
+        if (dsm.ok()) json["depth_median_rel_error_median_scaled"] = dsm->median_rel_error;
+        json["keyframe_depth"] = per_keyframe;
+        if (!fused_depth.empty()) json["keyframe_fused_depth"] = per_keyframe_fused;
       }
     } else {
-      json << ",\n  \"ate_error\": " << JsonQuote(std::string(ate.status().message()));
+      json["ate_error"] = std::string(ate.status().message());
     }
   }
-  if (!skipped.empty()) {
-    json << ",\n  \"skipped\": [";
-    for (size_t i = 0; i < skipped.size(); ++i) json << (i ? ", " : "") << JsonQuote(skipped[i]);
-    json << "]";
-  }
-  if (!stop_error.empty()) json << ",\n  \"stopped_at_bad_frame\": " << JsonQuote(stop_error);
-  json << "\n}\n";
-  std::ofstream(out_dir + "/summary.json") << json.str();
-  std::cout << json.str();
+  if (!skipped.empty()) json["skipped"] = skipped;
+  if (!stop_error.empty()) json["stopped_at_bad_frame"] = stop_error;
+  const std::string text = JsonText(json, 2);
+  std::ofstream(out_dir + "/summary.json") << text;
+  std::cout << text;
   // --on-bad-frame stop: everything up to the bad frame is written; the exit status says the run ended there.
   if (!stop_error.empty()) return Fail("stopped at " + stop_error + " (outputs cover the frames before it)");
   if (seq_index.empty()) return Fail("none of the sequence's " + std::to_string(n) + " frames could be used");
