@@ -73,7 +73,11 @@ int Parse(CLI::App* app, int argc, char** argv, int usage_exit) {
       sub = sub->get_subcommands().front();
       name += " " + sub->get_name();
     }
-    std::cerr << name << ": " << Message(e) << " (see --help)\n";
+    // An argument CLI11 could not place explains more than what it missed because of it (a mistyped
+    // subcommand is reported as "A subcommand is required").
+    const std::vector<std::string> extra = app->remaining(/*recurse=*/true);
+    const std::string message = extra.empty() ? Message(e) : "unknown argument '" + extra.front() + "'";
+    std::cerr << name << ": " << message << " (see --help)\n";
     return usage_exit;
   }
 }
