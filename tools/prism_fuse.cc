@@ -2,12 +2,11 @@
 // poses and a simulated semi-dense SLAM depth (ground-truth depth at high-gradient pixels, with
 // noise and an unknown scale) stand in for the SLAM; per keyframe it runs multispectral photometric
 // stereo, positions+normals fusion, ICP registration to the map and voxel merging.
-//   prism-fuse --sequence DIR --out DIR [options]
 #include <chrono>
-#include <cstdio>
+#include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <iostream>
-#include <sstream>
 #include <string>
 
 #include <opencv2/imgcodecs.hpp>
@@ -20,38 +19,17 @@
 #include "core/pipeline/dense_stage.h"
 #include "core/synth/semidense.h"
 #include "core/util/thread_pool.h"
+#include "tools/cli.h"
+#include "tools/json_output.h"
 
 namespace {
 
-constexpr char kUsage[] = R"(usage: prism-fuse --sequence DIR --out DIR [options]
-
-Runs the dense stage on a sequence with ground truth (prism-synth output): simulated semi-dense
-SLAM depth -> photometric stereo normals -> positions+normals fusion -> ICP -> merged map.
-Writes to DIR: normals/<t>.png (16-bit exact, image_io.h format), normals_vis/<t>.png (8-bit
-for looking at), depth/<t>.png (fused depth, TUM 16-bit), clouds/<t>.ply (dense keyframe clouds,
-metres, world frame), map.ply (merged map) and summary.json (also printed).
-
-options:
-  --keyframe-step K     every K-th frame is a keyframe (default 10)
-  --max-keyframes N     stop after N keyframes (default: all)
-  --slam-scale S        metres per simulated SLAM depth unit, unknown to the estimators (default 0.37)
-  --depth-noise R       relative noise of the simulated inverse depth (default 0.01)
-  --scale-keyframes N   keyframes that estimate the depth scale before the session fixes it (default 3)
-  --voxel M             map voxel size, metres (default 0.002)
-  --max-edge-step R     remove from the fused depth (and so from the clouds and the map) pixels whose
-                        depth differs from a neighbour's by more than R (relative; default 0.03;
-                        0 keeps all): flying pixels along silhouettes
-  --position-weight W   fusion: weight of the SLAM positions against the normals (FusionOptions)
-  --fusion-passes N     fusion: solve passes with normal correction in between (default 2)
-  --correction-sigma PX fusion: scale of the normal correction's low-pass filter (default 8)
-  --no-icp              merge keyframe clouds at their poses without ICP
-  --max-icp-correction-m M, --max-icp-correction-deg D
-                        largest ICP correction applied (default 0.01 m, 1 deg); larger ones,
-                        unconverged ones and ones pairing < 30% of points are reported, not applied
-  --threads T           worker threads (default: all cores)
-  --seed S              seed of the depth simulation (default 1)
-  --help                this text
-)";
+constexpr char kNotes[] =
+    R"(Simulated semi-dense SLAM depth -> photometric stereo normals -> positions+normals fusion -> ICP
+-> merged map, with ground-truth poses (the sequence needs groundtruth.txt and depth/, as prism-synth
+writes them). Writes to DIR: normals/<t>.png (16-bit exact, image_io.h format), normals_vis/<t>.png
+(8-bit for looking at), depth/<t>.png (fused depth, TUM 16-bit), clouds/<t>.ply (dense keyframe
+clouds, metres, world frame), map.ply (merged map) and summary.json (also printed).)";
 
 // CV_8U, 255 where a CV_32FC3 normal map has a normal (not all zero).
 cv::Mat NonZeroNormals(const cv::Mat& normals) {
@@ -65,12 +43,6 @@ cv::Mat NonZeroNormals(const cv::Mat& normals) {
 int Fail(const std::string& m) {
   std::cerr << "prism-fuse: " << m << "\n";
   return 2;
-}
-
-bool ParseNumber(const char* s, double* out) {
-  char* end = nullptr;
-  *out = std::strtod(s, &end);
-  return end != s && *end == '\0';
 }
 
 std::string Stem(const std::string& file) { return std::filesystem::path(file).stem().string(); }
@@ -100,41 +72,65 @@ int main(int argc, char** argv) {
   double max_icp_correction_m = 0.01, max_icp_correction_deg = 1.0;
   double max_edge_step = 0.03;
   FusionOptions fusion_options;
-  bool icp = true;
+  bool no_icp = false;
   uint32_t seed = 1;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
-    }
-    if (a == "--no-icp") {
-      icp = false;
-      continue;
-    }
-    if (i + 1 >= argc) return Fail("unknown argument or missing value: '" + a + "' (see --help)");
-    const char* v = argv[++i];
-    double num = 0;
-    const bool is_num = ParseNumber(v, &num);
-    if (a == "--sequence") sequence_dir = v;
-    else if (a == "--out") out_dir = v;
-    else if (a == "--keyframe-step" && is_num && num >= 1) keyframe_step = static_cast<int>(num);
-    else if (a == "--max-keyframes" && is_num && num >= 1) max_keyframes = static_cast<int>(num);
-    else if (a == "--scale-keyframes" && is_num && num >= 1) scale_keyframes = static_cast<int>(num);
-    else if (a == "--slam-scale" && is_num && num > 0) slam_scale = num;
-    else if (a == "--depth-noise" && is_num && num >= 0 && num <= 0.5) depth_noise = num;
-    else if (a == "--voxel" && is_num && num > 0) voxel = num;
-    else if (a == "--max-edge-step" && is_num && num >= 0) max_edge_step = num;
-    else if (a == "--position-weight" && is_num && num >= 0) fusion_options.position_weight = num;
-    else if (a == "--fusion-passes" && is_num && num >= 1) fusion_options.passes = static_cast<int>(num);
-    else if (a == "--correction-sigma" && is_num && num > 0) fusion_options.correction_sigma_px = num;
-    else if (a == "--max-icp-correction-m" && is_num && num >= 0) max_icp_correction_m = num;
-    else if (a == "--max-icp-correction-deg" && is_num && num >= 0) max_icp_correction_deg = num;
-    else if (a == "--threads" && is_num && num >= 1 && num <= 256) threads = static_cast<int>(num);
-    else if (a == "--seed" && is_num && num >= 0) seed = static_cast<uint32_t>(num);
-    else return Fail("unknown argument or bad value: '" + a + " " + v + "' (see --help)");
-  }
-  if (sequence_dir.empty() || out_dir.empty()) return Fail("--sequence and --out are required (see --help)");
+  CLI::App app{"", "prism-fuse"};
+  cli::Setup(&app, "the dense stage alone on a sequence with ground truth, poses and simulated SLAM depth",
+             {"prism-fuse --sequence DIR --out DIR [options]"}, kNotes);
+  app.add_option("--sequence", sequence_dir, "sequence with ground truth (prism-synth output)")
+      ->type_name("DIR")
+      ->required();
+  app.add_option("--out", out_dir, "output folder (created)")->type_name("DIR")->required();
+  app.add_option("--keyframe-step", keyframe_step, "every K-th frame is a keyframe")
+      ->type_name("K")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--max-keyframes", max_keyframes, "stop after N keyframes (default: all)")
+      ->type_name("N")
+      ->default_str("")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--slam-scale", slam_scale, "metres per simulated SLAM depth unit, unknown to the estimators")
+      ->type_name("S")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--depth-noise", depth_noise, "relative noise of the simulated inverse depth, 0-0.5")
+      ->type_name("R")
+      ->check(CLI::Range(0.0, 0.5));
+  app.add_option("--scale-keyframes", scale_keyframes, "keyframes that estimate the depth scale before it is fixed")
+      ->type_name("N")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--voxel", voxel, "map voxel size, metres")->type_name("M")->check(CLI::PositiveNumber);
+  app.add_option("--max-edge-step", max_edge_step,
+                 "remove from the fused depth (so from the clouds and the map) pixels whose\n"
+                 "depth differs from a neighbour's by more than R (relative; 0 keeps all):\n"
+                 "flying pixels along silhouettes")
+      ->type_name("R")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--position-weight", fusion_options.position_weight,
+                 "fusion: weight of the SLAM positions against the normals")
+      ->type_name("W")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--fusion-passes", fusion_options.passes, "fusion: solve passes with normal correction between")
+      ->type_name("N")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--correction-sigma", fusion_options.correction_sigma_px,
+                 "fusion: scale of the normal correction's low-pass filter, pixels")
+      ->type_name("PX")
+      ->check(CLI::PositiveNumber);
+  app.add_flag("--no-icp", no_icp, "merge keyframe clouds at their poses without ICP");
+  app.add_option("--max-icp-correction-m", max_icp_correction_m,
+                 "largest ICP correction applied, metres; larger ones, unconverged ones and\n"
+                 "ones pairing < 30% of points are reported, not applied")
+      ->type_name("M")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--max-icp-correction-deg", max_icp_correction_deg, "largest ICP correction applied, degrees")
+      ->type_name("D")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--threads", threads, "worker threads, 1-256 (default: all cores)")
+      ->type_name("T")
+      ->default_str("")
+      ->check(CLI::Range(1, 256));
+  app.add_option("--seed", seed, "seed of the depth simulation")->type_name("S");
+  if (const int exit = cli::Parse(&app, argc, argv); exit != cli::kContinue) return exit;
+  const bool icp = !no_icp;
 
   StatusOr<Sequence> seq = LoadSequence(sequence_dir);
   if (!seq.ok()) return Fail(seq.status().ToString());
@@ -166,7 +162,7 @@ int main(int argc, char** argv) {
   // Pooled over keyframes: squared depth errors (metres^2) and pixel counts, and coverage.
   double fused_sse = 0, semi_sse = 0, min_coverage = 1.0;
   long long fused_n = 0, semi_n = 0;
-  std::ostringstream keyframes_json;
+  Json per_keyframe = Json::array();
   int keyframes = 0;
 
   for (size_t i = 0; i < seq->frames.size() && keyframes < max_keyframes; i += keyframe_step) {
@@ -255,28 +251,25 @@ int main(int argc, char** argv) {
 
     const PointCloud* cloud = &dense->cloud;
     (void)WritePointCloudPly(out_dir + "/clouds/" + name + ".ply", *cloud);
-    std::string icp_json = "null";
-    if (dense->icp_attempted) {
-      char buf[256];
-      std::snprintf(buf, sizeof(buf),
-                    "{\"converged\": %s, \"inlier_rmse_m\": %.6g, \"inlier_fraction\": %.4f, "
-                    "\"correction_m\": %.6g, \"correction_deg\": %.6g}",
-                    dense->icp.converged ? "true" : "false", dense->icp.inlier_rmse_m, dense->icp.inlier_fraction,
-                    dense->icp_estimate.translation.norm(), RotationAngle(dense->icp_estimate.rotation) * 180 / M_PI);
-      icp_json = buf;
-    }
-
-    char buf[1024];
-    std::snprintf(buf, sizeof(buf),
-                  "%s    {\"frame\": %zu, \"timestamp\": \"%s\", \"ps_median_deg\": %.4f, \"fused_median_deg\": %.4f, "
-                  "\"semi_dense_rmse_m\": %.6g, \"fused_rmse_m\": %.6g, \"semi_dense_coverage\": %.4f, "
-                  "\"fused_coverage\": %.4f, \"depth_scale\": %.5f, \"cloud_points\": %zu, \"cg_iterations\": %d, "
-                  "\"icp\": %s}",
-                  keyframes ? ",\n" : "", i, name.c_str(), ps_median, fused_median, semi_rmse, fused_rmse,
-                  eval_pixels ? static_cast<double>(n_semi) / eval_pixels : 0.0,
-                  eval_pixels ? static_cast<double>(n_fused) / eval_pixels : 0.0, ps->depth_scale, cloud->size(),
-                  fused->iterations, icp_json.c_str());
-    keyframes_json << buf;
+    Json icp_json = nullptr;
+    if (dense->icp_attempted)
+      icp_json = Json{{"converged", dense->icp.converged},
+                      {"inlier_rmse_m", dense->icp.inlier_rmse_m},
+                      {"inlier_fraction", dense->icp.inlier_fraction},
+                      {"correction_m", dense->icp_estimate.translation.norm()},
+                      {"correction_deg", RotationAngle(dense->icp_estimate.rotation) * 180 / M_PI}};
+    per_keyframe.push_back(Json{{"frame", i},
+                                {"timestamp", name},
+                                {"ps_median_deg", ps_median},
+                                {"fused_median_deg", fused_median},
+                                {"semi_dense_rmse_m", semi_rmse},
+                                {"fused_rmse_m", fused_rmse},
+                                {"semi_dense_coverage", eval_pixels ? static_cast<double>(n_semi) / eval_pixels : 0.0},
+                                {"fused_coverage", eval_pixels ? static_cast<double>(n_fused) / eval_pixels : 0.0},
+                                {"depth_scale", ps->depth_scale},
+                                {"cloud_points", cloud->size()},
+                                {"cg_iterations", fused->iterations},
+                                {"icp", icp_json}});
     ++keyframes;
     std::cerr << "prism-fuse: keyframe " << keyframes << " (" << name << "): PS " << ps_median << " deg, fused "
               << fused_median << " deg, depth RMSE " << fused_rmse << " m (semi-dense " << semi_rmse << " m)\n";
@@ -289,30 +282,28 @@ int main(int argc, char** argv) {
                           prior_stats = prior_error.Summarize(), ps_common = ps_common_error.Summarize(),
                           fused_common = fused_common_error.Summarize(),
                           corrected_common = corrected_common_error.Summarize();
-  std::ostringstream json;
-  char head[2048];
-  std::snprintf(
-      head, sizeof(head),
-      "{\n  \"keyframes\": %d,\n  \"map_points\": %zu,\n  \"session_depth_scale\": %.5f,\n"
-      "  \"slam_scale_true\": %.5f,\n  \"ps_median_deg\": %.4f,\n  \"ps_mean_deg\": %.4f,\n"
-      "  \"fused_normal_median_deg\": %.4f,\n  \"prior_normal_median_deg\": %.4f,\n"
-      "  \"ps_median_common_deg\": %.4f,\n  \"fused_normal_median_common_deg\": %.4f,\n"
-      "  \"corrected_normal_median_common_deg\": %.4f,\n  \"common_normal_pixels\": %zu,\n"
-      "  \"fused_depth_rmse_m\": %.6g,\n  \"semi_dense_depth_rmse_m\": %.6g,\n"
-      "  \"min_fused_coverage\": %.4f,\n"
-      "  \"ps_ms_per_keyframe\": %.1f,\n  \"fusion_ms_per_keyframe\": %.1f,\n  \"icp_merge_ms_per_keyframe\": %.1f,\n"
-      "  \"per_keyframe\": [\n",
-      keyframes, merged.size(), (*stage)->depth_scale().has_value() ? (*stage)->depth_scale().value() : 0.0, slam_scale,
-      ps_stats.median_deg, ps_stats.mean_deg, fused_stats.median_deg, prior_stats.median_deg, ps_common.median_deg,
-      fused_common.median_deg, corrected_common.median_deg, ps_common_error.count(),
-      fused_n ? std::sqrt(fused_sse / fused_n) : 0.0, semi_n ? std::sqrt(semi_sse / semi_n) : 0.0, min_coverage,
-      ps_ms / keyframes, fusion_ms / keyframes, icp_ms / keyframes);
-  json << head << keyframes_json.str() << "\n  ]\n}\n";
-  std::cout << json.str();
-  FILE* f = std::fopen((out_dir + "/summary.json").c_str(), "w");
-  if (f) {
-    std::fputs(json.str().c_str(), f);
-    std::fclose(f);
-  }
+  Json json;
+  json["keyframes"] = keyframes;
+  json["map_points"] = merged.size();
+  json["session_depth_scale"] = (*stage)->depth_scale().has_value() ? (*stage)->depth_scale().value() : 0.0;
+  json["slam_scale_true"] = slam_scale;
+  json["ps_median_deg"] = ps_stats.median_deg;
+  json["ps_mean_deg"] = ps_stats.mean_deg;
+  json["fused_normal_median_deg"] = fused_stats.median_deg;
+  json["prior_normal_median_deg"] = prior_stats.median_deg;
+  json["ps_median_common_deg"] = ps_common.median_deg;
+  json["fused_normal_median_common_deg"] = fused_common.median_deg;
+  json["corrected_normal_median_common_deg"] = corrected_common.median_deg;
+  json["common_normal_pixels"] = ps_common_error.count();
+  json["fused_depth_rmse_m"] = fused_n ? std::sqrt(fused_sse / fused_n) : 0.0;
+  json["semi_dense_depth_rmse_m"] = semi_n ? std::sqrt(semi_sse / semi_n) : 0.0;
+  json["min_fused_coverage"] = min_coverage;
+  json["ps_ms_per_keyframe"] = ps_ms / keyframes;
+  json["fusion_ms_per_keyframe"] = fusion_ms / keyframes;
+  json["icp_merge_ms_per_keyframe"] = icp_ms / keyframes;
+  json["per_keyframe"] = per_keyframe;
+  const std::string text = JsonText(json, 2);
+  std::cout << text;
+  std::ofstream(out_dir + "/summary.json") << text;
   return 0;
 }
