@@ -5,6 +5,7 @@ the COLMAP export's cameras put the ground-truth cloud onto the object in every 
   open3d_formats_test.py BUILD_DIR
 Skips when open3d is not importable.
 """
+import json
 import os
 import shutil
 import subprocess
@@ -77,8 +78,8 @@ class Open3dFormatsTest(unittest.TestCase):
         o3d.io.write_point_cloud(p("o3d.ply"), reference, write_ascii=False)
         for name in ("o3d_b.pcd", "o3d_a.pcd", "o3d.ply"):
             with self.subTest(file=name):
-                out = run("prism-convert", "cloud", p(name), p(name + ".back.ply"))
-                self.assertIn('"normals": true, "colors": true', out)
+                out = json.loads(run("prism-convert", "cloud", p(name), p(name + ".back.ply")))
+                self.assertTrue(out["normals"] and out["colors"], out)
                 # Open3D's ASCII PCD has limited digits.
                 self.assert_same(reference, o3d.io.read_point_cloud(p(name + ".back.ply")),
                                  position_tolerance=1e-6 if "_a" in name else 0.0)

@@ -1,14 +1,10 @@
-// prism-convert: the exchange formats users expect, in and out of Prism.
-//   prism-convert cloud IN OUT [--ascii] [--draco-bits N]         .ply .pcd .drc, by extension
-//   prism-convert camera IN --out camera.yaml [--lights FILE]     OpenCV / ROS / DSO camera file -> rig calibration
-//   prism-convert colmap --trajectory T --camera C --out DIR [--sequence S] [--map M] [--every K] [--max-points N]
-//   prism-convert trajectory IN OUT                                TUM or KITTI -> TUM
-// Prints one JSON line on stdout; exits 2 on bad arguments, 1 on unreadable input or a failed write.
+// prism-convert: the exchange formats users expect, in and out of Prism (subcommands cloud, camera,
+// colmap, trajectory). Prints one JSON line on stdout; exits 2 on bad arguments, 1 on unreadable input or a failed
+// write.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <iostream>
-#include <map>
 #include <string>
 #include <vector>
 
@@ -21,30 +17,12 @@
 #include "core/io/sequence.h"
 #include "core/io/trajectory_io.h"
 #include "core/synth/presets.h"
+#include "tools/cli.h"
+#include "tools/json_output.h"
 
 namespace {
 
 using namespace prism;
-
-constexpr char kUsage[] = R"(usage: prism-convert COMMAND ...
-
-  cloud IN OUT [--ascii] [--draco-bits N]
-      Point cloud between PLY (binary), PCD (binary, or ASCII with --ascii) and Draco .drc (positions
-      quantised to N bits, default 14; 0 = lossless), chosen by extension. Positions, normals, colours.
-  camera IN --out FILE [--lights FILE]
-      Camera intrinsics from an OpenCV calibration YAML, a ROS camera_info YAML, a DSO / LSD-SLAM
-      camera.txt (RadTan or Pinhole; relative values are scaled as DSO does) or a Prism camera.yaml,
-      written as Prism's camera.yaml (rig calibration). Lights and crosstalk come from --lights (a
-      camera.yaml) or else the default rig (red left, green right, blue above, 0.2 m from the lens).
-  colmap --trajectory T --camera C --out DIR [--sequence S] [--map M] [--every K] [--max-points N]
-      COLMAP text model (cameras.txt, images.txt, points3D.txt) of the cameras in trajectory T (TUM,
-      world_from_camera; e.g. prism-client's trajectory.txt) with intrinsics from C (any camera file
-      above). --sequence names each image after the sequence's rgb file at that timestamp (else
-      <timestamp>.png); --every K keeps every K-th pose (keyframe spacing); --map adds the points of a
-      cloud (every n-th point to stay under --max-points, default 200000).
-  trajectory IN OUT
-      TUM or KITTI (auto-detected) trajectory written as TUM.
-)";
 
 int Usage(const std::string& message) {
   std::cerr << "prism-convert: " << message << " (see --help)\n";
@@ -62,44 +40,12 @@ std::string Extension(const std::string& path) {
   return e;
 }
 
-// "--key value" pairs and bare flags after the positional arguments.
+// Every command's arguments (each command reads its own).
 struct Args {
-  std::vector<std::string> positional;
-  std::map<std::string, std::string> values;
-  std::vector<std::string> flags;
-  bool Has(const std::string& k) const {
-    return values.count(k) || std::find(flags.begin(), flags.end(), k) != flags.end();
-  }
-  std::string Get(const std::string& k, const std::string& fallback = "") const {
-    auto it = values.find(k);
-    return it == values.end() ? fallback : it->second;
-  }
+  std::string in, out, lights, trajectory, camera, sequence, map;
+  bool ascii = false;
+  int draco_bits = DracoFileOptions().position_bits, every = 1, max_points = 200000;
 };
-
-bool ParseArgs(int argc, char** argv, const std::vector<std::string>& flag_names, Args* args, std::string* error) {
-  for (int i = 2; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a.rfind("--", 0) != 0) {
-      args->positional.push_back(a);
-    } else if (std::find(flag_names.begin(), flag_names.end(), a.substr(2)) != flag_names.end()) {
-      args->flags.push_back(a.substr(2));
-    } else if (i + 1 < argc) {
-      args->values[a.substr(2)] = argv[++i];
-    } else {
-      *error = "missing value for " + a;
-      return false;
-    }
-  }
-  return true;
-}
-
-bool ParseInt(const std::string& s, int* out) {
-  char* end = nullptr;
-  const long v = std::strtol(s.c_str(), &end, 10);
-  if (s.empty() || *end != '\0' || v < 0 || v > (1 << 30)) return false;
-  *out = static_cast<int>(v);
-  return true;
-}
 
 StatusOr<PointCloud> ReadCloud(const std::string& path) {
   const std::string e = Extension(path);
@@ -110,59 +56,56 @@ StatusOr<PointCloud> ReadCloud(const std::string& path) {
 }
 
 int Cloud(const Args& args) {
-  if (args.positional.size() != 2) return Usage("cloud needs IN and OUT");
-  const std::string &in = args.positional[0], &out = args.positional[1];
+  const std::string &in = args.in, &out = args.out;
   const std::string e = Extension(out);
   if (e != "ply" && e != "pcd" && e != "drc") return Usage("unknown output extension '." + e + "' (ply, pcd, drc)");
   DracoFileOptions draco;
-  if (args.Has("draco-bits") && !ParseInt(args.Get("draco-bits"), &draco.position_bits))
-    return Usage("bad --draco-bits '" + args.Get("draco-bits") + "'");
+  draco.position_bits = args.draco_bits;
   if (draco.position_bits == 0) draco.normal_bits = 0;
   StatusOr<PointCloud> cloud = ReadCloud(in);
   if (!cloud.ok()) return Fail(cloud.status());
   Status st;
   if (e == "ply") st = WritePointCloudPly(out, *cloud);
-  if (e == "pcd") st = WritePointCloudPcd(out, *cloud, args.Has("ascii") ? PcdEncoding::kAscii : PcdEncoding::kBinary);
+  if (e == "pcd") st = WritePointCloudPcd(out, *cloud, args.ascii ? PcdEncoding::kAscii : PcdEncoding::kBinary);
   if (e == "drc") st = WritePointCloudDraco(out, *cloud, draco);
   if (!st.ok()) return Fail(st);
-  std::printf("{\"points\": %zu, \"normals\": %s, \"colors\": %s, \"out\": \"%s\"}\n", cloud->size(),
-              cloud->HasNormals() ? "true" : "false", cloud->HasColors() ? "true" : "false", out.c_str());
+  std::cout << JsonText(
+      Json{{"points", cloud->size()}, {"normals", cloud->HasNormals()}, {"colors", cloud->HasColors()}, {"out", out}});
   return 0;
 }
 
 int Camera(const Args& args) {
-  if (args.positional.size() != 1 || !args.Has("out")) return Usage("camera needs IN and --out FILE");
-  StatusOr<PinholeCamera> camera = ReadCameraIntrinsics(args.positional[0]);
+  StatusOr<PinholeCamera> camera = ReadCameraIntrinsics(args.in);
   if (!camera.ok()) return Fail(camera.status());
   RigCalibration rig;
-  if (args.Has("lights")) {
-    StatusOr<RigCalibration> base = ReadCalibrationYaml(args.Get("lights"));
+  if (!args.lights.empty()) {
+    StatusOr<RigCalibration> base = ReadCalibrationYaml(args.lights);
     if (!base.ok()) return Fail(base.status());
     rig = *base;
   } else {
     rig = synth::MakeDefaultRig(camera->width, camera->height);
   }
   rig.camera = *camera;
-  if (Status st = WriteCalibrationYaml(args.Get("out"), rig); !st.ok()) return Fail(st);
-  std::printf(
-      "{\"width\": %d, \"height\": %d, \"fx\": %.9g, \"fy\": %.9g, \"cx\": %.9g, \"cy\": %.9g, \"out\": \"%s\"}\n",
-      camera->width, camera->height, camera->fx, camera->fy, camera->cx, camera->cy, args.Get("out").c_str());
+  if (Status st = WriteCalibrationYaml(args.out, rig); !st.ok()) return Fail(st);
+  std::cout << JsonText(Json{{"width", camera->width},
+                             {"height", camera->height},
+                             {"fx", camera->fx},
+                             {"fy", camera->fy},
+                             {"cx", camera->cx},
+                             {"cy", camera->cy},
+                             {"out", args.out}});
   return 0;
 }
 
 int Colmap(const Args& args) {
-  if (!args.Has("trajectory") || !args.Has("camera") || !args.Has("out"))
-    return Usage("colmap needs --trajectory, --camera and --out");
-  int every = 1, max_points = 200000;
-  if (args.Has("every") && (!ParseInt(args.Get("every"), &every) || every < 1)) return Usage("bad --every");
-  if (args.Has("max-points") && !ParseInt(args.Get("max-points"), &max_points)) return Usage("bad --max-points");
-  StatusOr<Trajectory> trajectory = ReadTrajectoryAutoDetect(args.Get("trajectory"));
+  const int every = args.every, max_points = args.max_points;
+  StatusOr<Trajectory> trajectory = ReadTrajectoryAutoDetect(args.trajectory);
   if (!trajectory.ok()) return Fail(trajectory.status());
-  StatusOr<PinholeCamera> camera = ReadCameraIntrinsics(args.Get("camera"));
+  StatusOr<PinholeCamera> camera = ReadCameraIntrinsics(args.camera);
   if (!camera.ok()) return Fail(camera.status());
   StatusOr<Sequence> sequence = InvalidArgumentError("");
-  if (args.Has("sequence")) {
-    sequence = LoadSequence(args.Get("sequence"));
+  if (!args.sequence.empty()) {
+    sequence = LoadSequence(args.sequence);
     if (!sequence.ok()) return Fail(sequence.status());
   }
   ColmapModel model;
@@ -190,8 +133,8 @@ int Colmap(const Args& args) {
     }
     model.images.push_back(image);
   }
-  if (args.Has("map")) {
-    StatusOr<PointCloud> map = ReadCloud(args.Get("map"));
+  if (!args.map.empty()) {
+    StatusOr<PointCloud> map = ReadCloud(args.map);
     if (!map.ok()) return Fail(map.status());
     const size_t step =
         max_points > 0 ? std::max<size_t>(1, (map->size() + max_points - 1) / max_points) : map->size() + 1;
@@ -200,40 +143,84 @@ int Colmap(const Args& args) {
       model.points.colors.push_back(map->HasColors() ? map->colors[i] : Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
     }
   }
-  if (Status st = WriteColmapText(args.Get("out"), model); !st.ok()) return Fail(st);
-  std::printf("{\"images\": %zu, \"points\": %zu, \"images_without_sequence_frame\": %zu, \"out\": \"%s\"}\n",
-              model.images.size(), model.points.size(), unnamed, args.Get("out").c_str());
+  if (Status st = WriteColmapText(args.out, model); !st.ok()) return Fail(st);
+  std::cout << JsonText(Json{{"images", model.images.size()},
+                             {"points", model.points.size()},
+                             {"images_without_sequence_frame", unnamed},
+                             {"out", args.out}});
   return 0;
 }
 
 int TrajectoryCommand(const Args& args) {
-  if (args.positional.size() != 2) return Usage("trajectory needs IN and OUT");
-  StatusOr<Trajectory> t = ReadTrajectoryAutoDetect(args.positional[0]);
+  StatusOr<Trajectory> t = ReadTrajectoryAutoDetect(args.in);
   if (!t.ok()) return Fail(t.status());
-  if (Status st = WriteTumTrajectory(args.positional[1], *t); !st.ok()) return Fail(st);
-  std::printf("{\"poses\": %zu, \"out\": \"%s\"}\n", t->size(), args.positional[1].c_str());
+  if (Status st = WriteTumTrajectory(args.out, *t); !st.ok()) return Fail(st);
+  std::cout << JsonText(Json{{"poses", t->size()}, {"out", args.out}});
   return 0;
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
-  if (argc < 2) return Usage("expected a command: cloud, camera, colmap or trajectory");
-  const std::string command = argv[1];
-  if (command == "--help" || command == "-h") {
-    std::cout << kUsage;
-    return 0;
-  }
   Args args;
-  std::string error;
-  if (!ParseArgs(argc, argv, {"ascii", "help"}, &args, &error)) return Usage(error);
-  if (args.Has("help")) {
-    std::cout << kUsage;
-    return 0;
-  }
-  if (command == "cloud") return Cloud(args);
-  if (command == "camera") return Camera(args);
-  if (command == "colmap") return Colmap(args);
-  if (command == "trajectory") return TrajectoryCommand(args);
-  return Usage("unknown command '" + command + "'");
+  CLI::App app{"", "prism-convert"};
+  cli::Setup(&app, "converts clouds, cameras and trajectories between Prism's formats and others",
+             {"prism-convert cloud|camera|colmap|trajectory ...   ('prism-convert COMMAND --help': its options)"},
+             "Prints one JSON line on stdout; exits 2 on bad arguments, 1 on unreadable input or a failed write.");
+  app.require_subcommand(1);
+
+  CLI::App* cloud = app.add_subcommand("cloud", "a point cloud between PLY, PCD and Draco .drc, by extension");
+  cli::Setup(
+      cloud, cloud->get_description(), {"prism-convert cloud IN OUT [--ascii] [--draco-bits N]"},
+      "PLY is written binary; PCD binary or ASCII; Draco with quantised positions. Positions, normals, colours.");
+  cloud->add_option("IN", args.in, "the cloud to read (.ply, .pcd, .drc)")->type_name("")->required();
+  cloud->add_option("OUT", args.out, "the cloud to write (.ply, .pcd, .drc)")->type_name("")->required();
+  cloud->add_flag("--ascii", args.ascii, "PCD as ASCII");
+  cloud->add_option("--draco-bits", args.draco_bits, "Draco position bits (0 = lossless)")
+      ->type_name("N")
+      ->check(CLI::Range(0, 30));
+
+  CLI::App* camera = app.add_subcommand("camera", "camera intrinsics from another format into Prism's camera.yaml");
+  cli::Setup(camera, camera->get_description(), {"prism-convert camera IN --out FILE [--lights FILE]"},
+             "IN: an OpenCV calibration YAML, a ROS camera_info YAML, a DSO / LSD-SLAM camera.txt (RadTan or\n"
+             "Pinhole; relative values are scaled as DSO does) or a Prism camera.yaml. Lights and crosstalk come\n"
+             "from --lights (a camera.yaml) or else the default rig (red left, green right, blue above, 0.2 m\n"
+             "from the lens).");
+  camera->add_option("IN", args.in, "the camera file")->type_name("")->required();
+  camera->add_option("--out", args.out, "the camera.yaml to write")->type_name("FILE")->required();
+  camera->add_option("--lights", args.lights, "take the lights and crosstalk from this camera.yaml")->type_name("FILE");
+
+  CLI::App* colmap = app.add_subcommand("colmap", "a COLMAP text model of a trajectory's cameras (and a cloud)");
+  cli::Setup(colmap, colmap->get_description(),
+             {"prism-convert colmap --trajectory T --camera C --out DIR [--sequence S] [--map M] [options]"},
+             "Writes cameras.txt, images.txt and points3D.txt.");
+  colmap->add_option("--trajectory", args.trajectory, "the cameras: TUM, world_from_camera (e.g. trajectory.txt)")
+      ->type_name("T")
+      ->required();
+  colmap->add_option("--camera", args.camera, "their intrinsics (any camera file prism-convert camera reads)")
+      ->type_name("C")
+      ->required();
+  colmap->add_option("--out", args.out, "the model's folder")->type_name("DIR")->required();
+  colmap
+      ->add_option("--sequence", args.sequence,
+                   "name each image after the sequence's rgb file at that time (else <t>.png)")
+      ->type_name("S");
+  colmap->add_option("--map", args.map, "add the points of this cloud (.ply, .pcd, .drc)")->type_name("M");
+  colmap->add_option("--every", args.every, "keep every K-th pose (keyframe spacing)")
+      ->type_name("K")
+      ->check(CLI::Range(1, 1 << 30));
+  colmap->add_option("--max-points", args.max_points, "every n-th point of --map to stay under N")
+      ->type_name("N")
+      ->check(CLI::Range(0, 1 << 30));
+
+  CLI::App* trajectory = app.add_subcommand("trajectory", "a TUM or KITTI trajectory (auto-detected) as TUM");
+  cli::Setup(trajectory, trajectory->get_description(), {"prism-convert trajectory IN OUT"});
+  trajectory->add_option("IN", args.in, "TUM or KITTI trajectory")->type_name("")->required();
+  trajectory->add_option("OUT", args.out, "TUM trajectory to write")->type_name("")->required();
+
+  if (const int exit = cli::Parse(&app, argc, argv); exit != cli::kContinue) return exit;
+  if (cloud->parsed()) return Cloud(args);
+  if (camera->parsed()) return Camera(args);
+  if (colmap->parsed()) return Colmap(args);
+  return TrajectoryCommand(args);
 }

@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
 #include <iostream>
 #include <limits>
 #include <string>
@@ -17,26 +16,17 @@
 #include "core/geometry/rigid3.h"
 #include "core/io/ply_io.h"
 #include "core/io/trajectory_io.h"
+#include "tools/cli.h"
+#include "tools/json_output.h"
 
 namespace {
 
 using namespace prism;
 
-constexpr char kUsage[] = R"(usage: prism-preview --cloud FILE.ply --out FILE.png [options]
-
-Renders the cloud from a virtual camera looking at its centre (median point) from the given azimuth
-and elevation, at a distance that frames the central 98% of the points. Points are z-buffered
-splats; with normals they are shaded by a headlight (Lambert) tinted by their colour, else they show
-their colour.
-
-options:
-  --size WxH        picture size (default 800x800)
-  --azimuth DEG     camera azimuth about the cloud's flattest axis (its "up"), degrees (default 30)
-  --elevation DEG   camera elevation above the plane of its two main axes, degrees (default 25)
-  --splat PX        splat radius in pixels (default 1)
-  --trajectory FILE look from the camera pose in the middle of this TUM trajectory (same world frame
-                    as the cloud, e.g. prism-client's trajectory.txt), pulled back to frame the cloud
-)";
+constexpr char kNotes[] =
+    R"(The virtual camera looks at the cloud's centre (median point) from the given azimuth and elevation,
+at a distance that frames the central 98% of the points. Points are z-buffered splats; with normals
+they are shaded by a headlight (Lambert) tinted by their colour, else they show their colour.)";
 
 int Fail(const std::string& m) {
   std::cerr << "prism-preview: " << m << "\n";
@@ -53,33 +43,29 @@ double Quantile(std::vector<double> v, double q) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string cloud_path, out_path;
+  std::string cloud_path, out_path, trajectory_path, size = "800x800";
   int width = 800, height = 800, splat = 1;
   double azimuth = 30, elevation = 25;
-  std::string trajectory_path;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
-    }
-    if (i + 1 >= argc) return Fail("missing value for '" + a + "' (see --help)");
-    const std::string v = argv[++i];
-    if (a == "--cloud") cloud_path = v;
-    else if (a == "--out") out_path = v;
-    else if (a == "--trajectory") trajectory_path = v;
-    else if (a == "--size") {
-      if (std::sscanf(v.c_str(), "%dx%d", &width, &height) != 2 || width < 16 || height < 16 || width > 8192 ||
-          height > 8192)
-        return Fail("--size must be WxH with sides in [16, 8192]");
-    } else if (a == "--azimuth") azimuth = std::atof(v.c_str());
-    else if (a == "--elevation") elevation = std::atof(v.c_str());
-    else if (a == "--splat") {
-      splat = std::atoi(v.c_str());
-      if (splat < 0 || splat > 10) return Fail("--splat must be in [0, 10]");
-    } else return Fail("unknown argument '" + a + "' (see --help)");
-  }
-  if (cloud_path.empty() || out_path.empty()) return Fail("--cloud and --out are required (see --help)");
+  CLI::App app{"", "prism-preview"};
+  cli::Setup(&app, "renders a point cloud (PLY) to a PNG picture",
+             {"prism-preview --cloud FILE.ply --out FILE.png [options]"}, kNotes);
+  app.add_option("--cloud", cloud_path, "the cloud, PLY")->type_name("FILE")->required();
+  app.add_option("--out", out_path, "the picture, PNG")->type_name("FILE")->required();
+  app.add_option("--size", size, "picture size, sides in [16, 8192]")->type_name("WxH");
+  app.add_option("--azimuth", azimuth, "camera azimuth about the cloud's flattest axis (its \"up\"), degrees")
+      ->type_name("DEG");
+  app.add_option("--elevation", elevation, "camera elevation above the plane of its two main axes, degrees")
+      ->type_name("DEG");
+  app.add_option("--splat", splat, "splat radius, pixels, 0-10")->type_name("PX")->check(CLI::Range(0, 10));
+  app.add_option("--trajectory", trajectory_path,
+                 "look from the camera pose in the middle of this TUM trajectory (the\n"
+                 "cloud's world frame, e.g. prism-client's trajectory.txt), pulled back to\n"
+                 "frame the cloud")
+      ->type_name("FILE");
+  if (const int exit = cli::Parse(&app, argc, argv, /*usage_exit=*/1); exit != cli::kContinue) return exit;
+  if (std::sscanf(size.c_str(), "%dx%d", &width, &height) != 2 || width < 16 || height < 16 || width > 8192 ||
+      height > 8192)
+    return Fail("--size must be WxH with sides in [16, 8192]");
   StatusOr<PointCloud> cloud = ReadPointCloudPly(cloud_path);
   if (!cloud.ok()) return Fail(cloud.status().ToString());
   if (cloud->empty()) return Fail("'" + cloud_path + "' has no points");
@@ -157,6 +143,6 @@ int main(int argc, char** argv) {
     }
   }
   if (!cv::imwrite(out_path, image)) return Fail("cannot write '" + out_path + "'");
-  std::cout << "{\"points\": " << cloud->size() << ", \"out\": \"" << out_path << "\"}\n";
+  std::cout << JsonText(Json{{"points", cloud->size()}, {"out", out_path}});
   return 0;
 }
