@@ -11,7 +11,10 @@ namespace {
 // CLI11's layout with the tool's own first line and usage lines.
 class Formatter : public CLI::Formatter {
  public:
-  explicit Formatter(std::vector<std::string> usage) : usage_(std::move(usage)) { column_width(32); }
+  explicit Formatter(std::vector<std::string> usage) : usage_(std::move(usage)) {
+    column_width(32);
+    label("Positionals", "arguments");
+  }
 
   // " NAME=default": the value's name without CLI11's validator descriptions (the help text states ranges).
   std::string make_option_opts(const CLI::Option* opt) const override {
@@ -27,7 +30,7 @@ class Formatter : public CLI::Formatter {
     if (mode == CLI::AppFormatMode::Sub) return CLI::Formatter::make_help(app, name, mode);
     std::ostringstream out;
     out << name << ": " << app->get_description() << "\n\n";
-    for (size_t i = 0; i < usage_.size(); ++i) out << (i == 0 ? "Usage: " : "       ") << usage_[i] << "\n";
+    for (size_t i = 0; i < usage_.size(); ++i) out << (i == 0 ? "usage: " : "       ") << usage_[i] << "\n";
     out << make_positionals(app) << make_groups(app, mode) << make_subcommands(app, mode);
     const std::string footer = app->get_footer();
     if (!footer.empty()) out << "\n" << footer << "\n";
@@ -53,6 +56,8 @@ void Setup(CLI::App* app, const std::string& purpose, const std::vector<std::str
   app->description(purpose);
   app->footer(notes);
   app->formatter(std::make_shared<Formatter>(usage));
+  if (app->get_parent() != nullptr) app->group("commands");
+  app->option_defaults()->group("options");
   app->set_help_flag("-h,--help", "print this help and exit");
   app->option_defaults()->always_capture_default();
 }

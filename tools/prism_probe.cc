@@ -4,14 +4,10 @@
 // clients use it. Prints the body on stdout; exits 0 on a 2xx status, 1 on
 // another status, 2 on a bad argument or when the server cannot be reached in
 // time.
-#include <algorithm>
-#include <cerrno>
-#include <chrono>
-#include <cstdlib>
-#include <cstring>
 #include <iostream>
 #include <string>
 
+#include "tools/cli.h"
 #include "tools/http_get.h"
 
 namespace {
@@ -26,25 +22,16 @@ int Fail(const std::string &message) {
 int main(int argc, char **argv) {
   int timeout_ms = 3000;
   std::string url;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--help" || a == "-h") {
-      std::cout << "usage: prism-probe [--timeout-ms MS] http://HOST:PORT/PATH\n\n"
-                   "GETs the URL (HTTP/1.0), prints the body; exit 0 on 2xx, 1 on "
-                   "another status, 2 when\n"
-                   "unreachable within the timeout (default 3000 ms). E.g. "
-                   "prism-probe http://127.0.0.1:9100/healthz\n";
-      return 0;
-    }
-    if (a == "--timeout-ms" && i + 1 < argc) {
-      timeout_ms = std::atoi(argv[++i]);
-      if (timeout_ms <= 0) return Fail("--timeout-ms must be > 0");
-    } else if (url.empty() && a.rfind("--", 0) != 0) {
-      url = a;
-    } else {
-      return Fail("unknown argument '" + a + "' (see --help)");
-    }
-  }
+  CLI::App app{"", "prism-probe"};
+  prism::cli::Setup(&app, "one HTTP GET, e.g. against prism-server's /healthz, /allocate or /metrics",
+                    {"prism-probe [--timeout-ms MS] http://HOST:PORT/PATH"},
+                    "Prints the body; exit 0 on a 2xx status, 1 on another status, 2 when unreachable within the\n"
+                    "timeout or on a bad argument. E.g. prism-probe http://127.0.0.1:9100/healthz");
+  app.add_option("URL", url, "http://HOST:PORT/PATH")->type_name("")->required();
+  app.add_option("--timeout-ms", timeout_ms, "give up after this long, ms")
+      ->type_name("MS")
+      ->check(CLI::PositiveNumber);
+  if (const int exit = prism::cli::Parse(&app, argc, argv); exit != prism::cli::kContinue) return exit;
   if (url.rfind("http://", 0) != 0) return Fail("expected an http://HOST:PORT/PATH URL, got '" + url + "'");
   const prism::HttpResponse r = prism::FetchHttp(url, timeout_ms);
   if (r.status < 0) return Fail(r.error);
