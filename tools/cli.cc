@@ -22,7 +22,8 @@ class Formatter : public CLI::Formatter {
     std::string type = opt->get_type_name();
     type = type.substr(0, type.find(':'));
     std::string out = type.empty() ? "" : " " + type;
-    if (!opt->get_default_str().empty()) out += "=" + opt->get_default_str();
+    const std::string& default_value = opt->get_default_str();
+    if (!default_value.empty() && default_value != "[]") out += "=" + default_value;
     return out;
   }
 

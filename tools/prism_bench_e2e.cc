@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -26,7 +27,9 @@
 #include "core/synth/trajectory.h"
 #include "core/util/thread_pool.h"
 #include "prism/client/client.h"
+#include "tools/cli.h"
 #include "tools/client_rig.h"
+#include "tools/json_output.h"
 
 extern char** environ;
 
@@ -34,28 +37,24 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-constexpr char kUsage[] =
-    R"(usage: prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F] [--live]
-                       [--server-option KEY=VALUE ...]
-
-Starts prism-server (from this binary's folder) on 127.0.0.1 with a free port (input policy upload,
-so no frame is dropped unless --live), renders the preset (default bunny-multicolor-forward, 150 frames, 512x512)
-in memory and streams it through libprism_client once per codec, as fast as the server's frame
-credits allow. Prints one JSON object:
-With --fps F the frames are pushed at F frames/s (a live camera) instead of as fast as possible.
-With --live the sessions are opened as a live camera's (SessionOptions::live: a full frame queue drops
-its oldest frame instead of refusing the new one, frames_dropped counts them, and the server's
+constexpr char kNotes[] =
+    R"(prism-server runs on 127.0.0.1 with a free port (input policy upload, so no frame is dropped unless
+--live); the preset is rendered in memory (512x512) and streamed through libprism_client once per codec,
+as fast as the server's frame credits allow (or at --fps). --live opens the sessions as a live camera's
+(a full frame queue drops its oldest frame, frames_dropped counts them, and the server's
 skip-depth-update-backlog-live applies; the SDK still waits for a frame credit before each push).
---server-option KEY=VALUE (repeatable) passes --KEY VALUE to prism-server.
-  per codec: frames_per_s (frames sent / time until the last pose), map_frames_per_s (frames sent /
-  time until the session summary, i.e. every keyframe's chunks delivered), map_done_after_last_pose_s,
-  frame_to_pose_ms p50/p95 (frame
-  sent -> its pose received), keyframe_to_chunk_ms p50/p95 (the pose of the frame that became
-  keyframe k + 1, which finishes keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point,
-  chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
-  ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
-  against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped.
-)";
+
+Prints one JSON object, per codec: frames_per_s (frames sent / time until the last pose),
+map_frames_per_s (frames sent / time until the session summary, i.e. every keyframe's chunks
+delivered), map_done_after_last_pose_s, frame_to_pose_ms p50/p95 (frame sent -> its pose received),
+keyframe_to_chunk_ms p50/p95 (the pose of the frame that became keyframe k + 1, which finishes
+keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point, chunks,
+keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
+ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
+against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped.)";
+
+// Two decimals are all a timing or a size here is worth.
+double Round2(double v) { return std::round(v * 100) / 100; }
 
 int Fail(const std::string& m) {
   std::cerr << "prism-bench-e2e: " << m << "\n";
@@ -84,32 +83,33 @@ int main(int argc, char** argv) {
   int frames = 150;
   double fps = 0;
   bool live = false;
-  std::vector<std::string> server_options;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
-    }
-    if (a == "--live") {
-      live = true;
-      continue;
-    }
-    if (i + 1 >= argc) return Fail("missing value for '" + a + "' (see --help)");
-    const std::string v = argv[++i];
-    if (a == "--preset") preset = v;
-    else if (a == "--frames") frames = std::atoi(v.c_str());
-    else if (a == "--codecs") codecs = v;
-    else if (a == "--fps") fps = std::atof(v.c_str());
-    else if (a == "--server-option") {
-      const size_t eq = v.find('=');
-      if (eq == std::string::npos || eq == 0) return Fail("--server-option wants KEY=VALUE, got '" + v + "'");
-      server_options.push_back("--" + v.substr(0, eq));
-      server_options.push_back(v.substr(eq + 1));
-    } else return Fail("unknown argument '" + a + "' (see --help)");
+  std::vector<std::string> server_option_pairs, server_options;
+  CLI::App app{"", "prism-bench-e2e"};
+  prism::cli::Setup(&app, "the networked system end to end: prism-server and the SDK streaming a rendered preset",
+                    {"prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F] [--live]",
+                     "                [--server-option KEY=VALUE ...]"},
+                    kNotes);
+  app.add_option("--preset", preset, "the scene (prism-synth --list-presets)")->type_name("NAME");
+  app.add_option("--frames", frames, "frames rendered and streamed, >= 20")
+      ->type_name("N")
+      ->check(CLI::Range(20, 1 << 20));
+  app.add_option("--codecs", codecs, "the codecs, one session each, comma-separated")->type_name("LIST");
+  app.add_option("--fps", fps, "push at F frames/s as a live camera (0 = as fast as credits allow)")
+      ->type_name("F")
+      ->check(CLI::NonNegativeNumber);
+  app.add_flag("--live", live, "open the sessions as a live camera's");
+  app.add_option("--server-option", server_option_pairs, "passed to prism-server as --KEY VALUE (repeatable)")
+      ->type_name("KEY=VALUE")
+      ->expected(1)
+      ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
+  if (const int exit = prism::cli::Parse(&app, argc, argv, /*usage_exit=*/1); exit != prism::cli::kContinue)
+    return exit;
+  for (const std::string& v : server_option_pairs) {
+    const size_t eq = v.find('=');
+    if (eq == std::string::npos || eq == 0) return Fail("--server-option wants KEY=VALUE, got '" + v + "'");
+    server_options.push_back("--" + v.substr(0, eq));
+    server_options.push_back(v.substr(eq + 1));
   }
-  if (frames < 20) return Fail("--frames must be >= 20");
-  if (!(fps >= 0)) return Fail("--fps must be >= 0");
 
   // Render.
   prism::synth::PresetOptions po;
@@ -178,17 +178,18 @@ int main(int argc, char** argv) {
     return Fail("prism-server did not report its endpoint (see " + err_file + ")");
   }
 
-  std::ostringstream json;
-  json.setf(std::ios::fixed);
-  json.precision(2);
-  json << "{\n  \"preset\": \"" << preset << "\",\n  \"frames\": " << frames << ",\n  \"push_fps\": " << fps
-       << ",\n  \"live\": " << (live ? "true" : "false") << ",\n  \"size\": \"" << setup->rig.camera.width << "x"
-       << setup->rig.camera.height << "\",\n  \"hardware_threads\": " << std::thread::hardware_concurrency()
-       << ",\n  \"server_rss_mb_idle\": " << ProcStatusMb(pid, "VmRSS") << ",\n  \"codecs\": {";
+  prism::Json json;
+  json["preset"] = preset;
+  json["frames"] = frames;
+  json["push_fps"] = Round2(fps);
+  json["live"] = live;
+  json["size"] = std::to_string(setup->rig.camera.width) + "x" + std::to_string(setup->rig.camera.height);
+  json["hardware_threads"] = std::thread::hardware_concurrency();
+  json["server_rss_mb_idle"] = Round2(ProcStatusMb(pid, "VmRSS"));
+  json["codecs"] = prism::Json::object();
   const prism::client::Rig rig = prism::ToClientRig(setup->rig);
   std::stringstream codec_list(codecs);
   std::string codec_name;
-  bool first = true;
   while (std::getline(codec_list, codec_name, ',')) {
     prism::client::SessionOptions so;
     if (codec_name == "png") so.codec = prism::client::Codec::kPng;
@@ -287,26 +288,28 @@ int main(int argc, char** argv) {
       if (auto next = keyframe_pose_time.find(kf + 1); next != keyframe_pose_time.end())
         kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - next->second).count());
     }
-    json << (first ? "" : ",") << "\n    \"" << codec_name
-         << "\": {\"frames_per_s\": " << frames / std::max(1e-9, seconds)
-         << ", \"map_frames_per_s\": " << frames / std::max(1e-9, map_seconds)
-         << ", \"map_done_after_last_pose_s\": " << map_seconds - seconds << ", \"poses\": " << frame_to_pose.size()
-         << ", \"frame_to_pose_ms_p50\": " << Percentile(frame_to_pose, 0.5)
-         << ", \"frame_to_pose_ms_p95\": " << Percentile(frame_to_pose, 0.95)
-         << ", \"keyframe_to_chunk_ms_p50\": " << Percentile(kf_to_chunk, 0.5)
-         << ", \"keyframe_to_chunk_ms_p95\": " << Percentile(kf_to_chunk, 0.95)
-         << ", \"uplink_bytes_per_frame\": " << static_cast<double>(session->bytes_sent()) / frames
-         << ", \"chunks\": " << chunks
-         << ", \"chunk_bits_per_point\": " << (chunk_points ? 8.0 * chunk_bytes / chunk_points : -1)
-         << ", \"keyframes\": " << summary.keyframes << ", \"keyframes_dropped\": " << summary.keyframes_dropped
-         << ", \"keyframes_failed\": " << summary.keyframes_failed
-         << ", \"frames_depth_update_skipped\": " << summary.frames_depth_update_skipped
-         << ", \"frames_dropped\": " << summary.frames_dropped << ", \"ate_percent_of_path\": " << ate_percent
-         << ", \"server_rss_mb_after\": " << ProcStatusMb(pid, "VmRSS") << "}";
-    first = false;
+    json["codecs"][codec_name] = {
+        {"frames_per_s", Round2(frames / std::max(1e-9, seconds))},
+        {"map_frames_per_s", Round2(frames / std::max(1e-9, map_seconds))},
+        {"map_done_after_last_pose_s", Round2(map_seconds - seconds)},
+        {"poses", frame_to_pose.size()},
+        {"frame_to_pose_ms_p50", Round2(Percentile(frame_to_pose, 0.5))},
+        {"frame_to_pose_ms_p95", Round2(Percentile(frame_to_pose, 0.95))},
+        {"keyframe_to_chunk_ms_p50", Round2(Percentile(kf_to_chunk, 0.5))},
+        {"keyframe_to_chunk_ms_p95", Round2(Percentile(kf_to_chunk, 0.95))},
+        {"uplink_bytes_per_frame", Round2(static_cast<double>(session->bytes_sent()) / frames)},
+        {"chunks", chunks},
+        {"chunk_bits_per_point", Round2(chunk_points ? 8.0 * chunk_bytes / chunk_points : -1)},
+        {"keyframes", summary.keyframes},
+        {"keyframes_dropped", summary.keyframes_dropped},
+        {"keyframes_failed", summary.keyframes_failed},
+        {"frames_depth_update_skipped", summary.frames_depth_update_skipped},
+        {"frames_dropped", summary.frames_dropped},
+        {"ate_percent_of_path", Round2(ate_percent)},
+        {"server_rss_mb_after", Round2(ProcStatusMb(pid, "VmRSS"))}};
   }
-  json << "\n  },\n  \"server_peak_rss_mb\": " << ProcStatusMb(pid, "VmHWM") << "\n}\n";
+  json["server_peak_rss_mb"] = Round2(ProcStatusMb(pid, "VmHWM"));
   stop_server();
-  std::cout << json.str();
+  std::cout << prism::JsonText(json, 2);
   return 0;
 }
