@@ -16,7 +16,8 @@ class Formatter : public CLI::Formatter {
     label("Positionals", "arguments");
   }
 
-  // " NAME=default": the value's name without CLI11's validator descriptions (the help text states ranges).
+  // " NAME=default": the value's name without CLI11's validator descriptions, which it appends after a
+  // ':' (the help text states ranges; value names hold no ':').
   std::string make_option_opts(const CLI::Option* opt) const override {
     if (opt->get_type_size() == 0) return "";
     std::string type = opt->get_type_name();

@@ -1,9 +1,5 @@
-// prism-client: streams a sequence or a live source to prism-server and writes what comes back.
-//   prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [--realtime] [--codec png|jpeg|raw]
-//   prism-client stream --server tcp://HOST:PORT --source SRC --camera camera.yaml --out DIR [--record DIR]
-//   prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR
-//   prism-client view DIR [--view HOST:PORT]
-// Any stream or fetch serves the live 3D view with --view HOST:PORT.
+// prism-client: streams a sequence or a live source to prism-server and writes what comes back
+// (subcommands stream, fetch, view). Any stream or fetch serves the live 3D view with --view HOST:PORT.
 #include <prism/client/client.h>
 #include <signal.h>
 #include <unistd.h>
@@ -23,6 +19,7 @@
 #include "core/io/sequence.h"
 #include "tools/capture/live_stream.h"
 #include "tools/capture/video_source.h"
+#include "tools/cli.h"
 #include "tools/client/client_output.h"
 #include "tools/client/folder_view.h"
 #include "tools/client_rig.h"
@@ -33,65 +30,37 @@ namespace {
 namespace pc = prism::client;
 namespace fs = std::filesystem;
 
-constexpr char kUsage[] = R"(usage: prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [options]
-       prism-client stream --server tcp://HOST:PORT --source SRC --camera FILE --out DIR [options]
-       prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR [options]
-       prism-client view DIR [--view HOST:PORT]
+constexpr char kStreamNotes[] =
+    R"(--sequence sends the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth
+output); --source captures them live from SRC, anything OpenCV's VideoCapture opens: a V4L2 device
+(/dev/video0, or its index 0), a video file, a GStreamer pipeline ending in appsink, an RTSP URL.
+A video file is read as fast as the server takes its frames (nothing lost; time stamps are the file's
+own, frame index / frame rate) unless --realtime; a live source is time-stamped at capture (steady
+clock) and a frame captured while the server has no room for it is dropped (the newest frame wins).
+Photometric stereo reads the lights from the colours: docs/rig.md says why exposure and white balance
+must not change during a run; where the driver refuses to lock them, a warning says so.
 
-stream --sequence sends the colour frames of a sequence (TUM layout with camera.yaml, e.g. prism-synth
-output); stream --source captures them live from SRC, anything OpenCV's VideoCapture opens: a V4L2
-device (/dev/video0, or its index 0), a video file, a GStreamer pipeline ending in appsink, an RTSP URL.
-Both write to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera, metres once
-the server has estimated the scale; tracked frames only, as prism-slam), tracking.txt (how each frame
+A frame of the sequence that cannot be read or decoded is not sent (a warning names it; counted in
+summary.json's frames_unreadable); one the server refuses (e.g. of the wrong size) is counted in
+"errors". Either way the session goes on. Ctrl-C (SIGINT) or SIGTERM stops sending and closes the
+session normally.
+
+Writes to DIR: trajectory.txt (TUM: timestamp tx ty tz qx qy qz qw, world_from_camera, metres once the
+server has estimated the scale; tracked frames only, as prism-slam), tracking.txt (how each frame
 aligned against its keyframe, as prism-slam writes it), map.ply (the running map: positions, normals,
 colours; at the end the server rebuilds it at the final keyframe poses and sends it as one chunk that
 replaces the map, "map_replaced" in the summary), chunks/<sequence>.drc (the Draco map chunks as
 received; Debian's draco_decoder reads them), chunks.json (each chunk's points and whether it replaced
-the map) and summary.json (also printed). Progress goes to stderr. DIR/session.json (written as soon
-as the session is open) holds the session id and resume token: if the connection drops the client
-resumes by itself (every missed chunk is resent); `fetch` gets the persisted results of an ended or
-interrupted session later, into the same files. `view DIR` shows such a folder in the browser.
+the map) and summary.json (also printed). Progress goes to stderr. DIR/session.json (written as soon as
+the session is open) holds the session id and resume token: if the connection drops the client resumes
+by itself (every missed chunk is resent).
+
 Exit 0 = finished, 3 = the session was interrupted on the server (its persisted results are written),
-1 = failure. Ctrl-C (SIGINT) or SIGTERM during a stream stops sending and closes the session normally.
+1 = failure.)";
 
-options:
-  --realtime            send at the sequence's (or video file's) frame rate as a live camera: frames
-                        the server has no room for are skipped here (counted in frames_skipped)
-  --codec C             png (lossless; default for --sequence), jpeg (4:4:4; default for --source) or raw
-  --jpeg-quality Q      1..100 (default 95)
-  --max-frames N        stop after N frames
-  A frame of the sequence that cannot be read or decoded is not sent (a warning names it; counted in
-  summary.json's frames_unreadable); one the server refuses (e.g. of the wrong size) is counted in
-  "errors". Either way the session goes on.
-  --timeout-ms MS       wait for the server this long (open, credits; default 20000)
-  --close-timeout-ms MS wait this long for the last keyframes after the stream (default 300000)
-  --reconnect-timeout-ms MS  keep trying to resume a lost connection this long (default 60000; 0 = off)
-  --server-key KEY      the server's CURVE public key (Z85); enables CURVE
-  --client-keys FILE    this client's CURVE key pair (a file from `prism-server keygen`)
-  --help                this text
-
-live capture (--source):
-  --camera FILE         the rig calibration (camera.yaml) of the camera at the size it captures (required)
-  --exposure V          set and lock the exposure (driver units; V4L2: 100 us)
-  --lock-exposure       lock the exposure where it is now
-  --white-balance K     set and lock the white balance, kelvin
-  --lock-white-balance  lock the white balance where it is now
-                        (photometric stereo reads the lights from the colours: docs/rig.md says why
-                        exposure and white balance must not change during a run; where the driver
-                        refuses, a warning says so)
-  --record DIR          also write the captured frames as a sequence folder (rgb.txt, rgb/, camera.yaml)
-                        that `stream --sequence DIR` replays
-  A video file is read as fast as the server takes its frames (nothing lost; time stamps are the file's
-  own, frame index / frame rate) unless --realtime; a live source is time-stamped at capture (steady
-  clock) and a frame captured while the server has no room for it is dropped (the newest frame wins).
-
-live 3D view:
-  --view HOST:PORT      serve the view at http://HOST:PORT/ (port 0 = a free one; the URL is printed):
-                        the map growing chunk by chunk, the camera's path and frustum, the session's
-                        state, frames/s and points. Bind 127.0.0.1 unless others should see it.
-  --view-wait S         before streaming, wait up to S seconds for a browser to open the view
-  --view-linger S       after the session ends, keep serving the view S seconds (or until Ctrl-C)
-)";
+constexpr char kFetchNotes[] =
+    R"(The persisted results of an ended or interrupted session, into the files `stream` writes. Exit 0 =
+finished, 3 = the session was interrupted on the server, 1 = failure.)";
 
 std::atomic<bool> g_stop{false};
 std::atomic<prism::LiveStream*> g_live{nullptr};
@@ -109,73 +78,133 @@ int Fail(const std::string& m) {
 struct Args {
   std::string command, server, sequence_dir, source, camera, record_dir, out_dir, fetch_id, fetch_token, client_keys;
   std::string view_address, view_dir;
-  bool realtime = false, codec_given = false;
+  std::string codec;  // as given; empty = the default (PNG for a sequence, JPEG for a live source)
+  bool realtime = false;
   prism::VideoSourceOptions capture;
   pc::SessionOptions options;
   int max_frames = 1 << 30, close_timeout_ms = 300000, view_linger_s = 0, view_wait_s = 0;
 };
 
-// Parses argv into args; "" or the error.
-std::string Parse(int argc, char** argv, Args* args) {
-  args->command = argc >= 2 ? argv[1] : "";
-  if (args->command != "stream" && args->command != "fetch" && args->command != "view")
-    return "expected the 'stream', 'fetch' or 'view' command (see --help)";
+// The options `stream` and `fetch` share: the server, the output folder, the waits, CURVE and the view.
+void AddSessionOptions(CLI::App* sub, Args* args) {
+  pc::SessionOptions& o = args->options;
+  sub->add_option("--server", args->server, "prism-server's endpoint, tcp://HOST:PORT")
+      ->type_name("ENDPOINT")
+      ->required();
+  sub->add_option("--out", args->out_dir, "output folder (created)")->type_name("DIR")->required();
+  sub->add_option("--timeout-ms", o.timeout_ms, "wait for the server this long (open, credits)")
+      ->type_name("MS")
+      ->check(CLI::PositiveNumber);
+  sub->add_option("--close-timeout-ms", args->close_timeout_ms, "wait this long for the last keyframes at the end")
+      ->type_name("MS")
+      ->check(CLI::PositiveNumber);
+  sub->add_option("--reconnect-timeout-ms", o.reconnect_timeout_ms,
+                  "keep trying to resume a lost connection this long (0 = off)")
+      ->type_name("MS")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--server-key", o.server_public_key, "the server's CURVE public key (Z85); enables CURVE")
+      ->type_name("KEY");
+  sub->add_option("--client-keys", args->client_keys, "this client's CURVE key pair (from `prism-server keygen`)")
+      ->type_name("FILE");
+  sub->add_option("--view", args->view_address,
+                  "serve the live 3D view at http://ADDR/ (ADDR is HOST:PORT; port 0 = a free\n"
+                  "one; the URL is printed): the map chunk by chunk, the camera's path and\n"
+                  "frustum, the session's state. Bind 127.0.0.1 unless others should see it.")
+      ->type_name("ADDR");
+  sub->add_option("--view-wait", args->view_wait_s, "before streaming, wait up to S seconds for a browser")
+      ->type_name("S")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--view-linger", args->view_linger_s, "after the session ends, serve the view S more seconds")
+      ->type_name("S")
+      ->check(CLI::NonNegativeNumber);
+}
+
+// Parses argv into args: cli::kContinue, or the exit status.
+int Parse(int argc, char** argv, Args* args) {
   args->options.timeout_ms = 20000;
-  for (int i = 2; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--realtime") args->realtime = true;
-    else if (a == "--lock-exposure") args->capture.lock_exposure = true;
-    else if (a == "--lock-white-balance") args->capture.lock_white_balance = true;
-    else if (args->command == "view" && a.rfind("--", 0) != 0 && args->view_dir.empty()) args->view_dir = a;
-    else if (i + 1 >= argc) return "unknown argument or missing value: '" + a + "' (see --help)";
-    else {
-      const std::string v = argv[++i];
-      char* end = nullptr;
-      const long n = std::strtol(v.c_str(), &end, 10);
-      const bool is_int = !v.empty() && *end == '\0';
-      const double x = std::strtod(v.c_str(), &end);
-      const bool is_number = !v.empty() && *end == '\0' && std::isfinite(x);
-      pc::SessionOptions& o = args->options;
-      if (a == "--server") args->server = v;
-      else if (a == "--sequence") args->sequence_dir = v;
-      else if (a == "--source") args->source = v;
-      else if (a == "--camera") args->camera = v;
-      else if (a == "--record") args->record_dir = v;
-      else if (a == "--out") args->out_dir = v;
-      else if (a == "--view") args->view_address = v;
-      else if (a == "--view-linger" && is_int && n >= 0) args->view_linger_s = static_cast<int>(n);
-      else if (a == "--view-wait" && is_int && n >= 0) args->view_wait_s = static_cast<int>(n);
-      else if (a == "--exposure" && is_number) args->capture.exposure = x;
-      else if (a == "--white-balance" && is_number) args->capture.white_balance_k = x;
-      else if (a == "--codec" && v == "png") o.codec = pc::Codec::kPng, args->codec_given = true;
-      else if (a == "--codec" && (v == "jpeg" || v == "jpg")) o.codec = pc::Codec::kJpeg, args->codec_given = true;
-      else if (a == "--codec" && v == "raw") o.codec = pc::Codec::kRaw, args->codec_given = true;
-      else if (a == "--jpeg-quality" && is_int && n >= 1 && n <= 100) o.jpeg_quality = static_cast<int>(n);
-      else if (a == "--max-frames" && is_int && n >= 1) args->max_frames = static_cast<int>(n);
-      else if (a == "--timeout-ms" && is_int && n >= 1) o.timeout_ms = static_cast<int>(n);
-      else if (a == "--close-timeout-ms" && is_int && n >= 1) args->close_timeout_ms = static_cast<int>(n);
-      else if (a == "--reconnect-timeout-ms" && is_int && n >= 0) o.reconnect_timeout_ms = static_cast<int>(n);
-      else if (a == "--session") args->fetch_id = v;
-      else if (a == "--token") args->fetch_token = v;
-      else if (a == "--server-key") o.server_public_key = v;
-      else if (a == "--client-keys") args->client_keys = v;
-      else return "unknown argument or bad value: '" + a + " " + v + "' (see --help)";
-    }
+  CLI::App app{"", "prism-client"};
+  prism::cli::Setup(&app, "streams a sequence or a live camera to prism-server and writes what comes back",
+                    {"prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [options]",
+                     "prism-client stream --server tcp://HOST:PORT --source SRC --camera FILE --out DIR [options]",
+                     "prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR [options]",
+                     "prism-client view DIR [--view HOST:PORT]"},
+                    "'prism-client COMMAND --help' lists its options.");
+  app.require_subcommand(1);
+
+  CLI::App* stream = app.add_subcommand("stream", "stream a sequence folder or a live source to a session");
+  prism::cli::Setup(stream, stream->get_description(),
+                    {"prism-client stream --server tcp://HOST:PORT --sequence DIR --out DIR [options]",
+                     "prism-client stream --server tcp://HOST:PORT --source SRC --camera FILE --out DIR [options]"},
+                    kStreamNotes);
+  AddSessionOptions(stream, args);
+  pc::SessionOptions& o = args->options;
+  stream->add_option("--sequence", args->sequence_dir, "the sequence folder to send")->type_name("DIR");
+  stream->add_option("--source", args->source, "capture live from SRC (a device, file, pipeline or URL)")
+      ->type_name("SRC");
+  stream->add_flag("--realtime", args->realtime,
+                   "send at the sequence's (or video file's) frame rate as a live camera:\n"
+                   "frames the server has no room for are skipped (frames_skipped)");
+  stream
+      ->add_option("--codec", args->codec,
+                   "png (lossless; default for --sequence), jpeg (4:4:4; default for --source)\nor raw")
+      ->type_name("C")
+      ->check(CLI::IsMember({"png", "jpeg", "jpg", "raw"}));
+  stream->add_option("--jpeg-quality", o.jpeg_quality, "1-100")->type_name("Q")->check(CLI::Range(1, 100));
+  stream->add_option("--max-frames", args->max_frames, "stop after N frames (default: all)")
+      ->type_name("N")
+      ->default_str("")
+      ->check(CLI::PositiveNumber);
+  stream->add_option("--camera", args->camera, "--source: the rig calibration (camera.yaml) at the capture size")
+      ->type_name("FILE");
+  stream->add_option("--exposure", args->capture.exposure, "--source: set and lock the exposure (V4L2: 100 us units)")
+      ->type_name("V")
+      ->default_str("");
+  stream->add_flag("--lock-exposure", args->capture.lock_exposure, "--source: lock the exposure where it is now");
+  stream->add_option("--white-balance", args->capture.white_balance_k, "--source: set and lock the white balance, K")
+      ->type_name("K")
+      ->default_str("");
+  stream->add_flag("--lock-white-balance", args->capture.lock_white_balance,
+                   "--source: lock the white balance where it is now");
+  stream
+      ->add_option("--record", args->record_dir,
+                   "--source: also write the captured frames as a sequence folder (rgb.txt,\n"
+                   "rgb/, camera.yaml) that `stream --sequence DIR` replays")
+      ->type_name("DIR");
+
+  CLI::App* fetch = app.add_subcommand("fetch", "get the persisted results of an ended or interrupted session");
+  prism::cli::Setup(fetch, fetch->get_description(),
+                    {"prism-client fetch --server tcp://HOST:PORT --session ID --token TOKEN --out DIR [options]"},
+                    kFetchNotes);
+  AddSessionOptions(fetch, args);
+  fetch->add_option("--session", args->fetch_id, "the session id (DIR/session.json of the stream)")
+      ->type_name("ID")
+      ->required();
+  fetch->add_option("--token", args->fetch_token, "its resume token (same file)")->type_name("TOKEN")->required();
+
+  CLI::App* view = app.add_subcommand("view", "show a finished session's folder in the browser");
+  prism::cli::Setup(view, view->get_description(), {"prism-client view DIR [--view HOST:PORT]"},
+                    "DIR is what `stream` or `fetch` wrote. The URL is printed; Ctrl-C ends it.");
+  view->add_option("DIR", args->view_dir, "the folder")->type_name("")->required();
+  view->add_option("--view", args->view_address, "serve it at http://ADDR/ (HOST:PORT; port 0 = a free one)")
+      ->type_name("ADDR")
+      ->default_str("127.0.0.1:0");
+
+  if (const int exit = prism::cli::Parse(&app, argc, argv, /*usage_exit=*/1); exit != prism::cli::kContinue)
+    return exit;
+  args->command = stream->parsed() ? "stream" : fetch->parsed() ? "fetch" : "view";
+  if (!args->codec.empty()) {
+    o.codec = args->codec == "raw" ? pc::Codec::kRaw : args->codec == "png" ? pc::Codec::kPng : pc::Codec::kJpeg;
   }
-  if (args->command == "view") return args->view_dir.empty() ? "view needs a folder (see --help)" : "";
-  if (args->command == "fetch") {
-    if (args->server.empty() || args->fetch_id.empty() || args->fetch_token.empty() || args->out_dir.empty())
-      return "fetch needs --server, --session, --token and --out (see --help)";
-    return "";
+  std::string error;
+  if (args->command == "stream") {
+    if (args->sequence_dir.empty() == args->source.empty())
+      error = "stream needs either --sequence DIR or --source SRC (see --help)";
+    else if (!args->source.empty() && args->camera.empty())
+      error = "--source needs --camera FILE, the rig calibration (camera.yaml) of the camera at its capture size";
+    else if (args->source.empty() && (!args->camera.empty() || !args->record_dir.empty()))
+      error = "--camera and --record go with --source (a --sequence brings its own camera.yaml)";
   }
-  if (args->server.empty() || args->out_dir.empty()) return "--server and --out are required (see --help)";
-  if (args->sequence_dir.empty() == args->source.empty())
-    return "stream needs either --sequence DIR or --source SRC (see --help)";
-  if (!args->source.empty() && args->camera.empty())
-    return "--source needs --camera FILE, the rig calibration (camera.yaml) of the camera at its capture size";
-  if (args->source.empty() && (!args->camera.empty() || !args->record_dir.empty()))
-    return "--camera and --record go with --source (a --sequence brings its own camera.yaml)";
-  return "";
+  return error.empty() ? prism::cli::kContinue : Fail(error);
 }
 
 // "public = KEY" and "secret = KEY" lines (prism-server keygen's format).
@@ -411,7 +440,7 @@ int Run(Args& args) {
   if (!args.client_keys.empty())
     if (std::string e = ReadClientKeys(args.client_keys, &args.options); !e.empty()) return Fail(e);
   const bool live = !args.source.empty();
-  if (live && !args.codec_given) args.options.codec = pc::Codec::kJpeg;  // JPEG 4:4:4 for live capture
+  if (live && args.codec.empty()) args.options.codec = pc::Codec::kJpeg;  // JPEG 4:4:4 for live capture
   args.options.client_name = "prism-client";
 
   // The rig: the sequence's camera.yaml, or --camera for a live source.
@@ -542,17 +571,8 @@ int Run(Args& args) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  if (argc >= 2 && (std::string(argv[1]) == "--help" || std::string(argv[1]) == "-h")) {
-    std::cout << kUsage;
-    return 0;
-  }
-  for (int i = 2; i < argc; ++i)
-    if (std::string(argv[i]) == "--help" || std::string(argv[i]) == "-h") {
-      std::cout << kUsage;
-      return 0;
-    }
   Args args;
-  if (std::string e = Parse(argc, argv, &args); !e.empty()) return Fail(e);
+  if (const int exit = Parse(argc, argv, &args); exit != prism::cli::kContinue) return exit;
   if (args.command == "view") {
     signal(SIGINT, OnSignal);
     signal(SIGTERM, OnSignal);
