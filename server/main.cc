@@ -1,4 +1,4 @@
-// prism-server --bind tcp://127.0.0.1:5555 --data-dir DIR [--config FILE] [--key value ...]
+// prism-server --bind tcp://127.0.0.1:5555 --data-dir DIR [--config FILE] [--KEY VALUE ...]; prism-server keygen.
 // Prints one JSON line on stdout once listening: {"endpoint": "...", "metrics": "..."}.
 #include <sys/resource.h>
 #if defined(__GLIBC__)
@@ -8,7 +8,9 @@
 #include <csignal>
 #include <cstdio>
 #include <iostream>
+#include <map>
 #include <string>
+#include <vector>
 
 #include "core/slam/slam_config.h"
 #include "core/util/log_level.h"
@@ -16,6 +18,7 @@
 #include "server/curve.h"
 #include "server/server.h"
 #include "server/server_options.h"
+#include "tools/cli.h"
 
 namespace {
 
@@ -30,17 +33,9 @@ int Fail(const std::string& m) {
   return 2;
 }
 
-}  // namespace
-
-// prism-server keygen [--out FILE]: a CURVE key pair. With --out, FILE (mode 0600) gets both keys and
-// the public key is printed; without, both are printed in the key-file format.
-int Keygen(int argc, char** argv) {
-  std::string out;
-  for (int i = 2; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--out" && i + 1 < argc) out = argv[++i];
-    else return Fail("keygen: unknown argument '" + a + "' (usage: prism-server keygen [--out FILE])");
-  }
+// A CURVE key pair. With `out`, that file (mode 0600) gets both keys and the public key is printed;
+// without, both are printed in the key-file format.
+int Keygen(const std::string& out) {
   prism::StatusOr<prism::server::CurveKeyPair> keys = prism::server::GenerateCurveKeyPair();
   if (!keys.ok()) return Fail(keys.status().ToString());
   if (out.empty()) {
@@ -52,44 +47,80 @@ int Keygen(int argc, char** argv) {
   return 0;
 }
 
+constexpr char kNotes[] =
+    R"(Every option is also a 'key = value' line of the --config file (read first; flags win). The SLAM
+options of every session are --slam.KEY VALUE (or slam.KEY = VALUE lines), with the keys of
+core/slam/slam_config.h, e.g. --slam.loop_closure false or --slam.tracker.min_gradient 5; they and
+--slam-config apply in command-line order.
+SIGTERM/SIGINT: stop accepting sessions, finish queued work (shutdown-deadline-ms), persist maps, exit 0.)";
+
+// Parses argv into *options (the config file first, then the flags in command-line order), sets the
+// log level and format. cli::kContinue, or the exit status (after keygen too).
+int ParseCommandLine(int argc, char** argv, prism::server::ServerOptions* options) {
+  using prism::server::ServerOptionKey;
+  std::string config, log_level = "info", log_format = "text", keygen_out;
+  CLI::App app{"", "prism-server"};
+  prism::cli::Setup(
+      &app, "serves reconstruction sessions over ZeroMQ (proto/prism/v1/session.proto)",
+      {"prism-server --bind ENDPOINT --data-dir DIR [--config FILE] [--KEY VALUE ...] [--slam.KEY VALUE ...]",
+       "prism-server keygen [--out FILE]"},
+      kNotes);
+  app.add_option("--config", config, "'key = value' lines of the options below")->type_name("FILE");
+  // One flag per ServerOptions key, with its default; their values are applied below, in order.
+  const prism::server::ServerOptions defaults;
+  std::map<const CLI::Option*, const ServerOptionKey*> server_key;
+  for (const ServerOptionKey& k : prism::server::ServerOptionKeys())
+    server_key[app.add_option("--" + k.key, k.help)->type_name(k.value_name)->default_str(k.get(defaults))] = &k;
+  app.add_option("--log-level", log_level, "debug|info|warning|error")
+      ->type_name("LEVEL")
+      ->check(CLI::IsMember({"debug", "info", "warning", "error"}));
+  app.add_option("--log-format", log_format,
+                 "text|json, one line per event; json: an object with time, level, source\n"
+                 "and the event's fields")
+      ->type_name("FORMAT")
+      ->check(CLI::IsMember({"text", "json"}));
+  // --slam.KEY for every SLAM key, not listed one by one in --help; a mistyped key is left over and
+  // handed to SetSlamOption below, which names the nearest known one.
+  std::map<const CLI::Option*, std::string> slam_key;
+  for (const std::string& key : prism::SlamOptionKeys()) slam_key[app.add_option("--slam." + key)->group("")] = key;
+  app.allow_extras();
+  CLI::App* keygen = app.add_subcommand("keygen", "a CURVE key pair (FILE gets both keys, the public key is printed)");
+  prism::cli::Setup(keygen, keygen->get_description(), {"prism-server keygen [--out FILE]"});
+  keygen->add_option("--out", keygen_out, "write both keys to FILE (mode 0600) and print the public key")
+      ->type_name("FILE");
+  if (const int exit = prism::cli::Parse(&app, argc, argv); exit != prism::cli::kContinue) return exit;
+  const std::vector<std::string> extra = app.remaining(/*recurse=*/true);
+  if (keygen->parsed()) {
+    if (!extra.empty()) return Fail("keygen: unknown argument '" + extra.front() + "' (see --help)");
+    return Keygen(keygen_out);
+  }
+  if (!config.empty())
+    if (prism::Status s = prism::server::LoadServerConfig(config, options); !s.ok()) return Fail(s.ToString());
+  for (const auto& [option, value] : prism::cli::InCommandLineOrder(app)) {
+    prism::Status s;
+    if (const auto k = server_key.find(option); k != server_key.end()) s = k->second->set(value, options);
+    else if (const auto k = slam_key.find(option); k != slam_key.end())
+      s = prism::SetSlamOption(k->second, value, &options->pipeline.slam);
+    if (!s.ok()) return Fail(s.message() + " (see --help)");
+  }
+  for (size_t i = 0; i < extra.size(); ++i) {
+    if (extra[i].rfind("--slam.", 0) != 0 || i + 1 >= extra.size())
+      return Fail("unknown argument or missing value: '" + extra[i] + "' (see --help)");
+    if (prism::Status s = prism::SetSlamOption(extra[i].substr(7), extra[i + 1], &options->pipeline.slam); !s.ok())
+      return Fail(s.message() + " (see --help)");
+    ++i;
+  }
+  prism::SetMinLogLevel(log_level);
+  prism::SetLogFormat(log_format);
+  return prism::cli::kContinue;
+}
+
+}  // namespace
+
 int main(int argc, char** argv) {
   using namespace prism::server;
-  if (argc >= 2 && std::string(argv[1]) == "keygen") return Keygen(argc, argv);
   ServerOptions options;
-  // The config file first, then flags over it.
-  for (int i = 1; i + 1 < argc; ++i)
-    if (std::string(argv[i]) == "--config") {
-      if (prism::Status s = LoadServerConfig(argv[i + 1], &options); !s.ok()) return Fail(s.ToString());
-    }
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--help" || a == "-h") {
-      std::cout << "usage: prism-server --bind ENDPOINT --data-dir DIR [--config FILE] [--KEY VALUE ...]\n"
-                   "       prism-server keygen [--out FILE]   (a CURVE key pair; FILE gets both, the public key is "
-                   "printed)\n\n"
-                   "Serves reconstruction sessions over ZeroMQ (proto/prism/v1/session.proto). Options (flags\n"
-                   "or 'key = value' lines in the config file):\n"
-                << ServerOptionsHelp()
-                << "  log-level debug|info|warning|error\n"
-                   "  log-format text|json    one line per event; json: an object with time, level, source and "
-                   "the event's fields\n\nSIGTERM/SIGINT: stop accepting sessions, finish queued "
-                   "work (shutdown-deadline-ms), persist maps, exit 0.\n";
-      return 0;
-    }
-    if (a.rfind("--", 0) != 0 || i + 1 >= argc)
-      return Fail("unknown argument or missing value: '" + a + "' (see --help)");
-    const std::string key = a.substr(2), value = argv[++i];
-    if (key == "config") continue;
-    if (key == "log-level") {
-      if (!prism::SetMinLogLevel(value)) return Fail("bad --log-level '" + value + "'");
-      continue;
-    }
-    if (key == "log-format") {
-      if (!prism::SetLogFormat(value)) return Fail("bad --log-format '" + value + "' (text or json)");
-      continue;
-    }
-    if (prism::Status s = ApplyServerOption(key, value, &options); !s.ok()) return Fail(s.message() + " (see --help)");
-  }
+  if (const int exit = ParseCommandLine(argc, argv, &options); exit != prism::cli::kContinue) return exit;
   if (options.data_dir.empty()) return Fail("--data-dir is required (see --help)");
 #if defined(__GLIBC__)
   // Frames and chunks of up to max-message-bytes come and go: blocks of 1 MiB and more are mapped and

@@ -4,6 +4,7 @@
 #include <cstdlib>
 #include <fstream>
 #include <sstream>
+#include <type_traits>
 
 #include "core/slam/slam_config.h"
 #include "core/util/key_value_text.h"
@@ -22,55 +23,175 @@ bool ParseDouble(const std::string& s, double* out) {
   return !s.empty() && end && *end == '\0';
 }
 
+Status Bad(const std::string& key, const std::string& value) {
+  return InvalidArgumentError("bad value for " + key + ": '" + value + "'");
+}
+
+std::string Text(double v) {
+  std::ostringstream out;
+  out << v;
+  return out.str();
+}
+
+// A key whose value is an integer field; `field` gives the field of an options object. Fields that are
+// not int (uint64_t, int64_t) are assigned the parsed value as it is, as before.
+template <typename Field>
+ServerOptionKey IntKey(const char* key, const char* value_name, const char* help, Field field) {
+  return {key, value_name, help,
+          [key, field](const std::string& value, ServerOptions* o) {
+            long long i = 0;
+            using T = std::remove_reference_t<decltype(field(*o))>;
+            if (!ParseInt(value, &i) || (std::is_unsigned_v<T> && i < 0)) return Bad(key, value);
+            field(*o) = static_cast<T>(i);
+            return Status::Ok();
+          },
+          [field](const ServerOptions& o) {
+            ServerOptions copy = o;
+            return std::to_string(field(copy));
+          }};
+}
+
+template <typename Field>
+ServerOptionKey DoubleKey(const char* key, const char* value_name, const char* help, Field field) {
+  return {key, value_name, help,
+          [key, field](const std::string& value, ServerOptions* o) {
+            double d = 0;
+            if (!ParseDouble(value, &d)) return Bad(key, value);
+            field(*o) = d;
+            return Status::Ok();
+          },
+          [field](const ServerOptions& o) {
+            ServerOptions copy = o;
+            return Text(field(copy));
+          }};
+}
+
+template <typename Field>
+ServerOptionKey BoolKey(const char* key, const char* help, Field field) {
+  return {key, "true|false", help,
+          [key, field](const std::string& value, ServerOptions* o) {
+            if (value == "true" || value == "1") field(*o) = true;
+            else if (value == "false" || value == "0") field(*o) = false;
+            else return Bad(key, value);
+            return Status::Ok();
+          },
+          [field](const ServerOptions& o) {
+            ServerOptions copy = o;
+            return std::string(field(copy) ? "true" : "false");
+          }};
+}
+
+template <typename Field>
+ServerOptionKey StringKey(const char* key, const char* value_name, const char* help, Field field) {
+  return {key, value_name, help,
+          [field](const std::string& value, ServerOptions* o) {
+            field(*o) = value;
+            return Status::Ok();
+          },
+          [field](const ServerOptions& o) {
+            ServerOptions copy = o;
+            return field(copy);
+          }};
+}
+
+std::vector<ServerOptionKey> MakeKeys() {
+  using O = ServerOptions;
+  return {
+      StringKey("bind", "ENDPOINT", "ZeroMQ endpoint (tcp://127.0.0.1:* = a free port)",
+                [](O& o) -> std::string& { return o.bind; }),
+      StringKey("data-dir", "DIR", "where sessions persist poses, chunks, map.ply and summary (required)",
+                [](O& o) -> std::string& { return o.data_dir; }),
+      StringKey("metrics", "ADDR",
+                "HOST:PORT or off: HTTP /metrics (Prometheus), /healthz, /readyz and\n"
+                "/allocate on a thread of its own (port 0 = a free port)",
+                [](O& o) -> std::string& { return o.metrics_bind; }),
+      IntKey("http-max-connections", "N", "HTTP connections open at once; more wait in the backlog",
+             [](O& o) -> int& { return o.http_max_connections; }),
+      IntKey("http-idle-timeout-s", "S", "close an HTTP connection silent for S seconds",
+             [](O& o) -> int& { return o.http_idle_timeout_s; }),
+      IntKey("http-max-request-bytes", "B", "largest HTTP request line + headers; larger gets 431",
+             [](O& o) -> int& { return o.http_max_request_bytes; }),
+      IntKey("handshake-timeout-ms", "MS", "drop a ZeroMQ peer that has not finished its handshake",
+             [](O& o) -> int& { return o.handshake_timeout_ms; }),
+      StringKey("advertise", "ENDPOINT", "endpoint GET /allocate hands to clients (default: the bound one)",
+                [](O& o) -> std::string& { return o.advertise; }),
+      IntKey("max-sessions", "N", "concurrent sessions before RESOURCE_EXHAUSTED",
+             [](O& o) -> int& { return o.max_sessions; }),
+      IntKey("dense-workers", "N", "dense keyframe jobs at once over all sessions",
+             [](O& o) -> int& { return o.dense_workers; }),
+      IntKey("threads", "N", "process-wide worker pool for the dense loops (0 = all cores)",
+             [](O& o) -> int& { return o.threads; }),
+      IntKey("dense-nice", "N", "niceness of the dense threads, 0-19: poses get the CPU first",
+             [](O& o) -> int& { return o.dense_nice; }),
+      IntKey("idle-timeout-ms", "MS", "close sessions silent for this long",
+             [](O& o) -> int& { return o.idle_timeout_ms; }),
+      IntKey("max-frame-bytes", "B", "largest frame payload", [](O& o) -> uint64_t& { return o.max_frame_bytes; }),
+      IntKey("max-message-bytes", "B", "ZMQ_MAXMSGSIZE: larger messages drop their peer (0 = max-frame-bytes + 64 KiB)",
+             [](O& o) -> int64_t& { return o.max_message_bytes; }),
+      IntKey("heartbeat-ivl-ms", "MS", "ZMTP heartbeat interval", [](O& o) -> int& { return o.heartbeat_ivl_ms; }),
+      IntKey("heartbeat-timeout-ms", "MS", "ZMTP heartbeat timeout",
+             [](O& o) -> int& { return o.heartbeat_timeout_ms; }),
+      IntKey("send-hwm", "N", "ZMQ_SNDHWM", [](O& o) -> int& { return o.send_hwm; }),
+      DoubleKey("max-frame-rate-hz", "HZ", "average frames/s per session, bursts up to frame-queue (0 = off)",
+                [](O& o) -> double& { return o.max_frame_rate_hz; }),
+      IntKey("max-session-memory-mb", "M", "a session's map + held chunks beyond this ends it with an error",
+             [](O& o) -> int& { return o.max_session_memory_mb; }),
+      IntKey("max-pending-chunks-in-memory", "N",
+             "chunks held in memory per session for a slow client; more wait on disk",
+             [](O& o) -> int& { return o.max_pending_chunks_in_memory; }),
+      IntKey("chunk-credits", "N", "map chunks in flight when the client grants none",
+             [](O& o) -> int& { return o.default_chunk_credits; }),
+      IntKey("frame-queue", "N", "frames queued per session (also the initial frame credits)",
+             [](O& o) -> int& { return o.pipeline.frame_queue_capacity; }),
+      {"input-policy", "live|upload", "full frame queue: drop the oldest (live) or reject (upload)",
+       [](const std::string& value, O* o) {
+         if (value == "live") o->pipeline.input_policy = OverflowPolicy::kDropOldest;
+         else if (value == "upload") o->pipeline.input_policy = OverflowPolicy::kReject;
+         else return Bad("input-policy", value);
+         return Status::Ok();
+       },
+       [](const O& o) { return std::string(o.pipeline.input_policy == OverflowPolicy::kReject ? "upload" : "live"); }},
+      IntKey("keyframe-queue", "N", "finished keyframes queued per session for the dense stage",
+             [](O& o) -> int& { return o.pipeline.keyframe_queue_capacity; }),
+      IntKey("skip-depth-update-backlog", "N",
+             "when N frames wait for an upload session's SLAM, the next frame is tracked\n"
+             "without its stereo depth update (behind: poses first; 0 = never)",
+             [](O& o) -> int& { return o.pipeline.skip_depth_update_backlog; }),
+      IntKey("skip-depth-update-backlog-live", "N", "the same for live sessions (0 = never)",
+             [](O& o) -> int& { return o.skip_depth_update_backlog_live; }),
+      DoubleKey("slam-adjustment-max-wait-live", "MS",
+                "a live session's new keyframe waits at most MS for the SLAM's window\n"
+                "adjustment still running (negative: as the SLAM options say)",
+                [](O& o) -> double& { return o.slam_adjustment_max_wait_ms_live; }),
+      DoubleKey("voxel-m", "M", "map voxel edge, metres", [](O& o) -> double& { return o.pipeline.dense.map.voxel_m; }),
+      BoolKey("remap-at-end",
+              "at a session's end, rebuild the map at the final keyframe poses and send it\n"
+              "as one chunk that replaces the map (the keyframe clouds it needs are kept\n"
+              "within a quarter of max-session-memory-mb)",
+              [](O& o) -> bool& { return o.pipeline.remap_at_end; }),
+      BoolKey("metric-scale-at-end",
+              "with remap-at-end, rebuild the map at the SLAM's metric scale from the\n"
+              "co-moving lights instead of the dense stage's (2-7 s more at the end)",
+              [](O& o) -> bool& { return o.pipeline.metric_scale_at_end; }),
+      IntKey("shutdown-deadline-ms", "MS", "on SIGTERM, time to finish queued work before stopping",
+             [](O& o) -> int& { return o.shutdown_deadline_ms; }),
+      StringKey("curve-keys", "FILE", "CURVE: this server's key pair (prism-server keygen); none = plain TCP",
+                [](O& o) -> std::string& { return o.curve_keys; }),
+      StringKey("allowed-clients", "FILE", "CURVE: client public keys admitted, one per line (with curve-keys)",
+                [](O& o) -> std::string& { return o.allowed_clients; }),
+      {"slam-config", "FILE",
+       "SLAM options for every session, 'key = value' lines (core/slam/slam_config.h;\n"
+       "the keys of prism-slam --slam-config and of its slam_config.txt)",
+       [](const std::string& value, O* o) { return ApplySlamConfigFile(value, &o->pipeline.slam); },
+       [](const O&) { return std::string(); }},
+  };
+}
+
 }  // namespace
 
-const char* ServerOptionsHelp() {
-  return R"(  bind ENDPOINT           ZeroMQ endpoint (default tcp://127.0.0.1:5555; tcp://127.0.0.1:* = free port)
-  data-dir DIR            where sessions persist poses, chunks, map.ply and summary (required)
-  metrics HOST:PORT|off   HTTP /metrics (Prometheus text), /healthz, /readyz and /allocate (default 127.0.0.1:0 =
-                          free port; served on a thread of its own)
-  http-max-connections N  HTTP connections open at once; more wait in the backlog (default 1024)
-  http-idle-timeout-s S   close an HTTP connection silent for S seconds (default 5)
-  http-max-request-bytes B  largest HTTP request line + headers; larger gets 431 (default 16384)
-  handshake-timeout-ms MS drop a ZeroMQ peer that has not finished its handshake (default 10000)
-  advertise ENDPOINT      endpoint GET /allocate hands to clients (default: the bound one)
-  max-sessions N          concurrent sessions before RESOURCE_EXHAUSTED (default 4)
-  dense-workers N         dense keyframe jobs at once over all sessions (default 1)
-  threads N               process-wide worker pool for the dense loops (default 0 = all cores)
-  dense-nice N            niceness of the dense threads, 0-19: poses get the CPU first (default 5)
-  idle-timeout-ms MS      close sessions silent for this long (default 30000)
-  max-frame-bytes B       largest frame payload (default 16777216)
-  max-message-bytes B     ZMQ_MAXMSGSIZE: larger messages drop their peer (default 0 = max-frame-bytes + 64 KiB)
-  heartbeat-ivl-ms MS     ZMTP heartbeat interval (default 1000)
-  heartbeat-timeout-ms MS ZMTP heartbeat timeout (default 5000)
-  send-hwm N              ZMQ_SNDHWM (default 1000)
-  max-frame-rate-hz HZ    average frames/s per session, bursts up to frame-queue (default 60; 0 = off)
-  max-session-memory-mb M a session's map + held chunks beyond this ends it with an error (default 1024)
-  max-pending-chunks-in-memory N  chunks held in memory per session for a slow client; more wait on disk (default 16)
-  chunk-credits N         map chunks in flight when the client grants none (default 8)
-  frame-queue N           frames queued per session (default 8; also the initial frame credits)
-  input-policy live|upload  full frame queue: drop the oldest (live) or reject (upload) (default live)
-  keyframe-queue N        finished keyframes queued per session for the dense stage (default 4)
-  skip-depth-update-backlog N  when N frames wait for an upload session's SLAM, the next frame is
-                          tracked without its stereo depth update (behind: poses first; default 0 = never)
-  skip-depth-update-backlog-live N  the same for live sessions (default 2; 0 = never)
-  slam-adjustment-max-wait-live MS  a live session's new keyframe waits at most MS for the SLAM's window
-                          adjustment still running (default 0; negative: as the SLAM options say, by
-                          default as long as it takes)
-  voxel-m M               map voxel edge, metres (default 0.002)
-  remap-at-end true|false at a session's end, rebuild the map at the final keyframe poses and send it as
-                          one chunk that replaces the map (default true; the keyframe clouds it needs
-                          are kept within a quarter of max-session-memory-mb)
-  metric-scale-at-end true|false  with remap-at-end, rebuild the map at the SLAM's metric scale from the
-                          co-moving lights instead of the dense stage's (default true; 2-7 s more at a
-                          session's end)
-  shutdown-deadline-ms MS on SIGTERM, time to finish queued work before stopping (default 10000)
-  curve-keys FILE         CURVE: this server's key pair (from `prism-server keygen`); default off = plain TCP
-  allowed-clients FILE    CURVE: client public keys admitted, one per line (required with curve-keys)
-  slam-config FILE        SLAM options for every session, one 'key = value' per line (core/slam/slam_config.h;
-                          the same keys as prism-slam --slam-config and its slam_config.txt)
-  slam.KEY VALUE          one SLAM option, e.g. slam.loop_closure false or slam.tracker.min_gradient 5
-)";
+const std::vector<ServerOptionKey>& ServerOptionKeys() {
+  static const std::vector<ServerOptionKey> keys = MakeKeys();
+  return keys;
 }
 
 Status ServerOptions::Check() const {
@@ -126,108 +247,9 @@ Status ApplyServerOption(const std::string& key_in, const std::string& value, Se
   std::string key = key_in;
   for (char& c : key)
     if (c == '_') c = '-';
-  long long i = 0;
-  double d = 0;
-  const bool is_int = ParseInt(value, &i), is_double = ParseDouble(value, &d);
-  auto bad = [&] { return InvalidArgumentError("bad value for " + key + ": '" + value + "'"); };
-  if (key == "bind") o->bind = value;
-  else if (key == "data-dir") o->data_dir = value;
-  else if (key == "metrics") o->metrics_bind = value;
-  else if (key == "advertise") o->advertise = value;
-  else if (key == "max-sessions") {
-    if (!is_int) return bad();
-    o->max_sessions = static_cast<int>(i);
-  } else if (key == "dense-workers") {
-    if (!is_int) return bad();
-    o->dense_workers = static_cast<int>(i);
-  } else if (key == "dense-nice") {
-    if (!is_int) return bad();
-    o->dense_nice = static_cast<int>(i);
-  } else if (key == "threads") {
-    if (!is_int) return bad();
-    o->threads = static_cast<int>(i);
-  } else if (key == "idle-timeout-ms") {
-    if (!is_int) return bad();
-    o->idle_timeout_ms = static_cast<int>(i);
-  } else if (key == "max-frame-bytes") {
-    if (!is_int || i < 0) return bad();
-    o->max_frame_bytes = static_cast<uint64_t>(i);
-  } else if (key == "max-message-bytes") {
-    if (!is_int) return bad();
-    o->max_message_bytes = i;
-  } else if (key == "heartbeat-ivl-ms") {
-    if (!is_int) return bad();
-    o->heartbeat_ivl_ms = static_cast<int>(i);
-  } else if (key == "heartbeat-timeout-ms") {
-    if (!is_int) return bad();
-    o->heartbeat_timeout_ms = static_cast<int>(i);
-  } else if (key == "http-max-connections") {
-    if (!is_int) return bad();
-    o->http_max_connections = static_cast<int>(i);
-  } else if (key == "http-idle-timeout-s") {
-    if (!is_int) return bad();
-    o->http_idle_timeout_s = static_cast<int>(i);
-  } else if (key == "http-max-request-bytes") {
-    if (!is_int) return bad();
-    o->http_max_request_bytes = static_cast<int>(i);
-  } else if (key == "handshake-timeout-ms") {
-    if (!is_int) return bad();
-    o->handshake_timeout_ms = static_cast<int>(i);
-  } else if (key == "send-hwm") {
-    if (!is_int) return bad();
-    o->send_hwm = static_cast<int>(i);
-  } else if (key == "max-frame-rate-hz") {
-    if (!is_double) return bad();
-    o->max_frame_rate_hz = d;
-  } else if (key == "max-session-memory-mb") {
-    if (!is_int) return bad();
-    o->max_session_memory_mb = static_cast<int>(i);
-  } else if (key == "max-pending-chunks-in-memory") {
-    if (!is_int) return bad();
-    o->max_pending_chunks_in_memory = static_cast<int>(i);
-  } else if (key == "chunk-credits") {
-    if (!is_int) return bad();
-    o->default_chunk_credits = static_cast<int>(i);
-  } else if (key == "frame-queue") {
-    if (!is_int) return bad();
-    o->pipeline.frame_queue_capacity = static_cast<int>(i);
-  } else if (key == "skip-depth-update-backlog") {
-    if (!is_int) return bad();
-    o->pipeline.skip_depth_update_backlog = static_cast<int>(i);
-  } else if (key == "skip-depth-update-backlog-live") {
-    if (!is_int) return bad();
-    o->skip_depth_update_backlog_live = static_cast<int>(i);
-  } else if (key == "slam-adjustment-max-wait-live") {
-    if (!is_double) return bad();
-    o->slam_adjustment_max_wait_ms_live = d;
-  } else if (key == "keyframe-queue") {
-    if (!is_int) return bad();
-    o->pipeline.keyframe_queue_capacity = static_cast<int>(i);
-  } else if (key == "voxel-m") {
-    if (!is_double) return bad();
-    o->pipeline.dense.map.voxel_m = d;
-  } else if (key == "remap-at-end") {
-    if (value == "true" || value == "1") o->pipeline.remap_at_end = true;
-    else if (value == "false" || value == "0") o->pipeline.remap_at_end = false;
-    else return bad();
-  } else if (key == "metric-scale-at-end") {
-    if (value == "true" || value == "1") o->pipeline.metric_scale_at_end = true;
-    else if (value == "false" || value == "0") o->pipeline.metric_scale_at_end = false;
-    else return bad();
-  } else if (key == "curve-keys") o->curve_keys = value;
-  else if (key == "allowed-clients") o->allowed_clients = value;
-  else if (key == "slam-config") return ApplySlamConfigFile(value, &o->pipeline.slam);
-  else if (key == "shutdown-deadline-ms") {
-    if (!is_int) return bad();
-    o->shutdown_deadline_ms = static_cast<int>(i);
-  } else if (key == "input-policy") {
-    if (value == "live") o->pipeline.input_policy = OverflowPolicy::kDropOldest;
-    else if (value == "upload") o->pipeline.input_policy = OverflowPolicy::kReject;
-    else return bad();
-  } else {
-    return InvalidArgumentError("unknown option '" + key_in + "'");
-  }
-  return Status::Ok();
+  for (const ServerOptionKey& k : ServerOptionKeys())
+    if (key == k.key) return k.set(value, o);
+  return InvalidArgumentError("unknown option '" + key_in + "'");
 }
 
 Status LoadServerConfig(const std::string& path, ServerOptions* options) {

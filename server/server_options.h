@@ -3,7 +3,9 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
+#include <vector>
 
 #include "core/pipeline/session_pipeline.h"
 #include "core/util/status.h"
@@ -92,12 +94,24 @@ struct ServerOptions {
   Status Check() const;
 };
 
-// Applies one "key = value" setting (config file or --key value). INVALID_ARGUMENT on an unknown key or
-// a bad value, naming both.
+// One key of ServerOptions: the flag --KEY VALUE and the config-file line "KEY = VALUE" ('_' may stand
+// for '-'), the name of its value and a line of help for --help, how a value is set, and how the value
+// of an options object reads (the defaults in --help).
+struct ServerOptionKey {
+  std::string key;
+  std::string value_name;
+  std::string help;
+  // INVALID_ARGUMENT naming the key and the value when the value does not parse.
+  std::function<Status(const std::string& value, ServerOptions* options)> set;
+  std::function<std::string(const ServerOptions& options)> get;
+};
+// Every key, in --help order. The SLAM options come on top as slam.KEY (core/slam/slam_config.h).
+const std::vector<ServerOptionKey>& ServerOptionKeys();
+
+// Applies one "key = value" setting (config file or --key value): a key of ServerOptionKeys or
+// slam.KEY. INVALID_ARGUMENT on an unknown key or a bad value, naming both.
 Status ApplyServerOption(const std::string& key, const std::string& value, ServerOptions* options);
 // Reads a config file of "key = value" lines.
 Status LoadServerConfig(const std::string& path, ServerOptions* options);
-// The keys, one per line with their meaning (for --help).
-const char* ServerOptionsHelp();
 
 }  // namespace prism::server

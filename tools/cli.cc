@@ -36,7 +36,10 @@ class Formatter : public CLI::Formatter {
     out << make_positionals(app) << make_groups(app, mode) << make_subcommands(app, mode);
     const std::string footer = app->get_footer();
     if (!footer.empty()) out << "\n" << footer << "\n";
-    return out.str();
+    // CLI11 puts a blank line after each group but the last, which may be a hidden one.
+    std::string text = out.str();
+    for (size_t at; (at = text.find("\n\n\n")) != std::string::npos;) text.erase(at, 1);
+    return text;
   }
 
  private:
@@ -59,7 +62,8 @@ void Setup(CLI::App* app, const std::string& purpose, const std::vector<std::str
   app->footer(notes);
   app->formatter(std::make_shared<Formatter>(usage));
   if (app->get_parent() != nullptr) app->group("commands");
-  app->option_defaults()->group("options");
+  // An option given twice takes its last value, as the tools' own parsers did.
+  app->option_defaults()->group("options")->multi_option_policy(CLI::MultiOptionPolicy::TakeLast);
   app->set_help_flag("-h,--help", "print this help and exit");
   app->option_defaults()->always_capture_default();
 }
