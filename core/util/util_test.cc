@@ -8,7 +8,6 @@
 
 #include <gtest/gtest.h>
 
-#include "core/util/json_text.h"
 #include "core/util/log_level.h"
 #include "core/util/status.h"
 #include "core/util/thread_pool.h"
@@ -24,14 +23,6 @@ StatusOr<int> ParsePositive(int v) {
 Status UsesMacros(int v, int* out) {
   PRISM_ASSIGN_OR_RETURN(*out, ParsePositive(v));
   return Status::Ok();
-}
-
-TEST(JsonQuoteTest, EscapesQuotesBackslashesAndControlCharacters) {
-  EXPECT_EQ(JsonQuote("plain"), "\"plain\"");
-  EXPECT_EQ(JsonQuote("a \"b\" c\\d"), "\"a \\\"b\\\" c\\\\d\"");
-  EXPECT_EQ(JsonQuote("x\ny\tz"), "\"x\\ny\\tz\"");
-  EXPECT_EQ(JsonQuote(std::string("\x01", 1)), "\"\\u0001\"");
-  EXPECT_EQ(JsonQuote("caf\xc3\xa9"), "\"caf\xc3\xa9\"") << "UTF-8 passes through";
 }
 
 TEST(StatusTest, OkAndErrorsCarryCodeAndMessage) {
