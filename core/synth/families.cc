@@ -207,7 +207,7 @@ Trajectory MakePath(Draw& d, const PathDraw& p, const Eigen::Vector3d& target, i
   const double total_rotation = p.rotation_deg_per_frame * (frames - 1) * kDeg;
   for (int i = 0; i < frames; ++i) {
     const double f = static_cast<double>(i);
-    Eigen::Vector3d eye, look = target;
+    Eigen::Vector3d eye = target, look = target;
     switch (p.kind) {
       case PathKind::kOrbit:
       case PathKind::kArc:

@@ -401,7 +401,9 @@ TEST(FamilyTest, SameSeedSameSceneAndWorldLightsStayPut) {
   const Eigen::Vector3d last =
       tw.back().world_from_camera * RigAtFrame(*w, tw, tw.size() - 1).lights[0].position_in_camera;
   EXPECT_LT((first - last).norm(), 1e-9);
-  EXPECT_EQ(MakeRandomScene(5, FamilyOptions{"no-such-family"}).status().code(), StatusCode::kNotFound);
+  FamilyOptions unknown;
+  unknown.family = "no-such-family";
+  EXPECT_EQ(MakeRandomScene(5, unknown).status().code(), StatusCode::kNotFound);
 }
 
 }  // namespace
