@@ -77,18 +77,9 @@ struct ServerOptions {
   // The per-session pipeline (SLAM, dense stage, queues, chunk coding). Its skip_depth_update_backlog
   // is that of upload sessions (input policy upload; default 0: never).
   SessionPipelineOptions pipeline;
-  // SessionPipelineOptions::skip_depth_update_backlog of live sessions (input policy live, the default):
-  // a live camera's SLAM that has fallen behind tracks frames without their stereo depth update until it
-  // has caught up, as LSD-SLAM's and DSO's mapping threads do. In [0, 1024], 0 = never. Measured
-  // (forty-fourth round, README "Live sessions skip the depth update when behind"): at a live 30 frames/s
-  // with PNG on a 2-core machine, poses 1.3-1.4 times faster, the median frame-to-pose latency 32-49%
-  // lower, the ATE -0.015 to +0.095 points of the path (bunny, armadillo, torus; two runs each).
+  // Live sessions' skip_depth_update_backlog, queued frames, in [0, 1024] (0 = never): faster poses, less depth.
   int skip_depth_update_backlog_live = 2;
-  // SlamOptions::keyframe_adjustment_max_wait_ms of live sessions: a new keyframe waits at most this long
-  // for the window adjustment still running on its thread (negative: the SLAM options' value, by default
-  // as long as it takes). Measured (fifty-second round, README "No wait for the adjustment"): with 0 the
-  // 95th-percentile frame at 30 frames/s 31-51 ms against 32-139 ms on the 9 presets (slam_benchmark),
-  // and the 54 standard runs' accuracy unchanged.
+  // Live sessions' SlamOptions::keyframe_adjustment_max_wait_ms, ms (< 0: the SLAM's): 0 = shorter frame times.
   double slam_adjustment_max_wait_ms_live = 0;
 
   Status Check() const;

@@ -414,9 +414,8 @@ int main(int argc, char** argv) {
     }
   }
   // Metres per world unit of the outputs: the SLAM's estimate from the co-moving lights when there is one
-  // (median error 1.9% on 27 preset runs, against 11.2% for the dense stage's; see the README), else the
-  // dense stage's session scale. The dense stage keeps its own scale for its photometric stereo (its maps
-  // scored better with it), and the map it built is rescaled to the output scale.
+  // (the more accurate), else the dense stage's session scale. The dense stage keeps its own scale for its
+  // photometric stereo, and the map it built is rescaled to the output scale.
   const double dense_metres_per_unit =
       dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
   const double metres_per_unit = shading_scale ? shading_scale->metres_per_world_unit : dense_metres_per_unit;

@@ -57,9 +57,7 @@ struct DepthFilterOptions {
   // combined) from the estimate is an outlier, > 0. A match lies within the searched +- search_sigmas,
   // so with search_sigmas <= outlier_sigmas (the defaults) no observation is ever an outlier: a wrong
   // estimate is pulled towards the end of the segment instead. (LSD-SLAM also searches +-2 sigma but
-  // gates at 1 sigma, and widens the variance of an inconsistent estimate instead of counting.) Measured on the
-  // standard presets (seeds 1-3), search_sigmas 3 (outliers 0.4% of the matches) did not improve the
-  // SLAM: 23 of 27 runs within 1% either way, depth within 3% on 10 against 11.
+  // gates at 1 sigma, and widens the variance of an inconsistent estimate instead of counting.)
   double outlier_sigmas = 2.5;
   // Propagation into a new keyframe adds this relative standard deviation (prediction noise), >= 0.
   double propagation_relative_sigma = 0.01;
@@ -71,11 +69,8 @@ struct DepthFilterOptions {
   // Pixels where J's local mean changes fast are not estimated either: there J = I / mean carries the
   // mean's own pattern (a bright object's outline beside a dim ground; the co-moving shading), which
   // stays put in the image while the surface slides under it. The test: |grad mean| / (mean + floor) >
-  // this, the gradient by central differences over local_mean_radius_px, per pixel. 0 = off, >= 0.
-  // Off here; SlamOptions::depth sets 0.03 with the dim side only (see there). Both sides at 0.03 on the
-  // 54 standard runs (fifty-eighth round): 54 within 1% ATE, geometric mean 0.138 -> 0.153% (lower on
-  // 22 of 54), 50 within the 3% depth bar (49), coverage 18.6 -> 15.7% of the image in the median;
-  // 0.04: 54, 0.147%, 48.
+  // this, the gradient by central differences over local_mean_radius_px, per pixel. 0 = off, >= 0:
+  // lower (> 0) = fewer false depths, less coverage. SlamOptions::depth sets 0.03 with the dim side only.
   double max_local_mean_log_gradient = 0.0;
   // Only the dim side of such an edge (the mean curving up along its gradient, sampled at the box's
   // radius on either side): the ground beside a bright object, not the object's own rim.
@@ -111,10 +106,8 @@ struct DepthFilterOptions {
   // observation is not searched when that prediction exceeds skip_information_ratio times its variance
   // (it would lower the variance by less than 1 / (1 + ratio)). As the baseline grows within a keyframe
   // the predicted variance shrinks, so a skipped estimate is searched again once a frame can improve it.
-  // 0 = every estimate searched, >= 0. Not the SLAM's default (fortieth round, ratio 2 on the 54 standard
-  // runs, see the README): 17% fewer searches on the 50-frame armadillo, but the ATE worse on most runs
-  // and the depth on most more (the uniform sphere most: its few points lose observations); an option
-  // for slower machines, where the mapping falls behind.
+  // 0 = every estimate searched, >= 0: lower (> 0) = more skipped, faster mapping, worse ATE and depth (for
+  // slow machines, where the mapping falls behind).
   double skip_information_ratio = 0;
   // Output (ToInverseDepthMap): estimates with at least this many fused observations ...
   int min_observations = 2;

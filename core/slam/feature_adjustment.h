@@ -5,14 +5,10 @@
 //
 // Why: the direct adjustments (keyframe_ba.h) compare J between keyframes, and J still changes with the
 // co-moving lights between views. Along an orbit their cost is nearly flat in the direction that trades
-// the turn for an inverse-depth offset of every keyframe's depth (the bas-relief direction): on the
-// torus's seed 5 (turn 0.968 of the truth) the final direct adjustment started at the truth stays at
-// 1.001, started at the SLAM's result stays at 0.968, and from coarser levels slides to 0.946 at the
-// same truncated cost. Between distant keyframes the shading differs most, so the residuals that would
-// tell those states apart are the ones its Huber weights and outlier test discard. A feature's position
-// is set by the albedo texture and barely moves with a smooth shading change (on the same keyframes
-// the true poses reproject the tracks to 0.32 px in the median, the SLAM's short turn to 0.47 px), and a
-// feature matched across 60 degrees of the orbit still constrains the turn.
+// the turn for an inverse-depth offset of every keyframe's depth (the bas-relief direction): the residuals
+// that would pin it are between distant keyframes, where the shading differs most, and their Huber weights
+// and outlier tests discard them. A feature's position is set by the albedo texture and barely moves with
+// a smooth shading change, and a feature matched across 60 degrees of the orbit still constrains the turn.
 //
 // Gauge (7 degrees of freedom): the first keyframe is held fixed, and the second may not move along the
 // line between the two camera centres (as in keyframe_ba.h). Only rotations and camera centres are
@@ -33,9 +29,7 @@ namespace prism {
 class ThreadPool;
 
 struct FeatureAdjustmentOptions {
-  // SIFT features per keyframe at most (the strongest), >= 16. The dark-room presets give 330-870 per
-  // keyframe; KITTI's street scenes reach the limit (matching every pair of 21 keyframes at 3000 took
-  // 31 s on one thread, at 1500 9 s).
+  // SIFT features per keyframe at most (the strongest), >= 16: more = more matches, slower matching (KITTI hits it).
   int max_features = 1500;
   // SIFT's contrast threshold (on J scaled to 8 bits; OpenCV's default is 0.04), in (0, 1).
   double contrast_threshold = 0.02;

@@ -2,9 +2,9 @@
 // Koltun, Cremers 2018), used by SlamSystem after each new keyframe.
 //
 // Why: frame-to-keyframe tracking and the small-baseline depth filter feed each other, and the scale
-// drifts from keyframe to keyframe (on the dark-room presets typically 1-2% per keyframe, up to 10%).
-// Keyframes are about 12% of the scene depth apart, so the same surface points seen in several
-// keyframes constrain their relative poses far better than consecutive frames do.
+// drifts from keyframe to keyframe. Keyframes are several per cent of the scene depth apart
+// (SlamOptions::keyframe_distance_fraction), so the same surface points seen in several keyframes
+// constrain their relative poses far better than consecutive frames do.
 //
 // Each point is a pixel of a host keyframe with an inverse depth in the host's units; its residuals are
 // the differences between the host's shading-normalised grey level (KeyframeDepth::NormalisedGrey) and
@@ -16,10 +16,8 @@
 // Gauge (7 degrees of freedom, monocular): the first keyframe is held fixed, and the second may not move
 // along the line between the two camera centres (which fixes the scale).
 //
-// Measured against ground truth (prism-synth, starting from the true poses and depths): the adjustment
-// moves the keyframes by 2-4% of their spacing and changes their scale by ~1%, because the normalised
-// grey level still changes with the co-moving lights between keyframes. That is the accuracy limit of
-// this model.
+// Accuracy limit: J still changes with the co-moving lights between keyframes, so even from the true poses
+// and depths the adjustment moves the keyframes by a few per cent of their spacing.
 #pragma once
 
 #include <vector>
@@ -95,9 +93,8 @@ struct DirectBaProblem {
 };
 
 struct DirectBaOptions {
-  // Pyramid levels, coarse to fine (one solve per coarser level, two at full resolution), in [1, 5].
-  // Coarser levels widen the convergence basin but bias the result (measured in SlamSystem: 3 levels
-  // gave a worse trajectory error than 1 on 6 of 9 presets; its starts are close).
+  // Pyramid levels, coarse to fine (one solve per coarser level, two at full resolution), in [1, 5]:
+  // more = wider convergence basin, biased result (SlamSystem's starts are close: 1).
   int pyramid_levels = 1;
   // Levenberg-Marquardt iterations per solve, in [1, 100].
   int max_iterations = 10;
@@ -109,31 +106,15 @@ struct DirectBaOptions {
   int border_px = 3;
   // A solve stops when the cost decreases by less than this fraction, > 0.
   double function_tolerance = 1e-5;
-  // Gradient-dependent residual scale (0 = off, >= 0): a J residual of a point whose host gradient is g
-  // (grey levels of J per pixel) is scaled by c / sqrt(c^2 + |g|^2) before the Huber weight and the
-  // outlier test (DSO weighs its residuals so: a small misalignment moves a strong edge's residual
-  // most). Measured in SlamSystem (thirty-seventh round, c = 20 in the window and final adjustments;
-  // the J gradient of the strongest pixel per 16 px cell is 7-9 in the median): on the 54 standard
-  // runs 52 within 1% ATE either way, geometric mean 0.157% (0.159%), depth within 3% on 47 (46),
-  // geometric mean of the depth errors 1.50% (1.60%); the uniform sphere's seeds 3 and 5 recover
-  // (depth 14.5 / 12.4 -> 1.6 / 2.5%) but the torus's seeds 5 and 6 break (depth 5.0 / 1.8 -> 7.3 /
-  // 8.6%). On the held-out seeds 7-9 the ATE is worse (geometric mean 0.169 -> 0.189%, lower on 9 of
-  // 27). Too mixed there; SlamOptions::final_adjustment_ba uses c = 20 (in the final adjustment alone
-  // it improves nearly every run).
+  // Gradient-dependent residual scale c, grey levels of J per pixel, >= 0 (0 = off): a residual whose host
+  // gradient is g is scaled by c / sqrt(c^2 + |g|^2) before the Huber weight and the outlier test (DSO's
+  // weight: a small misalignment moves a strong edge's residual most); lower c = strong edges count less.
   double gradient_weight_c = 0.0;
-  // Levenberg-Marquardt damping. false: lambda / 3 after an accepted step and x 5 after a rejected one.
-  // true: by the gain ratio rho (the cost's decrease over the decrease the damped linear model
-  // predicts; Nielsen's rule, as in Madsen, Nielsen and Tingleff's notes and Ceres' LM strategy):
-  // lambda x max(1/3, 1 - (2 rho - 1)^3) after an accepted step, x nu with nu doubling after each
-  // rejected one. A step that only just succeeds then keeps lambda where it was, instead of lowering it
-  // to a value whose next step is rejected (each rejection costs a full cost evaluation).
+  // LM damping by the gain ratio rho (Nielsen's rule, as in Ceres): lambda x max(1/3, 1 - (2 rho - 1)^3) after an
+  // accepted step, x nu (doubling) after a rejected one; false: / 3 and x 5. True = fewer rejected steps (evaluations).
   bool gain_ratio_damping = false;
-  // Linearise from the cost evaluation's image reads: each evaluation samples the gradients with the
-  // values and keeps its projections and samples per target keyframe (the current state's and the
-  // trial's), so the linearisation at a state whose cost was evaluated reads no image. The same
-  // arithmetic on the same numbers: the result is the same to the last bit either way; it trades memory
-  // (about 80 bytes per residual, twice) for the linearisation's projections and image reads. Not with
-  // the relit residual (DirectBaRelit), which linearises from its own reads.
+  // Linearise from the cost evaluation's kept projections and samples: the same bits, fewer image reads, about
+  // 2 x 80 bytes per residual more memory. Not with the relit residual (DirectBaRelit), which reads its own.
   bool linearise_from_evaluation = true;
   Status Check() const;
 };

@@ -406,7 +406,7 @@ BENCHMARK_CAPTURE(BM_SlamSequence, dragon, std::string("dragon-multicolor-sidewa
 // window_adjustments the adjustments run): the tail of the frame times (p95_frame_ms, max_frame_ms)
 // without the waits. These run the start check's pair scales on their own thread (SlamOptions::start_check_async,
 // the default; the other cases too); bounded_inline_check_*: bounded_* with them inside the frame that brings the
-// sixth keyframe, as before the fifty-third round (start_check_frame_ms is then the pause).
+// sixth keyframe (start_check_async = false; start_check_frame_ms is then the pause).
 // One thread, one pass per repetition, medians of 3.
 void WholeSequenceSettings(benchmark::internal::Benchmark* b) {
   b->Arg(1)->Unit(benchmark::kMillisecond)->Iterations(1)->UseRealTime()->Repetitions(3)->ReportAggregatesOnly(true);

@@ -473,15 +473,10 @@ StatusOr<std::unique_ptr<SlamSystem::Impl>> SlamSystem::NewImpl(const RigCalibra
   impl->rig = rig;
   impl->options = options;
   impl->pool = pool;
-  // The camera-attached tests look for what the rig's own lights move with the camera; without lights
-  // (KITTI: daylight) they only add false alarms (KITTI 06, the default and five runs perturbed by 1e-4
-  // grey levels of tracker.image_noise_sigma: 1.9-5.8% ATE, median 2.4%, with them; 0.2-4.0%, median
-  // 0.9%, without).
-  // The initialisation's KLT on J (init_track_normalised) cancels the same lights' shading; without them
-  // raw grey everywhere, as before (KITTI 06: 0.17% of path so, 3.9% on J with a floor of 20). The final
-  // adjustment's gradient weight targets the edges those lights move: off without them. So does the
-  // local mean's edge test (depth.max_local_mean_log_gradient): without co-moving lights the local mean's
-  // pattern moves with the scene.
+  // Without lights on the rig (KITTI: daylight) the settings that target the co-moving lights' effects are
+  // off: the camera-attached tests (only false alarms there), the initialisation's KLT on J (raw grey tracks
+  // better), the final adjustment's gradient weight and the local mean's edge test (the pattern moves with
+  // the scene).
   if (!AnyLight(rig)) {
     impl->options.tracker.camera_attached_min_votes = 0;
     impl->options.depth.camera_attached_min_votes = 0;
@@ -2105,8 +2100,7 @@ void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int
         if (!grey_j[static_cast<size_t>(k)].empty())
           m.keyframes[static_cast<size_t>(k)].grey_j = grey_j[static_cast<size_t>(k)];
       // The features first: they set the turn the direct cost leaves nearly flat, the direct adjustment
-      // then refines the poses locally from there (KITTI 06: 0.061% of path with the order reversed,
-      // 0.043% so; README, sixty-first round).
+      // then refines the poses locally from there.
       m.AdjustByFeatures();
       if (readjust) m.AdjustKeyframes(0, m.options.final_adjustment_ba, /*at_finish=*/true);
       for (size_t i = 0; i < keyframes->size(); ++i) (*keyframes)[i].depth = handed_out[i];
