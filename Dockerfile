@@ -18,6 +18,7 @@ COPY . /src
 RUN --mount=type=cache,target=/root/.cache/ccache,id=prism-ccache \
     cmake -S /src -B /build -G Ninja -DCMAKE_BUILD_TYPE=Release \
       -DPRISM_BUILD_TESTS=OFF -DPRISM_BUILD_BENCHMARKS=OFF -DCMAKE_INSTALL_PREFIX=/opt/prism \
+      -DPRISM_PYTHON_INSTALL_DIR=lib/python3/dist-packages \
  && cmake --build /build \
  && cmake --install /build --strip \
  && install -m 0755 /src/deploy/docker/entrypoint.sh /opt/prism/bin/prism-entrypoint
@@ -31,7 +32,7 @@ RUN apt-get update -qq \
       libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-calib3d406 libopencv-video406 \
       libopencv-videoio406 \
       libpcl-common1.13 libpcl-search1.13 libpcl-kdtree1.13 libpcl-octree1.13 \
-      libprotobuf32 libzmq5 libdraco7 libjpeg62-turbo libmicrohttpd12 \
+      libprotobuf32 libzmq5 libdraco7 libjpeg62-turbo libpng16-16 libyaml-cpp0.7 libmicrohttpd12 \
       python3 python3-numpy \
  && rm -rf /var/lib/apt/lists/* \
  && groupadd --system --gid 10001 prism \

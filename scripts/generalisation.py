@@ -110,14 +110,15 @@ def dense_score(bin_dir, seq, out, tau):
     ply = os.path.join(out, "map.ply")
     traj = os.path.join(out, "trajectory_metres.txt")
     if not os.path.exists(ply) or not os.path.exists(traj):
-        return math.nan
+        return math.nan, math.nan, math.nan
     p = subprocess.run([os.path.join(bin_dir, "prism-eval"), "cloud", "--sequence", seq, "--cloud", ply,
                         "--align-trajectory", traj, "--tau", str(tau), "--threads", "1", "--object-only"],
                        capture_output=True, text=True)
     try:
-        return json.loads(p.stdout)["fscore"]
+        d = json.loads(p.stdout)
+        return d["fscore"], d["precision"], d["completeness"]
     except (ValueError, KeyError):
-        return math.nan
+        return math.nan, math.nan, math.nan
 
 
 def dso_run(dso, bin_dir, seq, out):
@@ -199,7 +200,8 @@ def one_seed(a, seed):
     res["prism"] = slam_run(a.bin, seq, out, not a.no_dense, a.slam_args)
     if not a.no_dense:
         distance = float(facts.get("distance_m", "1"))
-        res["prism"]["fscore"] = dense_score(a.bin, seq, out, 0.01 * distance)
+        f, p, c = dense_score(a.bin, seq, out, 0.01 * distance)
+        res["prism"].update({"fscore": f, "precision": p, "completeness": c})
     if a.dso:
         res["dso"] = dso_run(a.dso, a.bin, seq, out + "-dso")
     if not a.no_world:
@@ -232,6 +234,8 @@ def table(results, key):
            "orientation_median_deg": pct([x.get("orientation_deg", math.nan) for x in runs], 0.5),
            "depth_error_median": pct([x.get("depth_error", math.nan) for x in runs], 0.5),
            "fscore_median": pct([x.get("fscore", math.nan) for x in runs], 0.5),
+           "precision_median": pct([x.get("precision", math.nan) for x in runs], 0.5),
+           "completeness_median": pct([x.get("completeness", math.nan) for x in runs], 0.5),
            "fps_median": pct([x.get("fps", math.nan) for x in runs], 0.5),
            "end_s_median": pct([x.get("end_s", math.nan) for x in runs], 0.5)}
     return row
@@ -288,12 +292,13 @@ def main():
     print(f"family {a.family}, seeds {a.seeds} ({len(seeds)} scenes), prism-slam one thread"
           + (f", extra args: {' '.join(slam_args)}" if slam_args else ""))
     print("| run | scenes | failures | within 1% | ATE median % | ATE p90 % | orientation deg | depth error | "
-          "F-score | frames/s | end s |")
+          "F-score (precision / completeness) | frames/s | end s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for label, t in rows.items():
         print(f"| {label} | {t['runs']} | {t['failures']} ({100 * t['failure_rate']:.0f}%) | "
               f"{100 * t['within_1pct']:.0f}% | {t['ate_median']:.3f} | {t['ate_p90']:.3f} | "
-              f"{t['orientation_median_deg']:.2f} | {t['depth_error_median'] * 100:.2f}% | {t['fscore_median']:.3f} | "
+              f"{t['orientation_median_deg']:.2f} | {t['depth_error_median'] * 100:.2f}% | "
+              f"{t['fscore_median']:.3f} ({t['precision_median']:.2f} / {t['completeness_median']:.2f}) | "
               f"{t['fps_median']:.0f} | {t['end_s_median']:.1f} |".replace("nan%", "-").replace("nan", "-"))
     json.dump(rows, open(os.path.join(a.out, "table.json"), "w"), indent=1)
     if a.check:

@@ -12,7 +12,7 @@ PACKAGES=(
   libmicrohttpd-dev nlohmann-json3-dev libcli11-dev
   libprotobuf-dev protobuf-compiler
   libdraco-dev draco
-  libjpeg-dev
+  libjpeg-dev libpng-dev libyaml-cpp-dev  # the client SDK's encoders and camera.yaml reader
   libgtest-dev libgmock-dev libbenchmark-dev
   clang  # libFuzzer targets (PRISM_FUZZ) and the sanitizer builds
   clang-format  # the format_check test

@@ -1,5 +1,6 @@
-// The rig calibration on the wire (proto/prism/v1/session.proto RigCalibration) and back: the
-// server reads the one a client opens a session with; tests and the fuzz corpus write them.
+// The core's rig calibration on the wire (proto/prism/v1/session.proto RigCalibration) and back, the
+// one conversion of this form (the SDK's client::Rig has its own, client-sdk/src/rig_wire.h): the
+// server reads the one a client opens a session with; tests, tools and the fuzz corpus write them.
 #pragma once
 
 #include "core/io/calibration_io.h"

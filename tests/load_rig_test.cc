@@ -1,4 +1,4 @@
-// The SDK's LoadRig (client-sdk/src/rig_yaml.cc, OpenCV alone) reads camera.yaml as core/io's
+// The SDK's LoadRig (client-sdk/src/rig_yaml.cc, yaml-cpp) reads camera.yaml as core/io's
 // ReadCalibrationYaml does, and refuses the same malformed files with a message naming the field.
 #include <prism/client/client.h>
 #include <unistd.h>

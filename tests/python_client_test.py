@@ -265,7 +265,7 @@ class PythonClientTest(unittest.TestCase):
         self.assertEqual(busy.exception.code, "UNAVAILABLE")
         self.assertTrue(busy.exception.retryable)
         with self.assertRaises(prism_client.PrismError) as shape:
-            session.push_frame(np.zeros((512, 512), np.uint8), 0)
+            session.push_frame(0, np.zeros((512, 512), np.uint8))
         self.assertEqual(shape.exception.code, "INVALID_ARGUMENT")
         with self.assertRaises(prism_client.PrismError):
             prism_client.decode_chunk(b"not a draco chunk")

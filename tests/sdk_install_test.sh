@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The client SDK as a user gets it: `cmake --install` the build into a fresh prefix, build the
 # installed example with find_package(prism_client) in a separate CMake project, and run it against
-# a real prism-server from this build.
+# a real prism-server from this build; the pkg-config file and the .proto are installed, and the
+# Python package lands where Debian's /usr/bin/python3 imports from and imports from there.
 # usage: sdk_install_test.sh BUILD_DIR
 set -euo pipefail
 BUILD=$1
@@ -19,6 +20,26 @@ test -f "$EXAMPLE/CMakeLists.txt"
 # No zmq, protobuf or project-internal header may leak into the public header.
 if grep -E '#include ["<](zmq|google/protobuf|core/)' "$WORK/prefix/include/prism/client/client.h"; then
   echo "the public header includes an internal dependency"; exit 1
+fi
+test -f "$WORK/prefix/include/prism/v1/session.proto"
+test -n "$(find "$WORK/prefix" -path '*/pkgconfig/prism_client.pc')"
+# The Python package: in the configured prefix's dist-packages that Debian's python3 searches (for
+# /usr/local: lib/python3.X/dist-packages), importable from there with no other path set.
+cache_value() { sed -n "s/^$1:[A-Z]*=//p" "$BUILD/CMakeCache.txt"; }
+PYDIR=$(cache_value PRISM_PYTHON_INSTALL_DIR)
+if [ -n "$PYDIR" ]; then
+  test -f "$WORK/prefix/$PYDIR/prism_client/__init__.py"
+  CONFIGURED=$(cache_value CMAKE_INSTALL_PREFIX)
+  if [ "$CONFIGURED" = /usr/local ] || [ "$CONFIGURED" = /usr ]; then
+    /usr/bin/python3 -c "import sys; assert '$CONFIGURED/$PYDIR' in sys.path, sys.path"
+  fi
+  if [ -z "${PRISM_SANITIZE:-}" ]; then  # a sanitized module needs its runtime preloaded (python_client_test)
+    PYTHONPATH="$WORK/prefix/$PYDIR" /usr/bin/python3 -c "
+import prism_client
+doc = prism_client.Session.push_frame.__doc__
+assert 'push_frame(self: prism_client._native.Session, timestamp_ns: int, rgb:' in doc, doc
+assert prism_client.__file__.startswith('$WORK/prefix/'), prism_client.__file__"
+  fi
 fi
 # In a sanitizer build the SDK is instrumented, so its consumer must be too (PRISM_SANITIZE, set by
 # CTest from the build's option).

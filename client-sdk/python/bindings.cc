@@ -225,7 +225,8 @@ class PySession {
     height_ = rig.camera.height;
   }
 
-  void PushFrame(py::array_t<uint8_t, py::array::c_style | py::array::forcecast> rgb, int64_t timestamp_ns) {
+  // The arguments in the order of the C++ Session::PushFrame: the time stamp first.
+  void PushFrame(int64_t timestamp_ns, py::array_t<uint8_t, py::array::c_style | py::array::forcecast> rgb) {
     if (rgb.ndim() != 3 || rgb.shape(2) != 3)
       Raise({pc::Code::kInvalidArgument, "frame must be an (H, W, 3) uint8 RGB array", false});
     const int h = static_cast<int>(rgb.shape(0)), w = static_cast<int>(rgb.shape(1));
@@ -573,7 +574,7 @@ PYBIND11_MODULE(_native, m) {
            py::arg("live") = false, py::arg("chunk_credits") = 8, py::arg("timeout_ms") = 10000,
            py::arg("client_name") = "prism_client.py", py::arg("server_public_key") = "",
            py::arg("client_public_key") = "", py::arg("client_secret_key") = "")
-      .def("push_frame", &PySession::PushFrame, py::arg("rgb"), py::arg("timestamp_ns"))
+      .def("push_frame", &PySession::PushFrame, py::arg("timestamp_ns"), py::arg("rgb"))
       .def("stream_folder", &PySession::StreamFolder, py::arg("sequence_dir"), py::arg("max_frames") = size_t(-1))
       .def("stream_source", &PySession::StreamSource, py::arg("source"), py::arg("max_frames") = 0,
            py::arg("realtime") = false, py::arg("exposure") = py::none(), py::arg("white_balance") = py::none(),

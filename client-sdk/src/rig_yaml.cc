@@ -1,10 +1,12 @@
 // LoadRig: a rig calibration (camera.yaml, OpenCV FileStorage YAML) into a Rig. The format is the one
-// core/io/calibration_io.h reads and writes (README "Calibration"); it is read here with OpenCV alone so
-// that the SDK needs none of the core libraries. tests/load_rig_test.cc checks that both readers agree.
+// core/io/calibration_io.h reads and writes with OpenCV (README "Calibration"); it is read here with
+// yaml-cpp so that the SDK needs neither OpenCV nor the core libraries. tests/load_rig_test.cc checks
+// that both readers agree and refuse the same malformed files.
+#include <yaml-cpp/yaml.h>
+
 #include <cmath>
 #include <string>
-
-#include <opencv2/core.hpp>
+#include <vector>
 
 #include "prism/client/client.h"
 
@@ -15,12 +17,49 @@ Status Invalid(const std::string& path, const std::string& message) {
   return {Code::kInvalidArgument, "calibration '" + path + "': " + message, false};
 }
 
+// A number; false when the node is absent or not one.
+bool ReadNumber(const YAML::Node& node, double* v) {
+  if (!node || !node.IsScalar()) return false;
+  try {
+    *v = node.as<double>();
+    return true;
+  } catch (const YAML::Exception&) {
+    return false;
+  }
+}
+
 // A 3-vector "[x, y, z]"; an absent node leaves `v` as it is.
-bool ReadVec3(const cv::FileNode& node, std::array<double, 3>* v) {
-  if (node.empty()) return true;
-  if (!node.isSeq() || node.size() != 3) return false;
-  for (int i = 0; i < 3; ++i) (*v)[i] = static_cast<double>(node[i]);
+bool ReadVec3(const YAML::Node& node, std::array<double, 3>* v) {
+  if (!node) return true;
+  if (!node.IsSequence() || node.size() != 3) return false;
+  for (size_t i = 0; i < 3; ++i)
+    if (!ReadNumber(node[i], &(*v)[i])) return false;
   return true;
+}
+
+// An OpenCV matrix (!!opencv-matrix: rows, cols, data) or a plain list: its values in row-major
+// order, with its rows and columns. An absent node gives no values.
+bool ReadMatrix(const YAML::Node& node, std::vector<double>* values, size_t* rows, size_t* cols) {
+  values->clear();
+  *rows = *cols = 0;
+  if (!node) return true;
+  if (node.IsMap()) {
+    double r = 0, c = 0;
+    if (!ReadNumber(node["rows"], &r) || !ReadNumber(node["cols"], &c)) return false;
+    *rows = static_cast<size_t>(r);
+    *cols = static_cast<size_t>(c);
+  }
+  // Bound once: assigning to a yaml-cpp Node would overwrite the node it refers to.
+  const YAML::Node data = node.IsMap() ? node["data"] : node;
+  if (!data.IsSequence()) return false;
+  if (!node.IsMap()) {
+    *rows = 1;
+    *cols = data.size();
+  }
+  values->resize(data.size());
+  for (size_t i = 0; i < data.size(); ++i)
+    if (!ReadNumber(data[i], &(*values)[i])) return false;
+  return values->size() == *rows * *cols;
 }
 
 bool AllFinite(const std::array<double, 3>& v) {
@@ -55,49 +94,55 @@ Status CheckRig(const std::string& path, const Rig& rig) {
   return {};
 }
 
-Status ReadRig(const std::string& path, const cv::FileStorage& fs, Rig* out) {
+Status ReadRig(const std::string& path, const YAML::Node& fs, Rig* out) {
   Rig rig;
   Camera& c = rig.camera;
-  for (const char* key : {"width", "height", "fx", "fy", "cx", "cy"})
-    if (fs[key].empty() || (!fs[key].isReal() && !fs[key].isInt()))
-      return Invalid(path, std::string("missing or non-numeric '") + key + "'");
-  c.width = static_cast<int>(fs["width"]);
-  c.height = static_cast<int>(fs["height"]);
-  c.fx = static_cast<double>(fs["fx"]);
-  c.fy = static_cast<double>(fs["fy"]);
-  c.cx = static_cast<double>(fs["cx"]);
-  c.cy = static_cast<double>(fs["cy"]);
-  cv::Mat dist;
-  fs["distortion"] >> dist;
-  if (!dist.empty()) {
-    if (dist.total() != 5) return Invalid(path, "distortion must have 5 coefficients (k1 k2 p1 p2 k3)");
-    dist.convertTo(dist, CV_64F);
-    for (int i = 0; i < 5; ++i) c.distortion[i] = dist.at<double>(i);
+  double number[6];
+  const char* keys[6] = {"width", "height", "fx", "fy", "cx", "cy"};
+  for (int k = 0; k < 6; ++k)
+    if (!ReadNumber(fs[keys[k]], &number[k]))
+      return Invalid(path, std::string("missing or non-numeric '") + keys[k] + "'");
+  // Sizes round as OpenCV's FileNode does.
+  c.width = static_cast<int>(std::lround(number[0]));
+  c.height = static_cast<int>(std::lround(number[1]));
+  c.fx = number[2];
+  c.fy = number[3];
+  c.cx = number[4];
+  c.cy = number[5];
+  std::vector<double> values;
+  size_t rows = 0, cols = 0;
+  const bool distortion_read = ReadMatrix(fs["distortion"], &values, &rows, &cols);
+  if (!values.empty() || !distortion_read) {
+    if (!distortion_read || values.size() != 5)
+      return Invalid(path, "distortion must have 5 coefficients (k1 k2 p1 p2 k3)");
+    for (int i = 0; i < 5; ++i) c.distortion[i] = values[i];
   }
-  cv::Mat crosstalk;
-  fs["crosstalk"] >> crosstalk;
-  if (!crosstalk.empty()) {
-    if (crosstalk.rows != 3 || crosstalk.cols != 3) return Invalid(path, "crosstalk must be 3x3");
-    crosstalk.convertTo(crosstalk, CV_64F);
-    for (int k = 0; k < 9; ++k) rig.crosstalk[k] = crosstalk.at<double>(k / 3, k % 3);
+  const bool crosstalk_read = ReadMatrix(fs["crosstalk"], &values, &rows, &cols);
+  if (!values.empty() || !crosstalk_read) {
+    if (!crosstalk_read || rows != 3 || cols != 3) return Invalid(path, "crosstalk must be 3x3");
+    for (int k = 0; k < 9; ++k) rig.crosstalk[k] = values[k];
   }
-  const cv::FileNode lights = fs["lights"];
-  if (lights.empty()) return Invalid(path, "missing 'lights' (3 entries: red, green, blue)");
-  if (!lights.isSeq() || lights.size() != 3) return Invalid(path, "'lights' must have 3 entries (red, green, blue)");
+  const YAML::Node lights = fs["lights"];
+  if (!lights) return Invalid(path, "missing 'lights' (3 entries: red, green, blue)");
+  if (!lights.IsSequence() || lights.size() != 3)
+    return Invalid(path, "'lights' must have 3 entries (red, green, blue)");
   for (int i = 0; i < 3; ++i) {
-    const cv::FileNode n = lights[i];
+    const YAML::Node n = lights[i];
     Light& l = rig.lights[i];
-    l.name = static_cast<std::string>(n["name"]);
-    const std::string type = n["type"].empty() ? "point" : static_cast<std::string>(n["type"]);
+    if (!n.IsMap()) return Invalid(path, "light " + std::to_string(i) + " is not a map of its fields");
+    l.name = n["name"] && n["name"].IsScalar() ? n["name"].as<std::string>() : "";
+    const std::string type = n["type"] && n["type"].IsScalar() ? n["type"].as<std::string>() : "point";
     if (type != "point" && type != "directional")
       return Invalid(path, "light " + std::to_string(i) + " has unknown type '" + type + "' (point or directional)");
     l.directional = type == "directional";
-    // As core/io: an absent position is the camera centre, an absent color white.
+    // As core/io: an absent position is the camera centre, an absent color white, an absent intensity 0.
     l.position_in_camera = {0, 0, 0};
     if (!ReadVec3(n["position"], &l.position_in_camera) || !ReadVec3(n["direction"], &l.direction_in_camera) ||
         !ReadVec3(n["color"], &l.color))
       return Invalid(path, "light " + std::to_string(i) + " has a malformed 3-vector");
-    l.intensity = static_cast<double>(n["intensity"]);
+    l.intensity = 0;
+    if (n["intensity"] && !ReadNumber(n["intensity"], &l.intensity))
+      return Invalid(path, "light " + std::to_string(i) + " has a non-numeric intensity");
   }
   if (Status s = CheckRig(path, rig); !s.ok()) return s;
   *out = rig;
@@ -108,13 +153,19 @@ Status ReadRig(const std::string& path, const cv::FileStorage& fs, Rig* out) {
 
 Status LoadRig(const std::string& path, Rig* rig) {
   if (!rig) return {Code::kInvalidArgument, "LoadRig: rig is null", false};
+  YAML::Node root;
   try {
-    cv::FileStorage fs;
-    if (!fs.open(path, cv::FileStorage::READ))
-      return {Code::kNotFound, "cannot open calibration '" + path + "'", false};
-    return ReadRig(path, fs, rig);
-  } catch (const cv::Exception& e) {
-    return Invalid(path, std::string("not valid OpenCV YAML: ") + e.what());
+    root = YAML::LoadFile(path);
+  } catch (const YAML::BadFile&) {
+    return {Code::kNotFound, "cannot open calibration '" + path + "'", false};
+  } catch (const YAML::Exception& e) {
+    return Invalid(path, std::string("not valid YAML: ") + e.what());
+  }
+  if (!root.IsMap()) return Invalid(path, "not a map of calibration fields");
+  try {
+    return ReadRig(path, root, rig);
+  } catch (const YAML::Exception& e) {
+    return Invalid(path, std::string("malformed: ") + e.what());
   }
 }
 

@@ -8,10 +8,10 @@
 #include <unordered_map>
 #include <unordered_set>
 
-#include <opencv2/core.hpp>
 #include <zmq.hpp>
 
-#include "core/codec/frame_codec.h"
+#include "client-sdk/src/rig_wire.h"
+#include "core/codec/frame_encoder.h"
 #include "core/codec/map_chunk_codec.h"
 #include "prism/client/client.h"
 #include "prism/v1/session.pb.h"
@@ -62,12 +62,6 @@ v1::FrameCodec ToWire(Codec c) {
 
 FrameCodec ToCore(Codec c) {
   return c == Codec::kJpeg ? FrameCodec::kJpeg : c == Codec::kRaw ? FrameCodec::kRaw : FrameCodec::kPng;
-}
-
-void SetVector(const std::array<double, 3>& a, v1::Vector3* v) {
-  v->set_x(a[0]);
-  v->set_y(a[1]);
-  v->set_z(a[2]);
 }
 
 std::vector<Point> ToPoints(const PointCloud& cloud) {
@@ -261,25 +255,7 @@ struct Session::Impl {
       o->set_resume_next_pose(next_pose);
       return env;
     }
-    v1::RigCalibration* r = o->mutable_calibration();
-    v1::CameraIntrinsics* c = r->mutable_camera();
-    c->set_width(static_cast<uint32_t>(rig.camera.width));
-    c->set_height(static_cast<uint32_t>(rig.camera.height));
-    c->set_fx(rig.camera.fx);
-    c->set_fy(rig.camera.fy);
-    c->set_cx(rig.camera.cx);
-    c->set_cy(rig.camera.cy);
-    for (double d : rig.camera.distortion) c->add_distortion(d);
-    for (const Light& l : rig.lights) {
-      v1::LightCalibration* w = r->add_lights();
-      w->set_name(l.name);
-      w->set_type(l.directional ? v1::LightCalibration::TYPE_DIRECTIONAL : v1::LightCalibration::TYPE_POINT);
-      SetVector(l.position_in_camera, w->mutable_position_in_camera());
-      SetVector(l.direction_in_camera, w->mutable_direction_in_camera());
-      SetVector(l.color, w->mutable_color());
-      w->set_intensity(l.intensity);
-    }
-    for (double x : rig.crosstalk) r->add_crosstalk(x);
+    RigToWire(rig, o->mutable_calibration());
     return env;
   }
 
@@ -620,8 +596,8 @@ Status Session::PushFrame(int64_t timestamp_ns, const uint8_t* rgb, int width, i
   FrameEncodeOptions eo;
   eo.codec = ToCore(impl_->options.codec);
   eo.jpeg_quality = impl_->options.jpeg_quality;
-  const cv::Mat image(height, width, CV_8UC3, const_cast<uint8_t*>(rgb), static_cast<size_t>(stride_bytes));
-  const prism::Status s = EncodeFrame(image, eo, &impl_->encode_buffer);
+  const prism::Status s =
+      EncodeRgbFrame(rgb, width, height, static_cast<size_t>(stride_bytes), eo, &impl_->encode_buffer);
   if (!s.ok()) return Make(Code::kInvalidArgument, s.message());
   return PushEncoded(timestamp_ns, impl_->options.codec, impl_->encode_buffer, width, height);
 }

@@ -4,82 +4,27 @@
 
 #include <csetjmp>
 #include <cstdio>
-#include <cstdlib>
 #include <cstring>
 
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+
+#include "core/codec/jpeg_errors.h"
 
 namespace prism {
 namespace {
 
 std::string SizeText(int w, int h) { return std::to_string(w) + "x" + std::to_string(h); }
 
-// libjpeg reports errors through error_exit (must not return): jump back with the message kept.
-// Warnings (e.g. "premature end of data", which libjpeg pads over) are counted and treated as
-// corruption by the decoder.
-struct JpegErrorManager {
-  jpeg_error_mgr mgr;
-  std::jmp_buf jump;
-  char message[JMSG_LENGTH_MAX];
-};
-
-void JpegErrorExit(j_common_ptr cinfo) {
-  auto* err = reinterpret_cast<JpegErrorManager*>(cinfo->err);
-  (*cinfo->err->format_message)(cinfo, err->message);
-  std::longjmp(err->jump, 1);
-}
-
-void JpegOutputMessage(j_common_ptr cinfo) {
-  auto* err = reinterpret_cast<JpegErrorManager*>(cinfo->err);
-  (*cinfo->err->format_message)(cinfo, err->message);  // kept, never printed
-}
-
-void InstallErrorManager(j_common_ptr cinfo, JpegErrorManager* err) {
-  cinfo->err = jpeg_std_error(&err->mgr);
-  err->mgr.error_exit = JpegErrorExit;
-  err->mgr.output_message = JpegOutputMessage;
-  err->message[0] = '\0';
-}
-
-// Returns false with err->message set on a libjpeg error. No C++ object with a destructor lives in
-// this frame across setjmp.
-bool JpegEncode(const cv::Mat& rgb, int quality, unsigned char** buffer, unsigned long* length, JpegErrorManager* err) {
-  jpeg_compress_struct cinfo;
-  InstallErrorManager(reinterpret_cast<j_common_ptr>(&cinfo), err);
-  if (setjmp(err->jump)) {
-    jpeg_destroy_compress(&cinfo);
-    return false;
-  }
-  jpeg_create_compress(&cinfo);
-  jpeg_mem_dest(&cinfo, buffer, length);
-  cinfo.image_width = static_cast<JDIMENSION>(rgb.cols);
-  cinfo.image_height = static_cast<JDIMENSION>(rgb.rows);
-  cinfo.input_components = 3;
-  cinfo.in_color_space = JCS_RGB;
-  jpeg_set_defaults(&cinfo);
-  jpeg_set_quality(&cinfo, quality, TRUE);
-  // 4:4:4: every component at full resolution (libjpeg's default is 2x2 for chroma, i.e. 4:2:0).
-  for (int c = 0; c < cinfo.num_components; ++c) {
-    cinfo.comp_info[c].h_samp_factor = 1;
-    cinfo.comp_info[c].v_samp_factor = 1;
-  }
-  jpeg_start_compress(&cinfo, TRUE);
-  while (cinfo.next_scanline < cinfo.image_height) {
-    JSAMPROW row = const_cast<JSAMPROW>(rgb.ptr<uint8_t>(static_cast<int>(cinfo.next_scanline)));
-    jpeg_write_scanlines(&cinfo, &row, 1);
-  }
-  jpeg_finish_compress(&cinfo);
-  jpeg_destroy_compress(&cinfo);
-  return true;
-}
+using internal::InstallJpegErrorManager;
+using internal::JpegErrorManager;
 
 enum class JpegDecodeResult { kOk, kError, kWrongSize, kNotColour, kSubsampled, kWarning };
 
 JpegDecodeResult JpegDecode(const uint8_t* data, size_t size, int expected_width, int expected_height, cv::Mat* rgb,
                             JpegErrorManager* err, int* width, int* height) {
   jpeg_decompress_struct cinfo;
-  InstallErrorManager(reinterpret_cast<j_common_ptr>(&cinfo), err);
+  InstallJpegErrorManager(reinterpret_cast<j_common_ptr>(&cinfo), err);
   if (setjmp(err->jump)) {
     jpeg_destroy_decompress(&cinfo);
     return JpegDecodeResult::kError;
@@ -150,63 +95,9 @@ Status DecodePng(const uint8_t* data, size_t size, int expected_width, int expec
 
 }  // namespace
 
-const char* FrameCodecName(FrameCodec codec) {
-  switch (codec) {
-    case FrameCodec::kPng:
-      return "png";
-    case FrameCodec::kJpeg:
-      return "jpeg";
-    case FrameCodec::kRaw:
-      return "raw";
-  }
-  return "?";
-}
-
-StatusOr<FrameCodec> ParseFrameCodec(const std::string& name) {
-  if (name == "png") return FrameCodec::kPng;
-  if (name == "jpeg" || name == "jpg") return FrameCodec::kJpeg;
-  if (name == "raw") return FrameCodec::kRaw;
-  return InvalidArgumentError("unknown frame codec '" + name + "' (png, jpeg or raw)");
-}
-
-Status FrameEncodeOptions::Check() const {
-  if (jpeg_quality < 1 || jpeg_quality > 100)
-    return InvalidArgumentError("FrameEncodeOptions.jpeg_quality = " + std::to_string(jpeg_quality) +
-                                "; violated: in [1, 100]");
-  if (png_compression < 0 || png_compression > 9)
-    return InvalidArgumentError("FrameEncodeOptions.png_compression = " + std::to_string(png_compression) +
-                                "; violated: in [0, 9]");
-  return Status::Ok();
-}
-
 Status EncodeFrame(const cv::Mat& rgb, const FrameEncodeOptions& options, std::vector<uint8_t>* out) {
-  PRISM_RETURN_IF_ERROR(options.Check());
   if (rgb.empty() || rgb.type() != CV_8UC3) return InvalidArgumentError("EncodeFrame: image must be non-empty CV_8UC3");
-  const cv::Mat image = rgb.isContinuous() ? rgb : rgb.clone();
-  switch (options.codec) {
-    case FrameCodec::kRaw: {
-      out->assign(image.data, image.data + image.total() * 3);
-      return Status::Ok();
-    }
-    case FrameCodec::kPng: {
-      cv::Mat bgr;
-      cv::cvtColor(image, bgr, cv::COLOR_RGB2BGR);
-      if (!cv::imencode(".png", bgr, *out, {cv::IMWRITE_PNG_COMPRESSION, options.png_compression}))
-        return InternalError("PNG encoding failed");
-      return Status::Ok();
-    }
-    case FrameCodec::kJpeg: {
-      JpegErrorManager err;
-      unsigned char* buffer = nullptr;
-      unsigned long length = 0;
-      const bool ok = JpegEncode(image, options.jpeg_quality, &buffer, &length, &err);
-      if (ok) out->assign(buffer, buffer + length);
-      std::free(buffer);
-      if (!ok) return InternalError(std::string("JPEG encoding failed: ") + err.message);
-      return Status::Ok();
-    }
-  }
-  return InvalidArgumentError("EncodeFrame: unknown codec");
+  return EncodeRgbFrame(rgb.data, rgb.cols, rgb.rows, rgb.step, options, out);
 }
 
 Status DecodeFrame(const uint8_t* data, size_t size, FrameCodec codec, int expected_width, int expected_height,

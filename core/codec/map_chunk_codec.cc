@@ -7,9 +7,10 @@
 #include <string>
 
 #include <draco/compression/config/compression_shared.h>
-#include <draco/compression/decode.h>
 #include <draco/compression/encode.h>
 #include <draco/point_cloud/point_cloud_builder.h>
+
+#include "core/codec/draco_cloud.h"
 
 namespace prism {
 namespace {
@@ -173,45 +174,7 @@ StatusOr<PointCloud> DecodeMapChunk(const uint8_t* data, size_t size) {
       static_cast<uint64_t>(claimed_points) > 8 * static_cast<uint64_t>(size) + 64)
     return DataLossError("corrupt map chunk: claims " + std::to_string(claimed_points) + " points in " +
                          std::to_string(size) + " bytes");
-  draco::DecoderBuffer buffer;
-  buffer.Init(reinterpret_cast<const char*>(data), size);
-  draco::Decoder decoder;
-  auto decoded = decoder.DecodePointCloudFromBuffer(&buffer);
-  if (!decoded.ok())
-    return DataLossError(std::string("corrupt map chunk (Draco: ") + decoded.status().error_msg() + ")");
-  const draco::PointCloud& pc = *decoded.value();
-  const draco::PointAttribute* position = pc.GetNamedAttribute(draco::GeometryAttribute::POSITION);
-  if (position == nullptr || position->num_components() != 3 || position->data_type() != draco::DT_FLOAT32)
-    return InvalidArgumentError("map chunk has no 3D float position attribute");
-  const draco::PointAttribute* normal = pc.GetNamedAttribute(draco::GeometryAttribute::NORMAL);
-  const draco::PointAttribute* color = pc.GetNamedAttribute(draco::GeometryAttribute::COLOR);
-  // The attribute types EncodeMapChunk writes; anything else (e.g. DT_BOOL, whose conversion reads
-  // arbitrary bytes as bool: undefined behaviour found by fuzzing) is refused.
-  if (normal != nullptr && (normal->num_components() != 3 || normal->data_type() != draco::DT_FLOAT32))
-    return InvalidArgumentError("map chunk normals are not 3 floats");
-  if (color != nullptr && color->data_type() != draco::DT_UINT8)
-    return InvalidArgumentError("map chunk colours are not 8-bit");
-  if (color != nullptr && (color->num_components() < 3 || color->num_components() > 4))
-    return InvalidArgumentError("map chunk colours have " + std::to_string(color->num_components()) + " components");
-  const size_t n = pc.num_points();
-  PointCloud cloud;
-  cloud.positions.resize(n);
-  if (normal) cloud.normals.resize(n);
-  if (color) cloud.colors.resize(n);
-  for (size_t i = 0; i < n; ++i) {
-    const draco::PointIndex pi(static_cast<uint32_t>(i));
-    if (!position->ConvertValue<float, 3>(position->mapped_index(pi), cloud.positions[i].data()))
-      return DataLossError("map chunk: unreadable position " + std::to_string(i));
-    if (normal && !normal->ConvertValue<float, 3>(normal->mapped_index(pi), cloud.normals[i].data()))
-      return DataLossError("map chunk: unreadable normal " + std::to_string(i));
-    if (color) {
-      uint8_t rgba[4] = {0, 0, 0, 0};
-      if (!color->ConvertValue<uint8_t>(color->mapped_index(pi), color->num_components(), rgba))
-        return DataLossError("map chunk: unreadable colour " + std::to_string(i));
-      cloud.colors[i] = Eigen::Matrix<uint8_t, 3, 1>(rgba[0], rgba[1], rgba[2]);
-    }
-  }
-  return cloud;
+  return DecodeDracoPointCloud(data, size, DracoAttributes::kStrict, "map chunk");
 }
 
 }  // namespace prism

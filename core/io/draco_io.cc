@@ -5,9 +5,10 @@
 #include <vector>
 
 #include <draco/compression/config/compression_shared.h>
-#include <draco/compression/decode.h>
 #include <draco/compression/encode.h>
 #include <draco/point_cloud/point_cloud_builder.h>
+
+#include "core/codec/draco_cloud.h"
 
 namespace prism {
 
@@ -64,38 +65,9 @@ StatusOr<PointCloud> ReadPointCloudDraco(const std::string& path) {
   if (!in) return NotFoundError("cannot open '" + path + "'");
   const std::vector<char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   if (bytes.empty()) return DataLossError(path + ": empty file");
-  draco::DecoderBuffer buffer;
-  buffer.Init(bytes.data(), bytes.size());
-  draco::Decoder decoder;
   // A mesh file decodes as a point cloud too (its vertices).
-  auto decoded = decoder.DecodePointCloudFromBuffer(&buffer);
-  if (!decoded.ok()) return DataLossError(path + ": not a readable Draco file (" + decoded.status().error_msg() + ")");
-  const draco::PointCloud& pc = *decoded.value();
-  const draco::PointAttribute* position = pc.GetNamedAttribute(draco::GeometryAttribute::POSITION);
-  if (position == nullptr || position->num_components() != 3) return InvalidArgumentError(path + ": no 3D positions");
-  const draco::PointAttribute* normal = pc.GetNamedAttribute(draco::GeometryAttribute::NORMAL);
-  const draco::PointAttribute* color = pc.GetNamedAttribute(draco::GeometryAttribute::COLOR);
-  if (normal != nullptr && normal->num_components() != 3) normal = nullptr;
-  if (color != nullptr && (color->num_components() < 3 || color->num_components() > 4)) color = nullptr;
-  const size_t n = pc.num_points();
-  PointCloud cloud;
-  cloud.positions.resize(n);
-  if (normal) cloud.normals.resize(n);
-  if (color) cloud.colors.resize(n);
-  for (size_t i = 0; i < n; ++i) {
-    const draco::PointIndex pi(static_cast<uint32_t>(i));
-    if (!position->ConvertValue<float, 3>(position->mapped_index(pi), cloud.positions[i].data()))
-      return DataLossError(path + ": unreadable position " + std::to_string(i));
-    if (normal && !normal->ConvertValue<float, 3>(normal->mapped_index(pi), cloud.normals[i].data()))
-      return DataLossError(path + ": unreadable normal " + std::to_string(i));
-    if (color) {
-      uint8_t rgba[4] = {0, 0, 0, 0};
-      if (!color->ConvertValue<uint8_t>(color->mapped_index(pi), color->num_components(), rgba))
-        return DataLossError(path + ": unreadable colour " + std::to_string(i));
-      cloud.colors[i] = Eigen::Matrix<uint8_t, 3, 1>(rgba[0], rgba[1], rgba[2]);
-    }
-  }
-  return cloud;
+  return DecodeDracoPointCloud(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size(), DracoAttributes::kLenient,
+                               path);
 }
 
 }  // namespace prism

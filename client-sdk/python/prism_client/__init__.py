@@ -67,7 +67,7 @@ class Session(_native.Session):
         Events received on the way wait for poll() (poses() has the poses, map() the running map)."""
         sent = 0
         for timestamp_ns, rgb in frames:
-            self.push_frame(rgb, int(timestamp_ns))
+            self.push_frame(int(timestamp_ns), rgb)
             sent += 1
         return sent
 
