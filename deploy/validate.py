@@ -299,7 +299,7 @@ def check_k8s(directory, prism_server, report):
             with tempfile.NamedTemporaryFile("w", suffix=".conf", delete=False) as f:
                 f.write(conf)
             try:
-                r = subprocess.run([prism_server, "--config", f.name, "--help"], capture_output=True, text=True)
+                r = subprocess.run([prism_server, "--config", f.name, "--check"], capture_output=True, text=True)
                 if r.returncode != 0:
                     report.add(where, f"server.conf rejected by prism-server: {r.stderr.strip()}")
             finally:

@@ -66,6 +66,8 @@ int ParseCommandLine(int argc, char** argv, prism::server::ServerOptions* option
        "prism-server keygen [--out FILE]"},
       kNotes);
   app.add_option("--config", config, "'key = value' lines of the options below")->type_name("FILE");
+  bool check_only = false;
+  app.add_flag("--check", check_only, "read the config file and the flags, report the first problem and exit");
   // One flag per ServerOptions key, with its default; their values are applied below, in order.
   const prism::server::ServerOptions defaults;
   std::map<const CLI::Option*, const ServerOptionKey*> server_key;
@@ -110,6 +112,7 @@ int ParseCommandLine(int argc, char** argv, prism::server::ServerOptions* option
       return Fail(s.message() + " (see --help)");
     ++i;
   }
+  if (check_only) return 0;
   prism::SetMinLogLevel(log_level);
   prism::SetLogFormat(log_format);
   return prism::cli::kContinue;
