@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <iostream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
@@ -155,8 +156,9 @@ int main(int argc, char** argv) {
   sigaction(SIGTERM, &sa, nullptr);
   sigaction(SIGINT, &sa, nullptr);
   std::signal(SIGPIPE, SIG_IGN);
-  std::printf("{\"endpoint\": \"%s\", \"metrics\": \"%s\"}\n", (*server)->endpoint().c_str(),
-              (*server)->metrics_endpoint().c_str());
+  // nlohmann quotes the values (an ipc:// path may hold any character); the layout stays "key": value.
+  std::printf("{\"endpoint\": %s, \"metrics\": %s}\n", nlohmann::json((*server)->endpoint()).dump().c_str(),
+              nlohmann::json((*server)->metrics_endpoint()).dump().c_str());
   std::fflush(stdout);
   const prism::Status st = (*server)->Run();
   g_server = nullptr;

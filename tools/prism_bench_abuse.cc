@@ -489,7 +489,8 @@ int main(int argc, char** argv) {
       StopProcess(pid);
       const std::vector<double> health = probe.Stop();
       WaitForNoSessions(server, 20);
-      std::this_thread::sleep_for(std::chrono::seconds(1));
+      // Where the RSS settles: after the server's periodic malloc_trim (every 10 s) has run once.
+      std::this_thread::sleep_for(std::chrono::seconds(11));
       const double rss_after = server.RssMb();
       const auto metrics_after = server.Metrics();
       const auto value = [](const std::map<std::string, double>& m, const std::string& k) {
