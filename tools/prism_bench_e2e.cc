@@ -248,9 +248,15 @@ int main(int argc, char** argv) {
     session->SetEventCallback(handle);
     const auto t0 = Clock::now();
     for (int i = 0; i < frames; ++i) {
-      if (fps > 0)
-        std::this_thread::sleep_until(
-            t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(i / fps)));
+      if (fps > 0) {
+        // Wait for the frame's time while taking events: callbacks run only inside the session's calls, so
+        // a sleep would hold every pose until the next frame and quantise frame-to-pose to the interval.
+        const auto due = t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(i / fps));
+        prism::client::Event ignored;
+        for (auto now = Clock::now(); now < due; now = Clock::now())
+          session->Poll(&ignored,
+                        std::max(1, static_cast<int>(std::chrono::duration<double, std::milli>(due - now).count())));
+      }
       sent[static_cast<uint64_t>(i)] = Clock::now();
       s = session->PushFrame(static_cast<int64_t>(trajectory[i].timestamp_s * 1e9), images[i].data, images[i].cols,
                              images[i].rows, static_cast<int>(images[i].step));
