@@ -37,21 +37,29 @@ CalibrateOptions MatchingOptions(const SyntheticCaptureOptions& captures) {
   return o;
 }
 
-// One rendered capture folder shared by the cases; each bad-input case edits a copy.
-class CalibrateTest : public ::testing::Test {
+fs::path TempRoot() { return fs::temp_directory_path() / ("prism_calibrate_test_" + std::to_string(::getpid())); }
+
+// One small rendered capture folder (6 intrinsics views, 2 poses per light folder) shared by the
+// bad-input cases; each case spoils a copy.
+class CalibrateInputTest : public ::testing::Test {
  protected:
+  static SyntheticCaptureOptions SmallCaptures() {
+    SyntheticCaptureOptions o = TestCaptures();
+    o.intrinsics_views = 6;
+    o.light_views = 2;
+    o.render.supersampling = 1;
+    return o;
+  }
   static void SetUpTestSuite() {
-    root_ = new fs::path(fs::temp_directory_path() / ("prism_calibrate_test_" + std::to_string(::getpid())));
+    root_ = new fs::path(TempRoot() / "inputs");
     fs::remove_all(*root_);
-    rig_ = new RigCalibration(synth::MakeDefaultRig(640, 480));
-    ASSERT_TRUE(WriteSyntheticCaptures(*rig_, TestCaptures(), (*root_ / "good").string()).ok());
+    ASSERT_TRUE(
+        WriteSyntheticCaptures(synth::MakeDefaultRig(640, 480), SmallCaptures(), (*root_ / "good").string()).ok());
   }
   static void TearDownTestSuite() {
-    fs::remove_all(*root_);
+    fs::remove_all(TempRoot());
     delete root_;
-    delete rig_;
   }
-  // A copy of the good captures to spoil.
   static fs::path Copy(const std::string& name) {
     const fs::path dir = *root_ / name;
     fs::remove_all(dir);
@@ -62,19 +70,23 @@ class CalibrateTest : public ::testing::Test {
     for (const fs::directory_entry& e : fs::directory_iterator(folder))
       ASSERT_TRUE(WriteRgbImage(e.path().string(), rgb).ok());
   }
+  static StatusOr<CalibrationReport> Calibrate(const fs::path& dir) {
+    return CalibrateRig(dir.string(), MatchingOptions(SmallCaptures()));
+  }
 
   static fs::path* root_;
-  static RigCalibration* rig_;
 };
-fs::path* CalibrateTest::root_ = nullptr;
-RigCalibration* CalibrateTest::rig_ = nullptr;
+fs::path* CalibrateInputTest::root_ = nullptr;
 
-TEST_F(CalibrateTest, RecoversRigFromRenderedBoard) {
+TEST(CalibrateTest, RecoversRigFromRenderedBoard) {
   const SyntheticCaptureOptions captures = TestCaptures();
-  StatusOr<CalibrationReport> report = CalibrateRig((*root_ / "good").string(), MatchingOptions(captures));
+  const fs::path dir = TempRoot() / "truth";
+  const RigCalibration truth = synth::MakeDefaultRig(640, 480);
+  ASSERT_TRUE(WriteSyntheticCaptures(truth, captures, dir.string()).ok());
+  StatusOr<CalibrationReport> report = CalibrateRig(dir.string(), MatchingOptions(captures));
+  fs::remove_all(TempRoot());
   ASSERT_TRUE(report.ok()) << report.status().ToString();
   const RigCalibration& got = report->rig;
-  const RigCalibration& truth = *rig_;
   const double fx_error = std::abs(got.camera.fx / truth.camera.fx - 1);
   const double fy_error = std::abs(got.camera.fy / truth.camera.fy - 1);
   double position_error_m = 0, intensity_error = 0, crosstalk_error = 0;
@@ -104,50 +116,50 @@ TEST_F(CalibrateTest, RecoversRigFromRenderedBoard) {
   for (int l = 0; l < 3; ++l) EXPECT_TRUE(report->light_fit.position_std[l].allFinite());
 }
 
-TEST_F(CalibrateTest, NoBoardFound) {
+TEST_F(CalibrateInputTest, NoBoardFound) {
   const fs::path dir = Copy("no_board");
   Overwrite(dir / "intrinsics", cv::Mat(480, 640, CV_8UC3, cv::Scalar(128, 128, 128)));
-  StatusOr<CalibrationReport> report = CalibrateRig(dir.string(), MatchingOptions(TestCaptures()));
+  StatusOr<CalibrationReport> report = Calibrate(dir);
   ASSERT_FALSE(report.ok());
   EXPECT_NE(report.status().message().find("no ChArUco board"), std::string::npos) << report.status().ToString();
 }
 
-TEST_F(CalibrateTest, TooFewViews) {
+TEST_F(CalibrateInputTest, TooFewViews) {
   const fs::path dir = Copy("few_views");
   int kept = 0;
   for (const fs::directory_entry& e : fs::directory_iterator(dir / "intrinsics"))
     if (++kept > 3) fs::remove(e.path());
-  StatusOr<CalibrationReport> report = CalibrateRig(dir.string(), MatchingOptions(TestCaptures()));
+  StatusOr<CalibrationReport> report = Calibrate(dir);
   ASSERT_FALSE(report.ok());
   EXPECT_NE(report.status().message().find("too few views"), std::string::npos) << report.status().ToString();
   EXPECT_NE(report.status().message().find("the minimum is 6"), std::string::npos) << report.status().ToString();
 }
 
-TEST_F(CalibrateTest, SaturatedImage) {
+TEST_F(CalibrateInputTest, SaturatedImage) {
   const fs::path dir = Copy("saturated");
   const fs::path image = dir / "lights" / "all" / "000.png";
   StatusOr<cv::Mat> rgb = ReadRgbImage(image.string());
   ASSERT_TRUE(rgb.ok());
   ASSERT_TRUE(WriteRgbImage(image.string(), *rgb * 10).ok());
-  StatusOr<CalibrationReport> report = CalibrateRig(dir.string(), MatchingOptions(TestCaptures()));
+  StatusOr<CalibrationReport> report = Calibrate(dir);
   ASSERT_FALSE(report.ok());
   EXPECT_NE(report.status().message().find("lights/all/000.png is saturated"), std::string::npos)
       << report.status().ToString();
 }
 
-TEST_F(CalibrateTest, LightNeverLitTheBoard) {
+TEST_F(CalibrateInputTest, LightNeverLitTheBoard) {
   const fs::path dir = Copy("dark_green");
   Overwrite(dir / "lights" / "green", cv::Mat(480, 640, CV_8UC3, cv::Scalar(2, 1, 2)));
-  StatusOr<CalibrationReport> report = CalibrateRig(dir.string(), MatchingOptions(TestCaptures()));
+  StatusOr<CalibrationReport> report = Calibrate(dir);
   ASSERT_FALSE(report.ok());
   EXPECT_NE(report.status().message().find("the green light never lit the board"), std::string::npos)
       << report.status().ToString();
 }
 
-TEST_F(CalibrateTest, MissingLightFolder) {
+TEST_F(CalibrateInputTest, MissingLightFolder) {
   const fs::path dir = Copy("no_blue");
   fs::remove_all(dir / "lights" / "blue");
-  StatusOr<CalibrationReport> report = CalibrateRig(dir.string(), MatchingOptions(TestCaptures()));
+  StatusOr<CalibrationReport> report = Calibrate(dir);
   ASSERT_FALSE(report.ok());
   EXPECT_NE(report.status().message().find("missing folder"), std::string::npos) << report.status().ToString();
 }
