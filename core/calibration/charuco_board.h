@@ -16,14 +16,14 @@
 namespace prism::calibration {
 
 struct CharucoBoardOptions {
-  // Chessboard squares along x (columns) and y (rows), each >= 3.
-  int squares_x = 7;
-  int squares_y = 5;
+  // Chessboard squares along x (columns) and y (rows), each in [3, 100]. The default fills an A3 sheet.
+  int squares_x = 8;
+  int squares_y = 6;
   // Side of a chessboard square and of an ArUco marker as printed, metres (marker < square).
-  double square_m = 0.04;
-  double marker_m = 0.03;
+  double square_m = 0.045;
+  double marker_m = 0.034;
   // ArUco dictionary: DICT_4X4_50, DICT_4X4_100, DICT_5X5_100, DICT_6X6_250 (enough markers needed).
-  std::string dictionary = "DICT_5X5_100";
+  std::string dictionary = "DICT_4X4_50";
 
   Status Check() const;
   // "7x5 squares of 40 mm, markers 30 mm, DICT_5X5_100", for messages.

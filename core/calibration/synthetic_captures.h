@@ -14,8 +14,8 @@
 namespace prism::calibration {
 
 struct SyntheticCaptureOptions {
-  // The printed board (8x6 squares of 45 mm: an A3 sheet).
-  CharucoBoardOptions board{8, 6, 0.045, 0.034, "DICT_4X4_50"};
+  // The printed board.
+  CharucoBoardOptions board;
   // White paper margin around the chessboard, metres, in [0, 0.2].
   double margin_m = 0.015;
   // Albedo of the paper and of the ink, in [0, 1], ink < paper.
