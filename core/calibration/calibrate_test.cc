@@ -4,15 +4,18 @@
 
 #include <unistd.h>
 
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <iostream>
+#include <string>
 
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>
 
 #include "core/calibration/light_fit.h"
 #include "core/calibration/synthetic_captures.h"
+#include "core/io/calibration_io.h"
 #include "core/io/image_io.h"
 #include "core/synth/presets.h"
 
@@ -78,15 +81,21 @@ class CalibrateInputTest : public ::testing::Test {
 };
 fs::path* CalibrateInputTest::root_ = nullptr;
 
-TEST(CalibrateTest, RecoversRigFromRenderedBoard) {
+// Renders the default rig (through `distortion`) with known truth, calibrates it and checks the bars.
+void CheckRecoversRig(const std::array<double, 5>& distortion, const std::string& name) {
   const SyntheticCaptureOptions captures = TestCaptures();
-  const fs::path dir = TempRoot() / "truth";
-  const RigCalibration truth = synth::MakeDefaultRig(640, 480);
+  const fs::path dir = TempRoot() / name;
+  RigCalibration truth = synth::MakeDefaultRig(640, 480);
+  truth.camera.distortion = distortion;
   ASSERT_TRUE(WriteSyntheticCaptures(truth, captures, dir.string()).ok());
   StatusOr<CalibrationReport> report = CalibrateRig(dir.string(), MatchingOptions(captures));
-  fs::remove_all(TempRoot());
   ASSERT_TRUE(report.ok()) << report.status().ToString();
-  const RigCalibration& got = report->rig;
+  // camera.yaml as prism-server and prism-slam read it.
+  ASSERT_TRUE(WriteCalibrationYaml((dir / "camera.yaml").string(), report->rig).ok());
+  StatusOr<RigCalibration> read = ReadCalibrationYaml((dir / "camera.yaml").string());
+  fs::remove_all(dir);
+  ASSERT_TRUE(read.ok()) << read.status().ToString();
+  const RigCalibration& got = *read;
   const double fx_error = std::abs(got.camera.fx / truth.camera.fx - 1);
   const double fy_error = std::abs(got.camera.fy / truth.camera.fy - 1);
   double position_error_m = 0, intensity_error = 0, crosstalk_error = 0;
@@ -96,25 +105,30 @@ TEST(CalibrateTest, RecoversRigFromRenderedBoard) {
     intensity_error = std::max(intensity_error, std::abs(got.lights[l].intensity / truth.lights[l].intensity - 1));
   }
   crosstalk_error = (got.crosstalk - truth.crosstalk).cwiseAbs().maxCoeff();
-  std::cout << "views " << report->intrinsics_views << ", reprojection " << report->reprojection_rms_px
-            << " px, focal error " << 100 * std::max(fx_error, fy_error) << " %, light position error "
-            << 1000 * position_error_m << " mm, intensity error " << 100 * intensity_error << " %, crosstalk error "
-            << crosstalk_error << ", fit rms " << 255 * report->light_fit.rms << " levels over "
-            << report->light_fit.residuals << " residuals\n";
+  const double k1_error = std::abs(got.camera.distortion[0] - distortion[0]);
+  std::cout << name << ": views " << report->intrinsics_views << ", reprojection " << report->reprojection_rms_px
+            << " px, focal error " << 100 * std::max(fx_error, fy_error) << " %, k1 error " << k1_error
+            << ", light position error " << 1000 * position_error_m << " mm, intensity error " << 100 * intensity_error
+            << " %, crosstalk error " << crosstalk_error << ", fit rms " << 255 * report->light_fit.rms
+            << " levels over " << report->light_fit.residuals << " residuals\n";
   for (int l = 0; l < 3; ++l)
     std::cout << "light " << l << " at " << got.lights[l].position_in_camera.transpose() << " (truth "
               << truth.lights[l].position_in_camera.transpose() << ", std "
               << report->light_fit.position_std[l].transpose() << "), intensity " << got.lights[l].intensity
               << " (truth " << truth.lights[l].intensity << ", std " << report->intensity_std[l] << ")\n";
-  std::cout << "crosstalk\n" << got.crosstalk << "\n";
   EXPECT_LT(fx_error, /*max_focal_error=*/0.005);
   EXPECT_LT(fy_error, /*max_focal_error=*/0.005);
+  EXPECT_LT(k1_error, /*max_k1_error=*/0.01);
   EXPECT_LT(position_error_m, /*max_light_position_error_m=*/0.005);
   EXPECT_LT(intensity_error, /*max_intensity_error=*/0.03);
   EXPECT_LT(crosstalk_error, /*max_crosstalk_error=*/0.02);
-  // The fit's uncertainty is reported and finite.
   for (int l = 0; l < 3; ++l) EXPECT_TRUE(report->light_fit.position_std[l].allFinite());
 }
+
+TEST(CalibrateTest, RecoversRigFromRenderedBoard) { CheckRecoversRig({0, 0, 0, 0, 0}, "pinhole"); }
+
+// A webcam's barrel distortion (as prism-synth --distortion's example).
+TEST(CalibrateTest, RecoversRigThroughDistortedLens) { CheckRecoversRig({-0.25, 0.08, 0, 0, 0}, "distorted"); }
 
 TEST_F(CalibrateInputTest, NoBoardFound) {
   const fs::path dir = Copy("no_board");
