@@ -78,6 +78,8 @@ Json Report(const calibration::CalibrationReport& r, const std::string& out) {
               {"all", r.light_views[3]}}},
             {"residuals", r.light_fit.residuals},
             {"rms_levels", 255 * r.light_fit.rms},
+            {"ambient_levels", Vec(r.light_fit.ambient, 255)},
+            {"ambient_std_levels", Vec(r.light_fit.ambient_std, 255)},
             {"iterations", r.light_fit.iterations},
             {"converged", r.light_fit.converged}}},
           {"skipped", r.skipped}};

@@ -34,6 +34,10 @@ Status CalibrateOptions::Check() const {
     e << "CalibrateOptions.sample_spacing_m = " << sample_spacing_m << "; violated: in (0, 0.1]";
   else if (!(sample_inset_m > 0 && sample_inset_m <= 0.1))
     e << "CalibrateOptions.sample_inset_m = " << sample_inset_m << "; violated: in (0, 0.1]";
+  else if (!(max_reprojection_rms_px > 0 && max_reprojection_rms_px <= 100))
+    e << "CalibrateOptions.max_reprojection_rms_px = " << max_reprojection_rms_px << "; violated: in (0, 100]";
+  else if (!(max_light_rms_levels > 0 && max_light_rms_levels <= 255))
+    e << "CalibrateOptions.max_light_rms_levels = " << max_light_rms_levels << "; violated: in (0, 255]";
   if (e.str().empty()) return Status::Ok();
   return InvalidArgumentError(e.str());
 }
@@ -118,6 +122,13 @@ Status CalibrateIntrinsics(const std::vector<fs::path>& files, const fs::path& r
   const int flags = options.fit_k3 ? 0 : cv::CALIB_FIX_K3;
   report->reprojection_rms_px = cv::aruco::calibrateCameraCharuco(corners, ids, board, *size, k, dist, rvecs, tvecs,
                                                                   std_intrinsics, std_extrinsics, per_view, flags);
+  if (!(report->reprojection_rms_px <= options.max_reprojection_rms_px)) {
+    std::ostringstream e;
+    e << "the board does not fit the images: reprojection error " << report->reprojection_rms_px << " px (at most "
+      << options.max_reprojection_rms_px << "); check that the board options (" << options.board.Describe()
+      << ") match the printed board and that the images are sharp";
+    return FailedPreconditionError(e.str());
+  }
   PinholeCamera& cam = report->rig.camera;
   cam.width = size->width;
   cam.height = size->height;
@@ -237,9 +248,27 @@ Status CalibrateLights(const fs::path& root, const CalibrateOptions& options,
   StatusOr<LightFitResult> fit = FitLights(samples, options.light_fit);
   if (!fit.ok()) return fit.status();
   report->light_fit = *fit;
+  const double rms_levels = 255 * fit->rms;
+  if (!fit->converged || !(rms_levels <= options.max_light_rms_levels)) {
+    std::ostringstream e;
+    e << "the light images do not follow the near-light model: the fit "
+      << (fit->converged ? "converged" : "did not converge") << " with residual " << rms_levels
+      << " levels RMS (at most " << options.max_light_rms_levels
+      << "); check for ambient light, automatic exposure or gain, glossy paper, or a light in the wrong folder";
+    return FailedPreconditionError(e.str());
+  }
   // G(c, l) = crosstalk(c, l) * white_albedo * intensity_l with crosstalk(l, l) = 1.
   RigCalibration& rig = report->rig;
   const Eigen::Matrix3d& g = fit->gain;
+  static const char* kChannels[3] = {"red", "green", "blue"};
+  for (int l = 0; l < 3; ++l) {
+    int strongest = l;
+    g.col(l).maxCoeff(&strongest);
+    if (strongest != l)
+      return FailedPreconditionError(std::string("the ") + kLightFolders[l] + " light's images (lights/" +
+                                     kLightFolders[l] + ") are brightest in the camera's " + kChannels[strongest] +
+                                     " channel, not its " + kChannels[l] + " one: are the light folders swapped?");
+  }
   auto var = [&](int c0, int l0, int c1, int l1) { return fit->covariance(9 + 3 * l0 + c0, 9 + 3 * l1 + c1); };
   for (int l = 0; l < 3; ++l) {
     Light& light = rig.lights[l];

@@ -44,6 +44,12 @@ struct CalibrateOptions {
   // Spacing of the white-paper samples on the board and their distance from ink, metres, in (0, 0.1].
   double sample_spacing_m = 0.004;
   double sample_inset_m = 0.002;
+  // Largest RMS reprojection error of the intrinsics, pixels, in (0, 100]: above it the board options
+  // do not match the printed board (or the images are blurred).
+  double max_reprojection_rms_px = 1.0;
+  // Largest RMS residual of the light fit, 8-bit levels, in (0, 255]: above it the images do not
+  // follow the model (ambient light, glossy paper, auto exposure, a wrong board).
+  double max_light_rms_levels = 8.0;
   LightFitOptions light_fit;
 
   Status Check() const;

@@ -170,6 +170,76 @@ TEST_F(CalibrateInputTest, LightNeverLitTheBoard) {
       << report.status().ToString();
 }
 
+TEST_F(CalibrateInputTest, WrongBoardLayout) {
+  CalibrateOptions options = MatchingOptions(SmallCaptures());
+  options.board.squares_x = 7;  // the printed board has 8 x 6 squares
+  options.board.squares_y = 5;
+  options.min_intrinsics_views = 3;
+  StatusOr<CalibrationReport> report = CalibrateRig((*root_ / "good").string(), options);
+  ASSERT_FALSE(report.ok());
+  EXPECT_NE(report.status().message().find("the board does not fit the images"), std::string::npos)
+      << report.status().ToString();
+}
+
+TEST_F(CalibrateInputTest, LightsSwapped) {
+  const fs::path dir = Copy("swapped");
+  fs::rename(dir / "lights" / "red", dir / "lights" / "tmp");
+  fs::rename(dir / "lights" / "green", dir / "lights" / "red");
+  fs::rename(dir / "lights" / "tmp", dir / "lights" / "green");
+  StatusOr<CalibrationReport> report = Calibrate(dir);
+  ASSERT_FALSE(report.ok());
+  EXPECT_NE(report.status().message().find("are the light folders swapped?"), std::string::npos)
+      << report.status().ToString();
+}
+
+// Adds `levels` to every image of the light folders listed.
+void AddLevels(const fs::path& dir, std::initializer_list<const char*> folders, double levels) {
+  for (const char* folder : folders) {
+    for (const fs::directory_entry& e : fs::directory_iterator(dir / "lights" / folder)) {
+      StatusOr<cv::Mat> rgb = ReadRgbImage(e.path().string());
+      ASSERT_TRUE(rgb.ok());
+      ASSERT_TRUE(WriteRgbImage(e.path().string(), *rgb + cv::Scalar::all(levels)).ok());
+    }
+  }
+}
+
+// Stray light or a black level common to all light images is the fitted offset b_c: the lights
+// come out as from the same images without it.
+TEST_F(CalibrateInputTest, AmbientOffsetIsFitted) {
+  StatusOr<CalibrationReport> reference = Calibrate(*root_ / "good");
+  ASSERT_TRUE(reference.ok()) << reference.status().ToString();
+  const fs::path dir = Copy("ambient");
+  AddLevels(dir, {"red", "green", "blue", "all"}, 20);
+  StatusOr<CalibrationReport> report = Calibrate(dir);
+  ASSERT_TRUE(report.ok()) << report.status().ToString();
+  double shift_m = 0, intensity_change = 0;
+  for (int l = 0; l < 3; ++l) {
+    shift_m = std::max(shift_m,
+                       (report->rig.lights[l].position_in_camera - reference->rig.lights[l].position_in_camera).norm());
+    intensity_change =
+        std::max(intensity_change, std::abs(report->rig.lights[l].intensity / reference->rig.lights[l].intensity - 1));
+  }
+  const Eigen::Vector3d ambient_levels = 255 * report->light_fit.ambient;
+  const Eigen::Vector3d reference_levels = 255 * reference->light_fit.ambient;
+  std::cout << "offset 20 levels: fitted " << ambient_levels.transpose()
+            << " levels (without: " << reference_levels.transpose() << "), lights moved " << 1000 * shift_m
+            << " mm, intensities " << 100 * intensity_change << " %\n";
+  EXPECT_LT((ambient_levels - reference_levels - Eigen::Vector3d::Constant(20)).cwiseAbs().maxCoeff(),
+            /*max_offset_error_levels=*/0.5);
+  EXPECT_LT(shift_m, /*max_light_shift_m=*/0.001);
+  EXPECT_LT(intensity_change, /*max_intensity_change=*/0.01);
+}
+
+// An offset in one light's images only (the exposure changed between photos) breaks the model.
+TEST_F(CalibrateInputTest, ExposureChangedBetweenImages) {
+  const fs::path dir = Copy("exposure");
+  AddLevels(dir, {"red"}, 60);
+  StatusOr<CalibrationReport> report = Calibrate(dir);
+  ASSERT_FALSE(report.ok());
+  EXPECT_NE(report.status().message().find("do not follow the near-light model"), std::string::npos)
+      << report.status().ToString();
+}
+
 TEST_F(CalibrateInputTest, MissingLightFolder) {
   const fs::path dir = Copy("no_blue");
   fs::remove_all(dir / "lights" / "blue");

@@ -22,11 +22,12 @@ Status LightFitOptions::Check() const {
 
 namespace {
 
-constexpr int kParams = 18;
+constexpr int kParams = 21;
 using Params = Eigen::Matrix<double, kParams, 1>;
 using Normal = Eigen::Matrix<double, kParams, kParams>;
 
 int GainIndex(int c, int l) { return 9 + 3 * l + c; }
+int AmbientIndex(int c) { return 18 + c; }
 
 // Near-light shading max(0, n . v) / |v|^3 with v = light - point, and its gradient in the light position.
 double Shading(const Eigen::Vector3d& light, const LightSample& s, Eigen::Vector3d* gradient) {
@@ -42,7 +43,7 @@ double Shading(const Eigen::Vector3d& light, const LightSample& s, Eigen::Vector
 }
 
 // Cost (sum of squared residuals) and, when asked, the normal equations at `theta`.
-double Evaluate(const std::vector<LightSample>& samples, const Params& theta, Normal* h, Params* g) {
+double Evaluate(const std::vector<LightSample>& samples, const Params& theta, bool fit_ambient, Normal* h, Params* g) {
   if (h) h->setZero();
   if (g) g->setZero();
   double cost = 0;
@@ -53,12 +54,13 @@ double Evaluate(const std::vector<LightSample>& samples, const Params& theta, No
     for (int l = 0; l < 3; ++l)
       shade[l] = (s.lit >> l) & 1 ? Shading(theta.segment<3>(3 * l), s, h ? &grad[l] : nullptr) : 0.0;
     for (int c = 0; c < 3; ++c) {
-      double pred = 0;
+      double pred = theta[AmbientIndex(c)];
       for (int l = 0; l < 3; ++l) pred += theta[GainIndex(c, l)] * shade[l];
       const double r = pred - s.rgb[c];
       cost += r * r;
       if (!h) continue;
       row.setZero();
+      if (fit_ambient) row[AmbientIndex(c)] = 1;
       for (int l = 0; l < 3; ++l) {
         if (!((s.lit >> l) & 1)) continue;
         row.segment<3>(3 * l) = theta[GainIndex(c, l)] * grad[l];
@@ -68,7 +70,10 @@ double Evaluate(const std::vector<LightSample>& samples, const Params& theta, No
       *g += r * row;
     }
   }
-  if (h) *h = h->selfadjointView<Eigen::Lower>();
+  if (h) {
+    *h = h->selfadjointView<Eigen::Lower>();
+    if (!fit_ambient) h->diagonal().tail<3>().setOnes();  // b stays 0: no gradient, unit curvature
+  }
   return cost;
 }
 
@@ -132,7 +137,7 @@ StatusOr<LightFitResult> FitLights(const std::vector<LightSample>& samples, cons
   LightFitResult result;
   Normal h;
   Params g;
-  double cost = Evaluate(samples, theta, &h, &g);
+  double cost = Evaluate(samples, theta, options.fit_ambient, &h, &g);
   double lambda = 1e-4;
   for (int it = 0; it < options.max_iterations; ++it) {
     result.iterations = it + 1;
@@ -141,11 +146,11 @@ StatusOr<LightFitResult> FitLights(const std::vector<LightSample>& samples, cons
     const Params delta = -damped.ldlt().solve(g);
     if (!delta.allFinite()) return FailedPreconditionError("light fit: singular normal equations");
     const Params candidate = theta + delta;
-    const double candidate_cost = Evaluate(samples, candidate, nullptr, nullptr);
+    const double candidate_cost = Evaluate(samples, candidate, options.fit_ambient, nullptr, nullptr);
     if (candidate_cost < cost) {
       const double decrease = (cost - candidate_cost) / std::max(cost, 1e-300);
       theta = candidate;
-      cost = Evaluate(samples, theta, &h, &g);
+      cost = Evaluate(samples, theta, options.fit_ambient, &h, &g);
       lambda = std::max(lambda / 3, 1e-12);
       if (decrease < 1e-12 || delta.head<9>().norm() < 1e-9) {
         result.converged = true;
@@ -163,7 +168,7 @@ StatusOr<LightFitResult> FitLights(const std::vector<LightSample>& samples, cons
   const int m = 3 * static_cast<int>(samples.size());
   result.residuals = m;
   result.rms = std::sqrt(cost / std::max(1, m));
-  const double sigma2 = cost / std::max(1, m - kParams);
+  const double sigma2 = cost / std::max(1, m - (options.fit_ambient ? kParams : kParams - 3));
   Eigen::FullPivLU<Normal> lu(h);
   if (!lu.isInvertible()) return FailedPreconditionError("light fit: the board poses do not constrain the lights");
   result.covariance = sigma2 * lu.inverse();
@@ -174,6 +179,11 @@ StatusOr<LightFitResult> FitLights(const std::vector<LightSample>& samples, cons
       result.gain(c, l) = theta[GainIndex(c, l)];
       result.gain_std(c, l) = std::sqrt(std::max(0.0, result.covariance(GainIndex(c, l), GainIndex(c, l))));
     }
+  }
+  for (int c = 0; c < 3; ++c) {
+    result.ambient[c] = theta[AmbientIndex(c)];
+    result.ambient_std[c] =
+        options.fit_ambient ? std::sqrt(std::max(0.0, result.covariance(AmbientIndex(c), AmbientIndex(c)))) : 0.0;
   }
   return result;
 }
