@@ -5,6 +5,7 @@
 #include <optional>
 #include <string>
 
+#include "core/calibration/synthetic_captures.h"
 #include "core/io/ply_io.h"
 #include "core/io/sequence.h"
 #include "core/synth/families.h"
@@ -32,7 +33,7 @@ int Fail(const std::string& message) {
 int main(int argc, char** argv) {
   using namespace prism;
   synth::PresetOptions options;
-  std::string preset, out, gt_cloud, family = "mixed", size = "512x512", distortion_text;
+  std::string preset, out, gt_cloud, charuco_board, family = "mixed", size = "512x512", distortion_text;
   bool list = false, list_families = false, describe = false, no_shadows = false, world_lights = false;
   uint32_t random_seed = 0;
   int threads = 0, supersampling = 0;
@@ -40,7 +41,8 @@ int main(int argc, char** argv) {
   CLI::App app{"", "prism-synth"};
   cli::Setup(&app, "renders a synthetic multispectral sequence of the three-light rig with ground truth",
              {"prism-synth --list-presets [--describe]", "prism-synth --preset NAME --out DIR [options]",
-              "prism-synth --random SEED [--family NAME] [--world-lights] --out DIR [options]"},
+              "prism-synth --random SEED [--family NAME] [--world-lights] --out DIR [options]",
+              "prism-synth --charuco-board DIR [--size WxH] [--seed S] [--noise SIGMA] [--distortion ...]"},
              kNotes);
   app.add_flag("--list-presets", list, "print one preset name per line (the first is the demo scene)");
   app.add_flag("--describe", describe, "with --list-presets or --list-families: a tab and a description per line");
@@ -55,6 +57,11 @@ int main(int argc, char** argv) {
                "with --random: the lights stay where they were at the first frame\n"
                "(ordinary lighting; camera.yaml gives them intensity 0)");
   app.add_option("--out", out, "output folder (created)")->type_name("DIR");
+  app.add_option("--charuco-board", charuco_board,
+                 "render prism-calibrate's input instead: a ChArUco board (8x6 squares of 45 mm,\n"
+                 "DICT_4X4_50, paper albedo 0.85) at random poses 0.3-1 m, lit by each light alone\n"
+                 "and all together; the default rig's truth in DIR/truth.yaml")
+      ->type_name("DIR");
   CLI::Option* frames = app.add_option("--frames", options.frames, "frames at 30 fps (with --random: drawn, 150-300)")
                             ->type_name("N")
                             ->check(CLI::Range(2, 100000));
@@ -118,6 +125,25 @@ int main(int argc, char** argv) {
       if (describe) std::cout << "\t" << f.description;
       std::cout << "\n";
     }
+    return 0;
+  }
+  if (!charuco_board.empty()) {
+    calibration::SyntheticCaptureOptions co;
+    co.seed = options.seed;
+    if (noise >= 0) co.render.noise_sigma = noise;
+    if (supersampling > 0) co.render.supersampling = supersampling;
+    RigCalibration rig = synth::MakeDefaultRig(options.width, options.height);
+    if (distortion) rig.camera.distortion = *distortion;
+    if (Status s = rig.camera.Check(); !s.ok()) return Fail(s.ToString());
+    if (Status s = calibration::WriteSyntheticCaptures(rig, co, charuco_board); !s.ok()) return Fail(s.ToString());
+    std::cout << JsonText({{"charuco_board", charuco_board},
+                           {"board", co.board.Describe()},
+                           {"width", options.width},
+                           {"height", options.height},
+                           {"intrinsics_views", co.intrinsics_views},
+                           {"light_views", co.light_views},
+                           {"white_albedo", co.white_albedo},
+                           {"seed", co.seed}});
     return 0;
   }
   const bool random_scene = random->count() > 0;

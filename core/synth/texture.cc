@@ -1,5 +1,6 @@
 #include "core/synth/texture.h"
 
+#include <algorithm>
 #include <cmath>
 
 namespace prism::synth {
@@ -69,6 +70,19 @@ uint32_t VoronoiCell(const Eigen::Vector3d& p, uint32_t seed) {
   return best_hash;
 }
 
+double ImageTexture::Sample(double x_m, double y_m) const {
+  if (width <= 0 || height <= 0) return 1.0;
+  // Texel (i, j) covers [i, i + 1) x [j, j + 1) texel units from the image's top-left corner.
+  const double u = std::clamp(x_m / texel_m + 0.5 * width - 0.5, 0.0, width - 1.0);
+  const double v = std::clamp(y_m / texel_m + 0.5 * height - 0.5, 0.0, height - 1.0);
+  const int u0 = std::min(static_cast<int>(u), width - 2 < 0 ? 0 : width - 2);
+  const int v0 = std::min(static_cast<int>(v), height - 2 < 0 ? 0 : height - 2);
+  const int u1 = std::min(u0 + 1, width - 1), v1 = std::min(v0 + 1, height - 1);
+  const double fu = u - u0, fv = v - v0;
+  auto at = [&](int x, int y) { return static_cast<double>(values[static_cast<size_t>(y) * width + x]); };
+  return (1 - fv) * ((1 - fu) * at(u0, v0) + fu * at(u1, v0)) + fv * ((1 - fu) * at(u0, v1) + fu * at(u1, v1));
+}
+
 Eigen::Vector3d AlbedoOptions::Evaluate(const Eigen::Vector3d& point_in_object) const {
   switch (kind) {
     case AlbedoKind::kUniform:
@@ -82,6 +96,9 @@ Eigen::Vector3d AlbedoOptions::Evaluate(const Eigen::Vector3d& point_in_object) 
       const uint32_t cell = VoronoiCell(point_in_object / feature_size_m, seed);
       return palette[(cell >> 8) % palette.size()];
     }
+    case AlbedoKind::kImage:
+      if (!image) return base;
+      return base * image->Sample(point_in_object.x(), point_in_object.y());
   }
   return base;
 }

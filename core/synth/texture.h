@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include <Eigen/Core>
@@ -21,6 +22,18 @@ enum class AlbedoKind {
   kUniform,     // one albedo everywhere
   kTextured,    // base albedo modulated in brightness by fractal noise (chromaticity constant)
   kMultiColor,  // regions of constant albedo drawn from a palette (Voronoi cells)
+  kImage,       // base albedo times a grey image on the object's z = 0 plane (a printed target)
+};
+
+// A grey image lying on the object's plane z = 0, centred on the origin, x along columns and y along
+// rows; `texel_m` metres per texel. Sampled bilinearly; outside the image it is clamped to the edge.
+struct ImageTexture {
+  int width = 0;
+  int height = 0;
+  double texel_m = 0.001;
+  std::vector<float> values;  // row-major, in [0, 1]
+
+  double Sample(double x_m, double y_m) const;
 };
 
 // Albedo per light band (red, green, blue light), in [0, 1].
@@ -32,6 +45,7 @@ struct AlbedoOptions {
   double contrast = 0.5;                 // kTextured: brightness varies in [1 - contrast, 1]
   int octaves = 3;                       // kTextured
   uint32_t seed = 1;
+  std::shared_ptr<const ImageTexture> image;  // kImage
 
   Eigen::Vector3d Evaluate(const Eigen::Vector3d& point_in_object) const;
 };
