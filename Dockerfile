@@ -30,7 +30,7 @@ ENV DEBIAN_FRONTEND=noninteractive
 RUN apt-get update -qq \
  && apt-get install -y -qq --no-install-recommends \
       libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-calib3d406 libopencv-video406 \
-      libopencv-videoio406 \
+      libopencv-videoio406 libopencv-contrib406 \
       libpcl-common1.13 libpcl-search1.13 libpcl-kdtree1.13 libpcl-octree1.13 \
       libprotobuf32 libzmq5 libdraco7 libjpeg62-turbo libpng16-16 libyaml-cpp0.7 libmicrohttpd12 \
       python3 python3-numpy \
