@@ -239,7 +239,7 @@ class ProgressLine {
     std::snprintf(line, sizeof(line),
                   "prism-client: %5.1f frames/s, %llu sent, %llu dropped, %s, %zu map points, %llu chunks, %.0f s",
                   s.frames_per_s, static_cast<unsigned long long>(s.sent), static_cast<unsigned long long>(s.dropped()),
-                  prism::TrackingStateName(s.tracking), s.map_points, static_cast<unsigned long long>(s.chunks),
+                  prism::client::TrackingStateName(s.tracking), s.map_points, static_cast<unsigned long long>(s.chunks),
                   s.seconds);
     if (tty_) {
       std::fprintf(stderr, "\r%-110s", line);
@@ -317,7 +317,7 @@ std::string StreamSequence(const Args& args, const prism::Sequence& seq, pc::Ses
         chunks_seen = output->chunks();
         status.map_points = session->Map().size();
       }
-      status.tracking = prism::TrackingStateName(output->tracking());
+      status.tracking = prism::client::TrackingStateName(output->tracking());
       status.frames_sent = counts->sent;
       status.frames_dropped = counts->skipped;
       status.poses = output->poses();
@@ -390,7 +390,7 @@ std::string StreamSource(const Args& args, const pc::Rig& rig, Capture* capture,
                                         status.frames_sent = s.sent;
                                         status.frames_dropped = s.dropped();
                                         status.poses = s.poses;
-                                        status.tracking = prism::TrackingStateName(s.tracking);
+                                        status.tracking = prism::client::TrackingStateName(s.tracking);
                                         status.map_points = s.map_points;
                                         status.seconds = s.seconds;
                                         view->SetStatus(status);
@@ -557,7 +557,7 @@ int Run(Args& args) {
     status.state = error.empty() ? "finished" : "failed: " + error;
     status.frames_sent = static_cast<uint64_t>(sent);
     status.frames_per_s = (*j).value("frames_per_s", 0.0);
-    status.tracking = prism::TrackingStateName(output.tracking());
+    status.tracking = prism::client::TrackingStateName(output.tracking());
     status.poses = output.poses();
     status.map_points = session->Map().size();
     status.seconds = seconds;

@@ -64,19 +64,6 @@ py::dict PointsToNumpy(const std::vector<pc::Point>& points) {
   return d;
 }
 
-const char* StateName(pc::TrackingState s) {
-  switch (s) {
-    case pc::TrackingState::kInitialising:
-      return "initialising";
-    case pc::TrackingState::kTracking:
-      return "tracking";
-    case pc::TrackingState::kLost:
-      return "lost";
-    default:
-      return "unknown";
-  }
-}
-
 py::dict PoseToDict(const pc::Pose& pose) {
   py::dict d;
   d["frame"] = pose.frame_sequence_number;
@@ -84,7 +71,7 @@ py::dict PoseToDict(const pc::Pose& pose) {
   d["rotation_xyzw"] =
       py::make_tuple(pose.rotation_xyzw[0], pose.rotation_xyzw[1], pose.rotation_xyzw[2], pose.rotation_xyzw[3]);
   d["translation"] = py::make_tuple(pose.translation[0], pose.translation[1], pose.translation[2]);
-  d["state"] = StateName(pose.state);
+  d["state"] = pc::TrackingStateName(pose.state);
   d["is_keyframe"] = pose.is_keyframe;
   d["keyframe_id"] = pose.keyframe_id;
   d["refined"] = pose.refined;
@@ -118,7 +105,7 @@ py::dict LiveStatsToDict(const prism::LiveStats& s) {
   d["frames_per_s"] = s.frames_per_s;
   d["poses"] = s.poses;
   d["chunks"] = s.chunks;
-  d["tracking"] = StateName(s.tracking);
+  d["tracking"] = pc::TrackingStateName(s.tracking);
   d["map_points"] = s.map_points;
   d["seconds"] = s.seconds;
   d["end"] = s.end;

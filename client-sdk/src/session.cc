@@ -120,6 +120,19 @@ const char* CodeName(Code code) {
   return "?";
 }
 
+const char* TrackingStateName(TrackingState state) {
+  switch (state) {
+    case TrackingState::kInitialising:
+      return "initialising";
+    case TrackingState::kTracking:
+      return "tracking";
+    case TrackingState::kLost:
+      return "lost";
+    default:
+      return "unknown";
+  }
+}
+
 std::string Status::ToString() const { return ok() ? "OK" : std::string(CodeName(code)) + ": " + message; }
 
 Status DecodeChunk(const uint8_t* data, size_t size, std::vector<Point>* points) {

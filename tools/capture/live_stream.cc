@@ -18,19 +18,6 @@ using Clock = std::chrono::steady_clock;
 
 }  // namespace
 
-const char* TrackingStateName(pc::TrackingState state) {
-  switch (state) {
-    case pc::TrackingState::kInitialising:
-      return "initialising";
-    case pc::TrackingState::kTracking:
-      return "tracking";
-    case pc::TrackingState::kLost:
-      return "lost";
-    default:
-      return "unknown";
-  }
-}
-
 // ---------------------------------------------------------------------------------------------------
 // SequenceRecorder
 

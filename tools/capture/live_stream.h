@@ -94,9 +94,6 @@ struct LiveStats {
   uint64_t dropped() const { return skipped_no_credit + skipped_stale; }
 };
 
-// "initialising", "tracking", "lost", "unknown".
-const char* TrackingStateName(client::TrackingState state);
-
 class LiveStream {
  public:
   // session and source stay owned by the caller and outlive Run; recorder may be null.

@@ -331,7 +331,7 @@ void ViewServer::SetPose(uint64_t frame, double timestamp_s, const std::array<do
 
 void ViewServer::SetPose(const client::Pose& pose) {
   SetPose(pose.frame_sequence_number, static_cast<double>(pose.timestamp_ns) * 1e-9, pose.translation,
-          pose.rotation_xyzw, TrackingStateName(pose.state), pose.is_keyframe);
+          pose.rotation_xyzw, client::TrackingStateName(pose.state), pose.is_keyframe);
   SetMetresPerUnit(pose.metres_per_unit);
 }
 

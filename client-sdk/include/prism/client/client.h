@@ -106,6 +106,8 @@ struct SessionOptions {
 };
 
 enum class TrackingState { kUnknown, kInitialising, kTracking, kLost };
+// "initialising", "tracking", "lost", "unknown".
+const char* TrackingStateName(TrackingState state);
 
 // How the server's SLAM aligned a frame against its keyframe (Pose::tracking): distances are fractions
 // of the keyframe's mean depth. A tracked frame whose inlier fraction drops or whose result lies far from
