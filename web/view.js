@@ -125,7 +125,8 @@ async function loadChunk(draco, chunk) {
   loading.add(chunk.sequence);
   try {
     const response = await fetch(`api/chunks/${chunk.sequence}.drc`);
-    if (!response.ok) return; // replaced meanwhile
+    if (response.status === 204) return; // voided by a chunk that replaced the map meanwhile
+    if (!response.ok) throw new Error(`chunk ${chunk.sequence}: HTTP ${response.status}`);
     const decoded = decodeChunk(draco, await response.arrayBuffer());
     if (decoded.count !== chunk.points) view.mismatches.push({ sequence: chunk.sequence, expected: chunk.points, decoded: decoded.count });
     if (chunk.replaces_map) fitted = false; // the rebuilt map: fit the view to it once

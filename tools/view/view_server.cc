@@ -5,6 +5,7 @@
 #include <netinet/in.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <cstdlib>
@@ -79,6 +80,7 @@ struct ViewServer::Impl {
   uint64_t pose_revision = 0;                       // Guarded by mutex.
   std::vector<StoredChunk> chunks;                  // Guarded by mutex: from the last replaces_map on.
   uint64_t chunks_received = 0, chunks_voided = 0;  // Guarded by mutex.
+  uint64_t max_sequence = 0;                        // Guarded by mutex: the highest chunk received.
 
   static MHD_Result Reply(MHD_Connection* c, unsigned code, const std::string& type, const void* data, size_t size,
                           MHD_ResponseMemoryMode mode) {
@@ -161,12 +163,17 @@ struct ViewServer::Impl {
     if (url.rfind(kChunkPrefix, 0) == 0) {
       const uint64_t sequence = std::strtoull(url.c_str() + sizeof(kChunkPrefix) - 1, nullptr, 10);
       std::vector<uint8_t> bytes;
+      bool received = false;
       {
         std::lock_guard<std::mutex> lock(mutex);
         for (const StoredChunk& chunk : chunks)
           if (chunk.sequence == sequence) bytes = chunk.draco;
+        received = chunks_received > 0 && sequence <= max_sequence;
       }
-      if (bytes.empty()) return Text(c, MHD_HTTP_NOT_FOUND, "text/plain", "no such chunk (replaced?)\n");
+      // A chunk voided by one that replaced the map since the page listed it: nothing to draw, not an
+      // error (a 4xx would be one in the page's console).
+      if (bytes.empty() && received) return Text(c, MHD_HTTP_NO_CONTENT, "text/plain", "");
+      if (bytes.empty()) return Text(c, MHD_HTTP_NOT_FOUND, "text/plain", "no such chunk\n");
       return Reply(c, MHD_HTTP_OK, "application/octet-stream", bytes.data(), bytes.size(), MHD_RESPMEM_MUST_COPY);
     }
     const auto it = files.find(url == "/" ? "/index.html" : url);
@@ -306,6 +313,7 @@ void ViewServer::AddChunkBytes(uint64_t sequence, uint64_t keyframe_id, size_t p
                                std::vector<uint8_t> draco) {
   std::lock_guard<std::mutex> lock(impl_->mutex);
   ++impl_->chunks_received;
+  impl_->max_sequence = std::max(impl_->max_sequence, sequence);
   if (replaces_map) {  // every earlier chunk is void (protocol.md, "Map chunks")
     impl_->chunks_voided += impl_->chunks.size();
     impl_->chunks.clear();
