@@ -2,15 +2,6 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
-
-#include "server/curve.h"
-#include "server/http_endpoint.h"
-#include "server/metrics.h"
-#include "server/rig_wire.h"
-#include "server/session_store.h"
-#if defined(__GLIBC__)
-#include <malloc.h>
-#endif
 #include <netinet/in.h>
 #include <sys/eventfd.h>
 #include <sys/socket.h>
@@ -40,6 +31,12 @@
 #include "core/util/logging.h"
 #include "core/util/thread_pool.h"
 #include "prism/v1/session.pb.h"
+#include "server/curve.h"
+#include "server/http_endpoint.h"
+#include "server/memory_trimmer.h"
+#include "server/metrics.h"
+#include "server/rig_wire.h"
+#include "server/session_store.h"
 
 namespace prism::server {
 namespace {
@@ -201,6 +198,7 @@ struct Server::Impl {
   std::string endpoint, metrics_endpoint;
   std::unique_ptr<HttpEndpoint> http;  // its own thread; reads what PublishSnapshot hands it
   Clock::time_point last_publish, last_trim;
+  MemoryTrimmer trimmer;
   size_t published_sessions = 0;
   bool published_draining = false;
   // The ROUTER's connection events (zmq_socket_monitor), read on the transport thread.
@@ -1039,17 +1037,13 @@ struct Server::Impl {
         ++it;
       }
     }
-    // Freed memory of peers that came and went (HTTP connections, ZeroMQ buffers) goes back too.
     if (now - last_trim > std::chrono::seconds(10)) TrimMemory();
   }
 
-  // Gives the pages malloc holds free back to the system (glibc keeps them otherwise): after a session
-  // ends, and every 10 s.
+  // After a session ends, and every 10 s (the freed memory of peers that came and went).
   void TrimMemory() {
     last_trim = Clock::now();
-#if defined(__GLIBC__)
-    malloc_trim(0);
-#endif
+    trimmer.Request();
   }
 
   Status Run() {
