@@ -226,6 +226,10 @@ int main(int argc, char** argv) {
                  "debug|info|warning|error; debug prints each keyframe adjustment's\npoints, residuals and RMS")
       ->check(CLI::IsMember({"debug", "info", "warning", "error"}));
   app.add_flag("--no-eval", no_eval, "skip the evaluation against ground truth");
+  bool print_config = false;
+  app.add_flag("--print-config", print_config,
+               "print every SLAM option (after --slam-config, --set and the switches) as\n"
+               "'key = value' lines and exit");
   if (const int exit = cli::Parse(&app, argc, argv, /*usage_exit=*/1); exit != cli::kContinue) return exit;
   for (const auto& [option, value] : cli::InCommandLineOrder(app)) {
     Status st;
@@ -239,6 +243,10 @@ int main(int argc, char** argv) {
       st = SetSlamOption(sw->second, "false", &options);
     }
     if (!st.ok()) return Fail(st.ToString());
+  }
+  if (print_config) {
+    std::cout << FormatSlamConfig(options);
+    return 0;
   }
   SetMinLogLevel(log_level);
   const bool eval = !no_eval, remap = !no_remap, metric_scale = !no_metric_scale;

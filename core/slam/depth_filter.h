@@ -27,8 +27,7 @@ namespace prism {
 class ThreadPool;
 
 struct DepthFilterOptions {
-  // Minimum gradient magnitude of J (central differences) for a keyframe pixel to get an estimate,
-  // in [0, 255].
+  // Grey-level gradient a keyframe pixel needs for a depth estimate, [0, 255]: lower = denser, noisier.
   double min_gradient = 4.0;
   // Minimum |cos| between the gradient direction and the epipolar line; below it the match is too
   // ambiguous along the line, in [0, 1).
@@ -41,8 +40,7 @@ struct DepthFilterOptions {
   double max_match_error = 300.0;
   // ... and the best match outside +-2 px of it is at least this factor worse, >= 1.
   double min_match_ratio = 1.5;
-  // At most this many pixels are searched along a line (longer segments are searched around the
-  // current estimate), >= 4.
+  // Pixels searched along an epipolar line, >= 4: more = faster motion handled, slower mapping.
   int max_search_px = 64;
   // Standard deviation of J's noise, grey levels, > 0 (photometric disparity error).
   double image_noise_sigma = 4.0;
@@ -109,9 +107,9 @@ struct DepthFilterOptions {
   // 0 = every estimate searched, >= 0: lower (> 0) = more skipped, faster mapping, worse ATE and depth (for
   // slow machines, where the mapping falls behind).
   double skip_information_ratio = 0;
-  // Output (ToInverseDepthMap): estimates with at least this many fused observations ...
+  // Observations an estimate needs before it is used, >= 1: more = fewer, surer points.
   int min_observations = 2;
-  // ... and relative standard deviation sigma / rho at most this, > 0.
+  // Largest relative inverse-depth sigma of a used estimate, > 0: larger = denser, noisier depth.
   double max_relative_sigma = 0.1;
 
   Status Check() const;

@@ -22,173 +22,50 @@ struct Field {
   FieldPtr ptr;
 };
 
-void AddTracker(const std::string& p, TrackerOptions& t, std::vector<Field>* f) {
-  f->push_back({p + "pyramid_levels", &t.pyramid_levels});
-  f->push_back({p + "min_gradient", &t.min_gradient});
-  f->push_back({p + "max_points_per_level", &t.max_points_per_level});
-  f->push_back({p + "max_iterations", &t.max_iterations});
-  f->push_back({p + "convergence_threshold", &t.convergence_threshold});
-  f->push_back({p + "image_noise_sigma", &t.image_noise_sigma});
-  f->push_back({p + "huber_threshold", &t.huber_threshold});
-  f->push_back({p + "inlier_threshold", &t.inlier_threshold});
-  f->push_back({p + "shading_model", &t.shading_model});
-  f->push_back({p + "normal_window_radius_px", &t.normal_window_radius_px});
-  f->push_back({p + "normal_max_depth_jump", &t.normal_max_depth_jump});
-  f->push_back({p + "normal_min_view_cosine", &t.normal_min_view_cosine});
-  f->push_back({p + "max_shading_ratio", &t.max_shading_ratio});
-  f->push_back({p + "local_mean_radius_px", &t.local_mean_radius_px});
-  f->push_back({p + "local_mean_floor", &t.local_mean_floor});
-  f->push_back({p + "min_local_mean", &t.min_local_mean});
-  f->push_back({p + "estimate_affine_brightness", &t.estimate_affine_brightness});
-  f->push_back({p + "affine_prior_a", &t.affine_prior_a});
-  f->push_back({p + "affine_prior_b", &t.affine_prior_b});
-  f->push_back({p + "min_visible_fraction", &t.min_visible_fraction});
-  f->push_back({p + "min_inlier_fraction", &t.min_inlier_fraction});
-  f->push_back({p + "max_affine_gain", &t.max_affine_gain});
-  f->push_back({p + "max_residual_rms", &t.max_residual_rms});
-  f->push_back({p + "camera_attached_min_votes", &t.camera_attached_min_votes});
-  f->push_back({p + "camera_attached_min_flow_px", &t.camera_attached_min_flow_px});
-  f->push_back({p + "camera_attached_residual_ratio", &t.camera_attached_residual_ratio});
-}
-
-void AddDepthFilter(const std::string& p, DepthFilterOptions& d, std::vector<Field>* f) {
-  f->push_back({p + "min_gradient", &d.min_gradient});
-  f->push_back({p + "min_gradient_line_cosine", &d.min_gradient_line_cosine});
-  f->push_back({p + "max_match_error", &d.max_match_error});
-  f->push_back({p + "min_match_ratio", &d.min_match_ratio});
-  f->push_back({p + "max_search_px", &d.max_search_px});
-  f->push_back({p + "image_noise_sigma", &d.image_noise_sigma});
-  f->push_back({p + "epipolar_sigma_px", &d.epipolar_sigma_px});
-  f->push_back({p + "seed_max_relative_sigma", &d.seed_max_relative_sigma});
-  f->push_back({p + "search_sigmas", &d.search_sigmas});
-  f->push_back({p + "outlier_sigmas", &d.outlier_sigmas});
-  f->push_back({p + "propagation_relative_sigma", &d.propagation_relative_sigma});
-  f->push_back({p + "local_mean_radius_px", &d.local_mean_radius_px});
-  f->push_back({p + "max_local_mean_log_gradient", &d.max_local_mean_log_gradient});
-  f->push_back({p + "local_mean_edge_dim_side_only", &d.local_mean_edge_dim_side_only});
-  f->push_back({p + "local_mean_floor", &d.local_mean_floor});
-  f->push_back({p + "min_local_mean", &d.min_local_mean});
-  f->push_back({p + "regularise_sigmas", &d.regularise_sigmas});
-  f->push_back({p + "min_neighbours", &d.min_neighbours});
-  f->push_back({p + "min_observations", &d.min_observations});
-  f->push_back({p + "max_relative_sigma", &d.max_relative_sigma});
-  f->push_back({p + "light_edge_radius_px", &d.light_edge_radius_px});
-  f->push_back({p + "light_edge_low_share", &d.light_edge_low_share});
-  f->push_back({p + "light_edge_high_share", &d.light_edge_high_share});
-  f->push_back({p + "camera_attached_min_votes", &d.camera_attached_min_votes});
-  f->push_back({p + "camera_attached_min_flow_px", &d.camera_attached_min_flow_px});
-  f->push_back({p + "camera_attached_error_ratio", &d.camera_attached_error_ratio});
-  f->push_back({p + "skip_information_ratio", &d.skip_information_ratio});
-}
-
-void AddDirectBa(const std::string& p, DirectBaOptions& b, std::vector<Field>* f) {
-  f->push_back({p + "pyramid_levels", &b.pyramid_levels});
-  f->push_back({p + "max_iterations", &b.max_iterations});
-  f->push_back({p + "huber", &b.huber});
-  f->push_back({p + "outlier", &b.outlier});
-  f->push_back({p + "border_px", &b.border_px});
-  f->push_back({p + "function_tolerance", &b.function_tolerance});
-  f->push_back({p + "gradient_weight_c", &b.gradient_weight_c});
-  f->push_back({p + "gain_ratio_damping", &b.gain_ratio_damping});
-  f->push_back({p + "linearise_from_evaluation", &b.linearise_from_evaluation});
-}
-
-void AddFeatureAdjustment(const std::string& p, FeatureAdjustmentOptions& a, std::vector<Field>* f) {
-  f->push_back({p + "max_features", &a.max_features});
-  f->push_back({p + "contrast_threshold", &a.contrast_threshold});
-  f->push_back({p + "min_local_mean", &a.min_local_mean});
-  f->push_back({p + "ratio", &a.ratio});
-  f->push_back({p + "ransac_threshold_px", &a.ransac_threshold_px});
-  f->push_back({p + "min_pair_matches", &a.min_pair_matches});
-  f->push_back({p + "max_pair_angle_deg", &a.max_pair_angle_deg});
-  f->push_back({p + "huber_px", &a.huber_px});
-  f->push_back({p + "outlier_px", &a.outlier_px});
-  f->push_back({p + "max_iterations", &a.max_iterations});
-  f->push_back({p + "function_tolerance", &a.function_tolerance});
-  f->push_back({p + "min_triangulation_angle_deg", &a.min_triangulation_angle_deg});
-}
-
-// The fields of `o`, by key. Pointers into `o`: valid while it lives.
+// The options a user sets (at most 40; the rest of SlamOptions are the method's internal settings), by
+// key. Pointers into `o`: valid while it lives.
 std::vector<Field> Fields(SlamOptions& o) {
-  std::vector<Field> f;
-  f.push_back({"keyframe_distance_fraction", &o.keyframe_distance_fraction});
-  f.push_back({"keyframe_min_visible_fraction", &o.keyframe_min_visible_fraction});
-  f.push_back({"keyframe_max_rotation_deg", &o.keyframe_max_rotation_deg});
-  f.push_back({"init_min_frames", &o.init_min_frames});
-  f.push_back({"init_min_converged_fraction", &o.init_min_converged_fraction});
-  f.push_back({"init_min_parallax_fraction", &o.init_min_parallax_fraction});
-  f.push_back({"init_max_frames", &o.init_max_frames});
-  f.push_back({"init_track_normalised", &o.init_track_normalised});
-  f.push_back({"init_min_feature_local_mean", &o.init_min_feature_local_mean});
-  f.push_back({"init_residual_factor", &o.init_residual_factor});
-  f.push_back({"init_rounds", &o.init_rounds});
-  f.push_back({"init_threads", &o.init_threads});
-  f.push_back({"init_depth_edge_test", &o.init_depth_edge_test});
-  f.push_back({"new_pixel_relative_sigma", &o.new_pixel_relative_sigma});
-  f.push_back({"tracker_refresh_frames", &o.tracker_refresh_frames});
-  f.push_back({"depth_update_interval", &o.depth_update_interval});
-  f.push_back({"mapping_budget_ms", &o.mapping_budget_ms});
-  f.push_back({"tracking_min_observations", &o.tracking_min_observations});
-  f.push_back({"tracking_max_relative_sigma", &o.tracking_max_relative_sigma});
-  f.push_back({"max_step_rotation_deg", &o.max_step_rotation_deg});
-  f.push_back({"max_step_translation_fraction", &o.max_step_translation_fraction});
-  f.push_back({"keep_velocity_across_keyframes", &o.keep_velocity_across_keyframes});
-  f.push_back({"relocalise_max_keyframes", &o.relocalise_max_keyframes});
-  f.push_back({"relocalise_after_lost_frames", &o.relocalise_after_lost_frames});
-  f.push_back({"loop_closure", &o.loop_closure});
-  f.push_back({"loop_min_keyframe_gap", &o.loop_min_keyframe_gap});
-  f.push_back({"loop_max_distance_fraction", &o.loop_max_distance_fraction});
-  f.push_back({"loop_max_angle_deg", &o.loop_max_angle_deg});
-  f.push_back({"loop_max_candidates", &o.loop_max_candidates});
-  f.push_back({"loop_max_rotation_inconsistency_deg", &o.loop_max_rotation_inconsistency_deg});
-  f.push_back({"loop_min_depth_matches", &o.loop_min_depth_matches});
-  f.push_back({"odometry_rotation_sigma", &o.odometry_rotation_sigma});
-  f.push_back({"odometry_translation_sigma", &o.odometry_translation_sigma});
-  f.push_back({"odometry_log_scale_sigma", &o.odometry_log_scale_sigma});
-  f.push_back({"loop_rotation_sigma", &o.loop_rotation_sigma});
-  f.push_back({"loop_translation_sigma", &o.loop_translation_sigma});
-  f.push_back({"loop_log_scale_sigma", &o.loop_log_scale_sigma});
-  f.push_back({"keyframe_adjustment", &o.keyframe_adjustment});
-  f.push_back({"keyframe_window", &o.keyframe_window});
-  f.push_back({"keyframe_window_cell_px", &o.keyframe_window_cell_px});
-  f.push_back({"keyframe_window_min_points", &o.keyframe_window_min_points});
-  f.push_back({"keyframe_adjustment_interval", &o.keyframe_adjustment_interval});
-  f.push_back({"keyframe_window_min_overlap", &o.keyframe_window_min_overlap});
-  f.push_back({"repropagate_after_adjustment", &o.repropagate_after_adjustment});
-  f.push_back({"keyframe_adjustment_async", &o.keyframe_adjustment_async});
-  f.push_back({"keyframe_adjustment_max_wait_ms", &o.keyframe_adjustment_max_wait_ms});
-  f.push_back({"refit_oldest_keyframe_scale", &o.refit_oldest_keyframe_scale});
-  f.push_back({"distribute_keyframe_corrections", &o.distribute_keyframe_corrections});
-  f.push_back({"final_adjustment", &o.final_adjustment});
-  f.push_back({"final_adjustment_max_keyframes", &o.final_adjustment_max_keyframes});
-  f.push_back({"final_feature_adjustment", &o.final_feature_adjustment});
-  f.push_back({"feature_adjustment_min_overlap", &o.feature_adjustment_min_overlap});
-  f.push_back({"feature_adjustment_max_keyframes", &o.feature_adjustment_max_keyframes});
-  AddFeatureAdjustment("feature_adjustment.", o.feature_adjustment, &f);
-  f.push_back({"final_refinement_neighbours", &o.final_refinement_neighbours});
-  f.push_back({"final_refinement_first_from_second", &o.final_refinement_first_from_second});
-  f.push_back({"final_refinement_relative_sigma", &o.final_refinement_relative_sigma});
-  f.push_back({"final_refinement_rounds", &o.final_refinement_rounds});
-  AddTracker("tracker.", o.tracker, &f);
-  AddTracker("wide_baseline_tracker.", o.wide_baseline_tracker, &f);
-  AddDepthFilter("depth.", o.depth, &f);
-  AddDirectBa("keyframe_window_ba.", o.keyframe_window_ba, &f);
-  AddDirectBa("final_adjustment_ba.", o.final_adjustment_ba, &f);
-  f.push_back({"final_adjustment_relit", &o.final_adjustment_relit});
-  f.push_back({"final_adjustment_mixed", &o.final_adjustment_mixed});
-  f.push_back({"final_adjustment_mixed_relit_scale", &o.final_adjustment_mixed_relit_scale});
-  f.push_back({"metric_scale_min_band_fraction", &o.metric_scale_min_band_fraction});
-  f.push_back({"metric_scale_max_pair_spread", &o.metric_scale_max_pair_spread});
-  f.push_back({"scale_drift_correction", &o.scale_drift_correction});
-  f.push_back({"scale_drift_window", &o.scale_drift_window});
-  f.push_back({"start_check_keyframes", &o.start_check_keyframes});
-  f.push_back({"start_check_max_pair_spread", &o.start_check_max_pair_spread});
-  f.push_back({"start_check_retry_parallax_fraction", &o.start_check_retry_parallax_fraction});
-  f.push_back({"start_check_max_frames", &o.start_check_max_frames});
-  f.push_back({"start_check_window_cell_px", &o.start_check_window_cell_px});
-  f.push_back({"start_check_async", &o.start_check_async});
-  AddDirectBa("final_adjustment_relit_ba.", o.final_adjustment_relit_ba, &f);
-  return f;
+  return {
+      {"keyframe_distance_fraction", &o.keyframe_distance_fraction},
+      {"keyframe_min_visible_fraction", &o.keyframe_min_visible_fraction},
+      {"keyframe_max_rotation_deg", &o.keyframe_max_rotation_deg},
+      {"init_min_frames", &o.init_min_frames},
+      {"init_max_frames", &o.init_max_frames},
+      {"init_threads", &o.init_threads},
+      {"depth_update_interval", &o.depth_update_interval},
+      {"mapping_budget_ms", &o.mapping_budget_ms},
+      {"relocalise_after_lost_frames", &o.relocalise_after_lost_frames},
+      {"loop_closure", &o.loop_closure},
+      {"loop_min_keyframe_gap", &o.loop_min_keyframe_gap},
+      {"loop_max_candidates", &o.loop_max_candidates},
+      {"keyframe_adjustment", &o.keyframe_adjustment},
+      {"keyframe_window", &o.keyframe_window},
+      {"keyframe_adjustment_async", &o.keyframe_adjustment_async},
+      {"keyframe_adjustment_max_wait_ms", &o.keyframe_adjustment_max_wait_ms},
+      {"repropagate_after_adjustment", &o.repropagate_after_adjustment},
+      {"final_adjustment", &o.final_adjustment},
+      {"final_adjustment_max_keyframes", &o.final_adjustment_max_keyframes},
+      {"final_feature_adjustment", &o.final_feature_adjustment},
+      {"final_refinement_neighbours", &o.final_refinement_neighbours},
+      {"final_refinement_rounds", &o.final_refinement_rounds},
+      {"scale_drift_correction", &o.scale_drift_correction},
+      {"start_check_keyframes", &o.start_check_keyframes},
+      {"start_check_async", &o.start_check_async},
+      {"tracker.pyramid_levels", &o.tracker.pyramid_levels},
+      {"tracker.min_gradient", &o.tracker.min_gradient},
+      {"tracker.max_points_per_level", &o.tracker.max_points_per_level},
+      {"tracker.max_iterations", &o.tracker.max_iterations},
+      {"tracker.image_noise_sigma", &o.tracker.image_noise_sigma},
+      {"tracker.shading_model", &o.tracker.shading_model},
+      {"tracker.min_inlier_fraction", &o.tracker.min_inlier_fraction},
+      {"depth.min_gradient", &o.depth.min_gradient},
+      {"depth.max_search_px", &o.depth.max_search_px},
+      {"depth.image_noise_sigma", &o.depth.image_noise_sigma},
+      {"depth.max_relative_sigma", &o.depth.max_relative_sigma},
+      {"depth.min_observations", &o.depth.min_observations},
+      {"keyframe_window_ba.max_iterations", &o.keyframe_window_ba.max_iterations},
+      {"final_adjustment_ba.max_iterations", &o.final_adjustment_ba.max_iterations},
+  };
 }
 
 constexpr const char* kShadingModelNames[] = {"none", "local_mean_normalisation", "predicted_shading"};

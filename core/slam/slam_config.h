@@ -4,8 +4,9 @@
 // slam_config.txt). Users of LSD-SLAM and DSO name "parameters that differ between entry points" among
 // their main complaints; here every entry point reads the same keys through this file.
 //
-// Format: one `key = value` per line; '#' starts a comment; blank lines are ignored. A key is the
-// option's field path in SlamOptions, e.g.
+// Format: one `key = value` per line; '#' starts a comment; blank lines are ignored. The keys are the
+// options a user sets (SlamOptionKeys, at most 40; the other SlamOptions fields are the method's own
+// settings, set only in code), each the field's path in SlamOptions, e.g.
 //   keyframe_distance_fraction = 0.09
 //   tracker.min_gradient = 4
 //   depth.max_relative_sigma = 0.1

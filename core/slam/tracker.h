@@ -43,31 +43,24 @@ enum class ShadingModel {
 };
 
 struct TrackerOptions {
-  // Pyramid levels (level 0 = full resolution, each level halves the size), in [1, 8]. The coarsest
-  // level must keep at least 8 pixels per side.
+  // Pyramid levels, [1, 8] (coarsest >= 8 px a side): more = larger motions caught, coarser start.
   int pyramid_levels = 4;
-  // Minimum grey-level gradient magnitude (central differences, grey levels per pixel at that
-  // level) for a keyframe pixel to become a tracked point, in [0, 255].
+  // Grey-level gradient a keyframe pixel needs to be tracked, [0, 255]: lower = more, weaker points.
   double min_gradient = 6.0;
-  // Upper bound on the points per level: points are picked on a grid, the strongest gradient per
-  // cell, so they stay spread over the image, >= 16.
+  // Tracked points per level (strongest per grid cell), >= 16: more = steadier, slower tracking.
   int max_points_per_level = 3000;
   // Levenberg-Marquardt iterations per pyramid level, in [1, 100].
   int max_iterations = 20;
   // Stop a level when the update's norm (translation in keyframe inverse-depth units plus rotation in
   // radians) falls below this, > 0.
   double convergence_threshold = 1e-5;
-  // Standard deviation of the image noise in grey levels, > 0 (each residual has 2 sigma^2 from the
-  // two images, plus the inverse-depth term).
+  // Image noise, grey levels (standard deviation), > 0: weights the residuals against depth noise.
   double image_noise_sigma = 3.0;
   // Huber threshold on the variance-normalised residual (units of its standard deviation), > 0.
   double huber_threshold = 2.0;
   // A point is an inlier when its normalised residual is below this, > 0.
   double inlier_threshold = 4.0;
-  // The rig's lights move with the camera, so the shading changes between views (raw grey biases the
-  // pose by ~10% of the baseline). kLocalMeanNormalisation tracks a shading-invariant image
-  // J = 128 * I / (box_mean(I) + floor), with the box mean over (2 * local_mean_radius_px + 1)^2
-  // pixels at each level; kPredictedShading predicts the change from the rig (see ShadingModel).
+  // The co-moving lights' shading change (ShadingModel): none, local_mean_normalisation, predicted_shading.
   ShadingModel shading_model = ShadingModel::kLocalMeanNormalisation;
   // kPredictedShading: half size of the window of the keyframe's depth map the normals are fitted in,
   // pixels at each level, in [1, 8].
@@ -97,7 +90,7 @@ struct TrackerOptions {
   // Tracking is reported lost when, at the finest level, fewer than this fraction of the keyframe's
   // points project into the frame, in [0, 1].
   double min_visible_fraction = 0.25;
-  // ... or fewer than this fraction of the visible points are inliers, in [0, 1].
+  // ... or fewer than this fraction of visible points are inliers (lost), [0, 1]: higher = lost sooner.
   double min_inlier_fraction = 0.5;
   // ... or the estimated contrast gain exp(a) leaves [1 / max_affine_gain, max_affine_gain] (a blank or
   // unrelated frame is otherwise "explained" by a gain near zero), > 1.
