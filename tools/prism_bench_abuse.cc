@@ -358,9 +358,10 @@ int main(int argc, char** argv) {
   app.add_option("--height", height, "its frame height")->capture_default_str();
   app.add_option("--seconds", seconds, "its length, s")->capture_default_str();
   app.add_option("--fps", fps, "its frame rate")->capture_default_str();
-  app.add_option("--baseline-runs", baseline_runs, "runs without an abuser; the p95 over their frames is the reference")
+  app.add_option("--baseline-runs", baseline_runs, "runs without an abuser at the start (warm-up and RSS reference)")
       ->capture_default_str();
-  app.add_option("--repeats", repeats, "runs beside each abuser; the p95 is over the frames of all")
+  app.add_option("--repeats", repeats,
+                 "runs beside each abuser, and ordinary runs right before it; each p95 is over the frames of its runs")
       ->capture_default_str();
   app.add_option("--only", only, "comma-separated abusers (default: all)");
   app.add_option("--json", json_out, "also write the results as JSON to this file");
@@ -463,6 +464,15 @@ int main(int argc, char** argv) {
 
     for (const prism::abuse::AbuserInfo* a : group) {
       std::cerr << "abuser " << a->name << ": " << a->description << "\n";
+      // The reference for this abuser: as many ordinary runs right before it (the machine's speed drifts
+      // by more than the bar over the minutes the whole table takes).
+      std::vector<double> near_base;
+      for (int k = 0; k < repeats; ++k) {
+        const SessionResult b = RunSession(server, seq, fps, client_pub, client_sec);
+        if (b.ok) near_base.insert(near_base.end(), b.frame_to_pose_ms.begin(), b.frame_to_pose_ms.end());
+      }
+      const double p95_near = near_base.empty() ? p95_base : Percentile(near_base, 0.95);
+      WaitForNoSessions(server, 10);
       const size_t log_offset = server.LogSize();
       const auto metrics_before = server.Metrics();
       HealthProbe probe(server.metrics_url);
@@ -501,7 +511,7 @@ int main(int argc, char** argv) {
       const LogCheck log = CheckLog(server.LogSince(log_offset));
       const double p95 = r.ok ? r.p95() : -1;
       const double health_max = health.empty() ? -1 : *std::max_element(health.begin(), health.end());
-      const double ratio = p95 > 0 ? p95 / p95_base : -1;
+      const double ratio = p95 > 0 ? p95 / p95_near : -1;
       // Connection churn is logged once per 10 s window instead of per peer (no peer identity).
       const size_t max_churn_lines = static_cast<size_t>(abuse_s / 10.0) + 2;
       std::vector<std::string> failed;
@@ -525,7 +535,7 @@ int main(int argc, char** argv) {
       for (const std::string& f : failed) why += (why.empty() ? "" : ",") + f;
       std::snprintf(row, sizeof(row),
                     "| %-20s | %8.1f | %8.1f | %5.2f | %7.1f | %8.1f | %6.0f/%6.0f | %8.0f | %9zu | %s |",
-                    a->name.c_str(), p95_base, p95, ratio, open_ms, health_max, rss_base, rss_after, counted, log.lines,
+                    a->name.c_str(), p95_near, p95, ratio, open_ms, health_max, rss_base, rss_after, counted, log.lines,
                     a->reference ? "reference"
                     : pass       ? "pass"
                                  : ("FAIL " + why).c_str());
@@ -534,8 +544,9 @@ int main(int argc, char** argv) {
       results.push_back({{"abuser", a->name},
                          {"description", a->description},
                          {"curve", curve},
-                         {"p95_ms_baseline", p95_base},
-                         {"p95_ms_baseline_runs", base_p95},
+                         {"p95_ms_baseline", p95_near},
+                         {"p95_ms_baseline_start", p95_base},
+                         {"p95_ms_baseline_start_runs", base_p95},
                          {"p95_ms", p95},
                          {"p95_ratio", ratio},
                          {"poses", r.frame_to_pose_ms.size()},
