@@ -1,3 +1,5 @@
+// SlamSystem's back end: the keyframe pairs' shading scales and the keyframe adjustments (direct and by
+// features).
 #include <algorithm>
 #include <chrono>
 #include <cmath>

@@ -1,3 +1,5 @@
+// SlamSystem's end of the sequence: the last keyframes, the final adjustment, the metric scale and scale
+// drift from the lights, and the keyframes' depth refinement.
 #include <algorithm>
 #include <cmath>
 #include <limits>

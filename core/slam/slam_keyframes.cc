@@ -1,3 +1,4 @@
+// SlamSystem's keyframes: a new keyframe, loop closure, the adjustment window, the re-propagation.
 #include <algorithm>
 #include <cmath>
 #include <string>

@@ -1,3 +1,4 @@
+// SlamSystem's start: the initialisation from the first frames, and the start check with its second start.
 #include <algorithm>
 #include <chrono>
 #include <cmath>

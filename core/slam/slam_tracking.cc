@@ -1,3 +1,4 @@
+// SlamSystem's frame tracking: the tracker's keyframe, each frame's alignment, frame poses, relocalisation.
 #include <algorithm>
 #include <chrono>
 #include <sstream>
