@@ -145,33 +145,105 @@ StatusOr<Sequence> LoadKitti(const std::string& dir) {
   return seq;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+// The run's settings, from the command line.
+struct Settings {
   std::string sequence_dir, kitti_dir, out_dir, camera_file, on_bad_frame = "skip", log_level = "info";
   long max_frames = -1;
   int threads = 0;
   bool no_eval = false, dense = false, no_remap = false, no_metric_scale = false, dense_online = false;
   SlamOptions options;
   DenseStageOptions dense_options;
+  bool eval = true, remap = true, metric_scale = true, stop_on_bad_frame = false;  // from the above
+};
+
+// The input: the sequence, and the undistorted rig the SLAM and the dense stage run on.
+struct Input {
+  std::optional<Sequence> seq;
+  std::optional<ImageUndistorter> undistorter;
+  RigCalibration rig;
+};
+
+// The dense stage (--dense, --dense-online) and what it reports.
+struct DenseRun {
+  std::unique_ptr<DenseStage> stage;
+  bool eval = false;  // keep each keyframe's fused depth for the evaluation
+  double seconds = 0;
+  int failed = 0;
+  std::map<int, cv::Mat> fused_depth;  // keyframe id -> fused depth (SLAM units), for the evaluation
+  std::string first_error;
+  double remap_seconds = 0;
+  bool remapped = false;
+
+  // Runs the stage on one keyframe (nothing without a stage).
+  void Run(const SlamKeyframe& k);
+};
+
+void DenseRun::Run(const SlamKeyframe& k) {
+  if (!stage) return;
+  DenseKeyframe dk;
+  dk.id = static_cast<uint64_t>(k.id);
+  dk.rgb = k.rgb;
+  dk.world_from_keyframe = k.world_from_keyframe;
+  dk.depth = k.depth;
+  const auto t0 = std::chrono::steady_clock::now();
+  StatusOr<DenseKeyframeResult> r = stage->Process(dk);
+  seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (r.ok() && eval) fused_depth[k.id] = r->depth;
+  if (!r.ok()) {
+    if (failed++ == 0) first_error = r.status().ToString();
+    std::cerr << "prism-slam: dense stage, keyframe " << k.id << ": " << r.status() << "\n";
+  }
+}
+
+// What the SLAM run produced.
+struct SlamRun {
+  size_t n = 0;  // frames to process
+  std::vector<SlamKeyframe> keyframes;
+  std::vector<size_t> seq_index;     // the SLAM's frame id -> the frame's index in the sequence
+  std::vector<std::string> skipped;  // "frame i (t = ...): error"
+  std::string stop_error;
+  double slam_seconds = 0, finish_seconds = 0, refine_seconds = 0;
+  std::optional<ScaleDriftCorrection> drift;
+  std::string drift_error;
+  double drift_seconds = 0;
+  std::optional<MetricScaleEstimate> shading_scale;
+  std::string shading_scale_error;
+  double shading_scale_seconds = 0;
+  // Metres per world unit of the outputs (0 = unknown), and the dense stage's own.
+  double metres_per_unit = 0, dense_metres_per_unit = 0;
+};
+
+// What the outputs hold that the summary and the evaluation read.
+struct Outputs {
+  std::vector<SlamFrameResult> results;
+  Trajectory estimate;
+  int counts[3] = {0, 0, 0};
+  std::vector<Sim3d> keyframe_poses;
+  size_t semidense_points = 0;
+};
+
+// Parses the command line into `settings`: cli::kContinue, or the exit status (after --help, a usage
+// error or --print-config).
+int ParseCommandLine(int argc, char** argv, Settings* settings) {
+  Settings& s = *settings;
   CLI::App app{"", "prism-slam"};
   cli::Setup(&app, "semi-dense direct monocular SLAM on a sequence folder or a KITTI odometry folder",
              {"prism-slam --sequence DIR --out DIR [options]", "prism-slam --kitti DIR --out DIR [options]"}, kNotes);
-  app.add_option("--sequence", sequence_dir, "sequence folder: rgb.txt, rgb/, camera.yaml (see README)")
+  app.add_option("--sequence", s.sequence_dir, "sequence folder: rgb.txt, rgb/, camera.yaml (see README)")
       ->type_name("DIR");
-  app.add_option("--kitti", kitti_dir,
+  app.add_option("--kitti", s.kitti_dir,
                  "a KITTI odometry folder instead: image_0/*.png (grey), calib.txt (P0,\n"
                  "with or without 'P0:'), times.txt and, when present, poses.txt (truth)")
       ->type_name("DIR");
-  app.add_option("--out", out_dir, "output folder (created)")->type_name("DIR");
-  app.add_option("--camera", camera_file,
+  app.add_option("--out", s.out_dir, "output folder (created)")->type_name("DIR");
+  app.add_option("--camera", s.camera_file,
                  "intrinsics and lens distortion from FILE instead of camera.yaml's: OpenCV\n"
                  "or ROS camera_info YAML, DSO / LSD-SLAM camera.txt, Prism camera.yaml")
       ->type_name("FILE");
-  app.add_flag("--dense", dense,
+  app.add_flag("--dense", s.dense,
                "also run the dense stage (photometric stereo, fusion, ICP map) on every\n"
                "keyframe at the end, at its final pose, and write map.ply (metres)");
-  app.add_flag("--dense-online", dense_online,
+  app.add_flag("--dense-online", s.dense_online,
                "run it instead on each keyframe as it is finished (as prism-server\n"
                "does), then rebuild map.ply at the final keyframe poses");
   // SLAM options: --slam-config, --set and the switches apply in command-line order (below).
@@ -195,37 +267,37 @@ int main(int argc, char** argv) {
   };
   std::map<const CLI::Option*, const char*> slam_switch;
   for (const auto& sw : kSlamSwitches) slam_switch[app.add_flag(sw.flag, sw.help)] = sw.key;
-  app.add_flag("--no-metric-scale", no_metric_scale,
+  app.add_flag("--no-metric-scale", s.no_metric_scale,
                "skip the metres per world unit from the co-moving lights (2-7 s at the\n"
                "end; trajectory_metres.txt and map.ply use it, else the dense stage's)");
-  app.add_flag("--no-remap", no_remap,
+  app.add_flag("--no-remap", s.no_remap,
                "with --dense-online: write map.ply as the keyframe clouds were merged,\n"
                "not rebuilt at the final keyframe poses");
-  app.add_flag("--remap-icp", dense_options.remap_icp,
+  app.add_flag("--remap-icp", s.dense_options.remap_icp,
                "with --dense-online: register each keyframe cloud again with ICP as\nmap.ply is rebuilt");
-  app.add_option("--position-weight", dense_options.fusion.position_weight,
+  app.add_option("--position-weight", s.dense_options.fusion.position_weight,
                  "the dense stage's fusion position weight, >= 0")
       ->check(CLI::NonNegativeNumber);
-  app.add_option("--min-brightness", dense_options.min_brightness,
+  app.add_option("--min-brightness", s.dense_options.min_brightness,
                  "the dense stage leaves pixels darker than this (0-255) out of the map")
       ->check(CLI::Range(0.0, 255.0));
-  app.add_option("--max-frames", max_frames, "process at most N frames (default: all)")
+  app.add_option("--max-frames", s.max_frames, "process at most N frames (default: all)")
       ->type_name("N")
       ->default_str("")
       ->check(CLI::PositiveNumber);
-  app.add_option("--on-bad-frame", on_bad_frame,
+  app.add_option("--on-bad-frame", s.on_bad_frame,
                  "skip|stop: a frame that cannot be read or decoded, or has the wrong\n"
                  "size, is skipped with a warning (listed in summary.json) or ends the\n"
                  "run (exit 1 after writing the outputs of the frames before it)")
       ->check(CLI::IsMember({"skip", "stop"}));
-  app.add_option("--threads", threads, "threads for the depth filter and the adjustments, 1-256 (default: all)")
+  app.add_option("--threads", s.threads, "threads for the depth filter and the adjustments, 1-256 (default: all)")
       ->type_name("N")
       ->default_str("")
       ->check(CLI::Range(1, 256));
-  app.add_option("--log-level", log_level,
+  app.add_option("--log-level", s.log_level,
                  "debug|info|warning|error; debug prints each keyframe adjustment's\npoints, residuals and RMS")
       ->check(CLI::IsMember({"debug", "info", "warning", "error"}));
-  app.add_flag("--no-eval", no_eval, "skip the evaluation against ground truth");
+  app.add_flag("--no-eval", s.no_eval, "skip the evaluation against ground truth");
   bool print_config = false;
   app.add_flag("--print-config", print_config,
                "print every SLAM option (after --slam-config, --set and the switches) as\n"
@@ -234,34 +306,43 @@ int main(int argc, char** argv) {
   for (const auto& [option, value] : cli::InCommandLineOrder(app)) {
     Status st;
     if (option == slam_config) {
-      st = ApplySlamConfigFile(value, &options);
+      st = ApplySlamConfigFile(value, &s.options);
     } else if (option == set) {
       const size_t eq = value.find('=');
       if (eq == std::string::npos) return Fail("--set expects KEY=VALUE, got '" + value + "'");
-      st = SetSlamOption(value.substr(0, eq), value.substr(eq + 1), &options);
+      st = SetSlamOption(value.substr(0, eq), value.substr(eq + 1), &s.options);
     } else if (const auto sw = slam_switch.find(option); sw != slam_switch.end()) {
-      st = SetSlamOption(sw->second, "false", &options);
+      st = SetSlamOption(sw->second, "false", &s.options);
     }
     if (!st.ok()) return Fail(st.ToString());
   }
   if (print_config) {
-    std::cout << FormatSlamConfig(options);
+    std::cout << FormatSlamConfig(s.options);
     return 0;
   }
-  SetMinLogLevel(log_level);
-  const bool eval = !no_eval, remap = !no_remap, metric_scale = !no_metric_scale;
-  const bool stop_on_bad_frame = on_bad_frame == "stop";
-  if (sequence_dir.empty() == kitti_dir.empty() || out_dir.empty())
+  s.eval = !s.no_eval;
+  s.remap = !s.no_remap;
+  s.metric_scale = !s.no_metric_scale;
+  s.stop_on_bad_frame = s.on_bad_frame == "stop";
+  return cli::kContinue;
+}
+
+// Checks the settings, reads the sequence, creates the output folder with slam_config.txt and
+// camera.yaml, and sets up the undistortion: cli::kContinue or the exit status.
+int ReadInput(const Settings& s, Input* input) {
+  if (s.sequence_dir.empty() == s.kitti_dir.empty() || s.out_dir.empty())
     return Fail("--out and one of --sequence or --kitti are required (see --help)");
-  if (Status st = options.Check(); !st.ok()) return Fail("SLAM options: " + st.ToString());
-  StatusOr<Sequence> seq = kitti_dir.empty() ? LoadSequence(sequence_dir) : LoadKitti(kitti_dir);
-  if (!seq.ok()) return Fail(seq.status().ToString());
-  if (!camera_file.empty()) {
+  if (Status st = s.options.Check(); !st.ok()) return Fail("SLAM options: " + st.ToString());
+  StatusOr<Sequence> loaded = s.kitti_dir.empty() ? LoadSequence(s.sequence_dir) : LoadKitti(s.kitti_dir);
+  if (!loaded.ok()) return Fail(loaded.status().ToString());
+  std::optional<Sequence>& seq = input->seq;
+  seq = std::move(loaded).value();
+  if (!s.camera_file.empty()) {
     // The intrinsics from the user's own calibration file; the lights and crosstalk stay the
     // sequence's (the SLAM does not use them; the dense stage does).
-    if (dense && !seq->has_calibration)
+    if (s.dense && !seq->has_calibration)
       return Fail("--camera gives the intrinsics only; --dense also needs the rig's lights (camera.yaml)");
-    StatusOr<PinholeCamera> camera = ReadCameraIntrinsics(camera_file);
+    StatusOr<PinholeCamera> camera = ReadCameraIntrinsics(s.camera_file);
     if (!camera.ok()) return Fail(camera.status().ToString());
     seq->calibration.camera = *camera;
     seq->has_calibration = true;
@@ -269,156 +350,134 @@ int main(int argc, char** argv) {
   if (!seq->has_calibration)
     return Fail("sequence has no camera.yaml (the camera calibration is needed; or give --camera FILE)");
   std::error_code ec;
-  std::filesystem::create_directories(out_dir + "/keyframes", ec);
-  if (ec) return Fail("cannot create '" + out_dir + "/keyframes': " + ec.message());
+  std::filesystem::create_directories(s.out_dir + "/keyframes", ec);
+  if (ec) return Fail("cannot create '" + s.out_dir + "/keyframes': " + ec.message());
 
   {
-    std::ofstream config(out_dir + "/slam_config.txt");
-    config << FormatSlamConfig(options);
-    if (!config) return Fail("cannot write '" + out_dir + "/slam_config.txt'");
+    std::ofstream config(s.out_dir + "/slam_config.txt");
+    config << FormatSlamConfig(s.options);
+    if (!config) return Fail("cannot write '" + s.out_dir + "/slam_config.txt'");
   }
 
   // Lens distortion: every frame (and, for the evaluation, the true depth) is remapped into an
   // undistorted pinhole camera of the same size, which the SLAM and the dense stage run on.
   StatusOr<ImageUndistorter> undistorter = ImageUndistorter::Create(seq->calibration.camera);
   if (!undistorter.ok()) return Fail(undistorter.status().ToString());
-  RigCalibration rig = seq->calibration;
+  RigCalibration& rig = input->rig;
+  rig = seq->calibration;
   rig.camera = undistorter->camera();
-  if (Status st = WriteCalibrationYaml(out_dir + "/camera.yaml", rig); !st.ok()) return Fail(st.ToString());
+  if (Status st = WriteCalibrationYaml(s.out_dir + "/camera.yaml", rig); !st.ok()) return Fail(st.ToString());
+  input->undistorter = std::move(undistorter).value();
+  return cli::kContinue;
+}
 
-  ThreadPool pool(threads);
-  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(rig, options, &pool);
-  if (!slam.ok()) return Fail(slam.status().ToString());
-
-  const size_t n =
-      max_frames > 0 ? std::min<size_t>(seq->frames.size(), static_cast<size_t>(max_frames)) : seq->frames.size();
-  std::vector<SlamKeyframe> keyframes;
-  double slam_seconds = 0, dense_seconds = 0;
-  std::unique_ptr<DenseStage> dense_stage;
-  int dense_failed = 0;
-  std::map<int, cv::Mat> fused_depth;  // keyframe id -> fused depth (SLAM units), for the evaluation
-  std::string dense_first_error;
-  if (dense) {
-    StatusOr<std::unique_ptr<DenseStage>> d = DenseStage::Create(rig, dense_options, &pool);
-    if (!d.ok()) return Fail(d.status().ToString());
-    dense_stage = std::move(d).value();
-  }
-  auto run_dense = [&](const SlamKeyframe& k) {
-    if (!dense_stage) return;
-    DenseKeyframe dk;
-    dk.id = static_cast<uint64_t>(k.id);
-    dk.rgb = k.rgb;
-    dk.world_from_keyframe = k.world_from_keyframe;
-    dk.depth = k.depth;
-    const auto t0 = std::chrono::steady_clock::now();
-    StatusOr<DenseKeyframeResult> r = dense_stage->Process(dk);
-    dense_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    if (r.ok() && eval) fused_depth[k.id] = r->depth;
-    if (!r.ok()) {
-      if (dense_failed++ == 0) dense_first_error = r.status().ToString();
-      std::cerr << "prism-slam: dense stage, keyframe " << k.id << ": " << r.status() << "\n";
-    }
-  };
+// Runs the SLAM over the frames (with --dense-online the dense stage on each finished keyframe) and
+// finishes it: cli::kContinue or the exit status.
+int RunSlam(const Settings& s, const Input& input, SlamSystem* slam, DenseRun* dense, SlamRun* run) {
+  const std::optional<Sequence>& seq = input.seq;
+  const bool stop_on_bad_frame = s.stop_on_bad_frame;
   // A frame that cannot be read, decoded or undistorted, or that has the wrong size, is skipped
   // (--on-bad-frame skip) or ends the frame loop (stop); either way every output of the frames before
   // it is written. The SLAM numbers the frames it was given; seq_index maps its frame ids back.
-  std::vector<size_t> seq_index;
-  std::vector<std::string> skipped;  // "frame i (t = ...): error"
-  std::string stop_error;
-  for (size_t i = 0; i < n; ++i) {
-    const auto bad_frame = [&](const Status& s) {
+  for (size_t i = 0; i < run->n; ++i) {
+    const auto bad_frame = [&](const Status& st) {
       std::ostringstream m;
       m << "frame " << i << " (t = " << std::fixed << std::setprecision(6) << seq->frames[i].timestamp_s
-        << "): " << s.ToString();
+        << "): " << st.ToString();
       std::cerr << "prism-slam: " << m.str() << (stop_on_bad_frame ? "; stopping (--on-bad-frame stop)" : "; skipped")
                 << "\n";
-      if (stop_on_bad_frame) stop_error = m.str();
-      else skipped.push_back(m.str());
+      if (stop_on_bad_frame) run->stop_error = m.str();
+      else run->skipped.push_back(m.str());
     };
     // ReadRgb gives 8-bit RGB or an error; Undistort refuses an image whose size is not the camera's.
     StatusOr<cv::Mat> rgb = seq->ReadRgb(i);
     const auto t0 = std::chrono::steady_clock::now();
-    if (rgb.ok()) rgb = undistorter->Undistort(*rgb);
+    if (rgb.ok()) rgb = input.undistorter->Undistort(*rgb);
     if (!rgb.ok()) {
       bad_frame(rgb.status());
       if (stop_on_bad_frame) break;
       continue;
     }
-    StatusOr<SlamFrameResult> r = (*slam)->ProcessFrame(seq->frames[i].timestamp_s, *rgb);
-    slam_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    StatusOr<SlamFrameResult> r = slam->ProcessFrame(seq->frames[i].timestamp_s, *rgb);
+    run->slam_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (!r.ok()) return Fail("frame " + std::to_string(i) + ": " + r.status().ToString());
-    seq_index.push_back(i);
+    run->seq_index.push_back(i);
     if (r->state == SlamState::kLost) std::cerr << "prism-slam: frame " << i << ": " << r->message << "\n";
-    for (SlamKeyframe& k : (*slam)->TakeFinishedKeyframes()) {
-      if (dense_online) run_dense(k);
-      keyframes.push_back(std::move(k));
+    for (SlamKeyframe& k : slam->TakeFinishedKeyframes()) {
+      if (s.dense_online) dense->Run(k);
+      run->keyframes.push_back(std::move(k));
     }
   }
   const auto finish_start = std::chrono::steady_clock::now();
-  std::vector<SlamKeyframe> last_keyframes = (*slam)->Finish();
-  const double finish_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - finish_start).count();
+  std::vector<SlamKeyframe> last_keyframes = slam->Finish();
+  run->finish_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - finish_start).count();
   for (SlamKeyframe& k : last_keyframes) {
-    if (dense_online) run_dense(k);
-    keyframes.push_back(std::move(k));
+    if (s.dense_online) dense->Run(k);
+    run->keyframes.push_back(std::move(k));
   }
-  if (dense_stage && dense_online) {
-    StatusOr<MapChunk> rest = dense_stage->Flush();
+  if (dense->stage && s.dense_online) {
+    StatusOr<MapChunk> rest = dense->stage->Flush();
     if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
   }
+  return cli::kContinue;
+}
+
+// After the frames: the keyframe depth refinement, the scale drift correction and the metric scale.
+void RefineAndScale(const Settings& s, SlamSystem* slam, SlamRun* run) {
+  const SlamOptions& options = s.options;
   // The keyframes' depth re-estimated at the final poses (SlamOptions::final_refinement_neighbours; the
   // dense stage above ran on each keyframe as handed over).
   const auto refine_start = std::chrono::steady_clock::now();
-  (*slam)->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
-                                options.final_refinement_rounds, &keyframes);
-  const double refine_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
+  slam->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
+                             options.final_refinement_rounds, &run->keyframes);
+  run->refine_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
   // The scale drift between keyframes corrected with the co-moving lights (SlamSystem::CorrectScaleDrift).
-  std::optional<ScaleDriftCorrection> drift;
-  std::string drift_error;
-  double drift_seconds = 0;
   if (options.scale_drift_correction) {
     const auto start = std::chrono::steady_clock::now();
-    StatusOr<ScaleDriftCorrection> c = (*slam)->CorrectScaleDrift();
-    drift_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (c.ok()) drift = *c;
-    else drift_error = std::string(c.status().message());
+    StatusOr<ScaleDriftCorrection> c = slam->CorrectScaleDrift();
+    run->drift_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (c.ok()) run->drift = *c;
+    else run->drift_error = std::string(c.status().message());
   }
   // The metres per world unit from the co-moving lights (SlamSystem::EstimateMetricScale).
-  std::optional<MetricScaleEstimate> shading_scale;
-  std::string shading_scale_error;
-  double shading_scale_seconds = 0;
-  if (metric_scale) {
+  std::optional<MetricScaleEstimate>& shading_scale = run->shading_scale;
+  if (s.metric_scale) {
     const auto start = std::chrono::steady_clock::now();
-    StatusOr<MetricScaleEstimate> e = (*slam)->EstimateMetricScale();
-    shading_scale_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    StatusOr<MetricScaleEstimate> e = slam->EstimateMetricScale();
+    run->shading_scale_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     if (e.ok()) shading_scale = *e;
-    else shading_scale_error = std::string(e.status().message());
+    else run->shading_scale_error = std::string(e.status().message());
     if (shading_scale && !shading_scale->consistent)
       std::cerr << "prism-slam: warning: the reconstruction disagrees with the co-moving lights' shading (keyframe "
                    "pairs' shading scales spread by "
                 << shading_scale->pair_spread << " of their median, limit " << options.metric_scale_max_pair_spread
                 << "): the trajectory and depth are probably distorted\n";
   }
+}
+
+// The dense stage's end (--dense: every final keyframe through it; --dense-online: the map rebuilt at
+// the final poses), the output scale, and map.ply: cli::kContinue or the exit status.
+int FinishDense(const Settings& s, SlamSystem* slam, DenseRun* dense, SlamRun* run) {
+  const std::unique_ptr<DenseStage>& dense_stage = dense->stage;
   // The dense stage on the final keyframes: their refined depth at their final poses.
-  if (dense_stage && !dense_online) {
-    const std::vector<Sim3d> final_poses = (*slam)->KeyframePoses();
-    for (const SlamKeyframe& k : keyframes) {
+  if (dense_stage && !s.dense_online) {
+    const std::vector<Sim3d> final_poses = slam->KeyframePoses();
+    for (const SlamKeyframe& k : run->keyframes) {
       SlamKeyframe placed = k;
       placed.world_from_keyframe = final_poses[static_cast<size_t>(k.id)];
-      run_dense(placed);
+      dense->Run(placed);
     }
     StatusOr<MapChunk> rest = dense_stage->Flush();
     if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
   }
   // --dense-online: the keyframe clouds as merged, each placed again at its final pose.
-  double remap_seconds = 0;
-  bool remapped = false;
   if (dense_stage) {
-    if (dense_online && remap) {
+    if (s.dense_online && s.remap) {
       const auto remap_start = std::chrono::steady_clock::now();
-      StatusOr<MapChunk> changed = dense_stage->Remap((*slam)->KeyframePoses());
-      remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
+      StatusOr<MapChunk> changed = dense_stage->Remap(slam->KeyframePoses());
+      dense->remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
       if (!changed.ok()) std::cerr << "prism-slam: map not rebuilt at the final poses: " << changed.status() << "\n";
-      else remapped = changed->replaces_map;
+      else dense->remapped = changed->replaces_map;
     }
   }
   // Metres per world unit of the outputs: the SLAM's estimate from the co-moving lights when there is one
@@ -426,20 +485,29 @@ int main(int argc, char** argv) {
   // photometric stereo, and the map it built is rescaled to the output scale.
   const double dense_metres_per_unit =
       dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
-  const double metres_per_unit = shading_scale ? shading_scale->metres_per_world_unit : dense_metres_per_unit;
+  const double metres_per_unit = run->shading_scale ? run->shading_scale->metres_per_world_unit : dense_metres_per_unit;
+  run->dense_metres_per_unit = dense_metres_per_unit;
+  run->metres_per_unit = metres_per_unit;
   if (dense_stage) {
     PointCloud map = dense_stage->map().ToPointCloud();
     if (dense_metres_per_unit > 0 && metres_per_unit > 0) {
       const float f = static_cast<float>(metres_per_unit / dense_metres_per_unit);
       for (Eigen::Vector3f& p : map.positions) p *= f;
     }
-    if (Status s = WritePointCloudPly(out_dir + "/map.ply", map); !s.ok()) return Fail(s.ToString());
+    if (Status st = WritePointCloudPly(s.out_dir + "/map.ply", map); !st.ok()) return Fail(st.ToString());
   }
+  return cli::kContinue;
+}
 
-  // Outputs.
-  const std::vector<SlamFrameResult> results = (*slam)->Trajectory();
-  Trajectory estimate;
-  int counts[3] = {0, 0, 0};
+// Writes states.txt, tracking.txt, the trajectories, the keyframes and semidense.ply: cli::kContinue or
+// the exit status.
+int WriteOutputs(const Settings& s, SlamSystem* slam, const SlamRun& run, Outputs* outputs) {
+  const std::string& out_dir = s.out_dir;
+  const double metres_per_unit = run.metres_per_unit;
+  outputs->results = slam->Trajectory();
+  const std::vector<SlamFrameResult>& results = outputs->results;
+  Trajectory& estimate = outputs->estimate;
+  int* counts = outputs->counts;
   std::ofstream states(out_dir + "/states.txt");
   states << "# timestamp state keyframe_id message\n" << std::setprecision(17);
   std::ofstream tracking(out_dir + "/tracking.txt");
@@ -455,17 +523,19 @@ int main(int argc, char** argv) {
                << (q.retried ? 1 : 0) << " " << q.step << " " << q.rotation_deg << " " << q.guess_correction << "\n";
     if (r.state == SlamState::kTracking) estimate.push_back({r.timestamp, r.world_from_camera});
   }
-  if (Status s = WriteTumTrajectory(out_dir + "/trajectory.txt", estimate); !s.ok()) return Fail(s.ToString());
+  if (Status st = WriteTumTrajectory(out_dir + "/trajectory.txt", estimate); !st.ok()) return Fail(st.ToString());
   if (metres_per_unit > 0) {
     Trajectory metric = estimate;
     for (TimedPose& p : metric) p.world_from_camera.translation *= metres_per_unit;
-    if (Status s = WriteTumTrajectory(out_dir + "/trajectory_metres.txt", metric); !s.ok()) return Fail(s.ToString());
+    if (Status st = WriteTumTrajectory(out_dir + "/trajectory_metres.txt", metric); !st.ok())
+      return Fail(st.ToString());
   }
   std::ofstream kf_index(out_dir + "/keyframes/keyframes.txt");
   kf_index << "# id frame_id timestamp scale tx ty tz qx qy qz qw (world_from_keyframe, Sim(3))\n"
            << std::setprecision(17);
-  const std::vector<Sim3d> keyframe_poses = (*slam)->KeyframePoses();  // after the last loop closure
-  for (const SlamKeyframe& k : keyframes) {
+  outputs->keyframe_poses = slam->KeyframePoses();  // after the last loop closure
+  const std::vector<Sim3d>& keyframe_poses = outputs->keyframe_poses;
+  for (const SlamKeyframe& k : run.keyframes) {
     char name[32];
     std::snprintf(name, sizeof(name), "%06d", k.id);
     const std::string base = out_dir + "/keyframes/" + name;
@@ -474,32 +544,43 @@ int main(int argc, char** argv) {
       return Fail("cannot write '" + base + "_*.tiff'");
     const Sim3d& p = keyframe_poses[static_cast<size_t>(k.id)];
     // frame_id: the frame's index in the sequence (the SLAM's own count leaves out skipped frames).
-    const long frame = k.frame_id >= 0 && static_cast<size_t>(k.frame_id) < seq_index.size()
-                           ? static_cast<long>(seq_index[k.frame_id])
+    const long frame = k.frame_id >= 0 && static_cast<size_t>(k.frame_id) < run.seq_index.size()
+                           ? static_cast<long>(run.seq_index[k.frame_id])
                            : -1;
     kf_index << k.id << " " << frame << " " << k.timestamp << " " << p.scale << " " << p.translation.x() << " "
              << p.translation.y() << " " << p.translation.z() << " " << p.rotation.x() << " " << p.rotation.y() << " "
              << p.rotation.z() << " " << p.rotation.w() << "\n";
   }
-  const PointCloud cloud = (*slam)->SemiDenseCloud();
-  if (Status s = WritePointCloudPly(out_dir + "/semidense.ply", cloud); !s.ok()) return Fail(s.ToString());
+  const PointCloud cloud = slam->SemiDenseCloud();
+  if (Status st = WritePointCloudPly(out_dir + "/semidense.ply", cloud); !st.ok()) return Fail(st.ToString());
+  outputs->semidense_points = cloud.size();
+  return cli::kContinue;
+}
 
-  const SlamTimings timings = (*slam)->timings();
-  const double nf = static_cast<double>(std::max<size_t>(1, n));
+// summary.json's fields before the evaluation: frames, keyframes, states, timing, scale and dense stage.
+Json Summary(const Settings& s, const Input& input, SlamSystem* slam, const SlamRun& run, const DenseRun& dense,
+             const Outputs& outputs) {
+  const std::optional<MetricScaleEstimate>& shading_scale = run.shading_scale;
+  const std::optional<ScaleDriftCorrection>& drift = run.drift;
+  const std::vector<SlamKeyframe>& keyframes = run.keyframes;
+  const std::unique_ptr<DenseStage>& dense_stage = dense.stage;
+  const double metres_per_unit = run.metres_per_unit;
+  const SlamTimings timings = slam->timings();
+  const double nf = static_cast<double>(std::max<size_t>(1, run.n));
   Json json;
-  json["frames"] = results.size();
+  json["frames"] = outputs.results.size();
   json["keyframes"] = keyframes.size();
-  json["initializing_frames"] = counts[0];
-  json["tracking_frames"] = counts[1];
-  json["lost_frames"] = counts[2];
-  json["skipped_frames"] = skipped.size();
-  json["loop_closures"] = (*slam)->num_loop_closures();
-  json["keyframe_adjustments"] = (*slam)->num_keyframe_adjustments();
-  json["start_check"] = StartCheckJson((*slam)->start_check());
-  json["feature_adjustment"] = FeatureAdjustmentJson((*slam)->feature_adjustment());
-  json["semidense_points"] = cloud.size();
-  json["undistorted"] = !undistorter->identity();
-  json["slam_ms_per_frame"] = 1000.0 * slam_seconds / nf;
+  json["initializing_frames"] = outputs.counts[0];
+  json["tracking_frames"] = outputs.counts[1];
+  json["lost_frames"] = outputs.counts[2];
+  json["skipped_frames"] = run.skipped.size();
+  json["loop_closures"] = slam->num_loop_closures();
+  json["keyframe_adjustments"] = slam->num_keyframe_adjustments();
+  json["start_check"] = StartCheckJson(slam->start_check());
+  json["feature_adjustment"] = FeatureAdjustmentJson(slam->feature_adjustment());
+  json["semidense_points"] = outputs.semidense_points;
+  json["undistorted"] = !input.undistorter->identity();
+  json["slam_ms_per_frame"] = 1000.0 * run.slam_seconds / nf;
   json["slam_ms_per_frame_parts"] =
       Json{{"initialisation", 1000.0 * timings.initialisation / nf},
            {"tracking", 1000.0 * timings.tracking / nf},
@@ -519,8 +600,8 @@ int main(int argc, char** argv) {
   json["adjustments_started_late"] = timings.adjustments_started_late;
   json["depth_pixels_searched"] = timings.depth_pixels_searched;
   json["depth_pixels_skipped"] = timings.depth_pixels_skipped;
-  json["slam_finish_ms"] = 1000.0 * finish_seconds;
-  json["depth_refinement_ms"] = 1000.0 * refine_seconds;
+  json["slam_finish_ms"] = 1000.0 * run.finish_seconds;
+  json["depth_refinement_ms"] = 1000.0 * run.refine_seconds;
   if (metres_per_unit > 0) {
     json["metres_per_unit"] = metres_per_unit;
     json["metres_per_unit_source"] = shading_scale ? "shading" : "dense_stage";
@@ -530,106 +611,152 @@ int main(int argc, char** argv) {
                                           {"min_factor", drift->min_factor},
                                           {"max_factor", drift->max_factor},
                                           {"loop_edges", drift->loop_edges},
-                                          {"ms", 1000.0 * drift_seconds}};
-  } else if (options.scale_drift_correction) {
-    json["scale_drift_correction_error"] = drift_error;
+                                          {"ms", 1000.0 * run.drift_seconds}};
+  } else if (s.options.scale_drift_correction) {
+    json["scale_drift_correction_error"] = run.drift_error;
   }
   if (shading_scale) {
     json["shading_metres_per_unit"] = shading_scale->metres_per_world_unit;
     json["shading_metres_per_unit_start"] = shading_scale->start_metres_per_world_unit;
     json["shading_scale_passes"] = shading_scale->passes;
-    json["shading_scale_ms"] = 1000.0 * shading_scale_seconds;
+    json["shading_scale_ms"] = 1000.0 * run.shading_scale_seconds;
     json["shading_scale_pairs"] = shading_scale->pairs;
     json["shading_scale_pair_spread"] = shading_scale->pair_spread;
     json["shading_scale_consistent"] = shading_scale->consistent;
-  } else if (metric_scale) {
-    json["shading_scale_error"] = shading_scale_error;
+  } else if (s.metric_scale) {
+    json["shading_scale_error"] = run.shading_scale_error;
   }
   if (dense_stage) {
-    json["dense_ms_per_keyframe"] = 1000.0 * dense_seconds / std::max<size_t>(1, keyframes.size());
-    json["dense_failed_keyframes"] = dense_failed;
-    json["dense_metres_per_unit"] = dense_metres_per_unit;
+    json["dense_ms_per_keyframe"] = 1000.0 * dense.seconds / std::max<size_t>(1, keyframes.size());
+    json["dense_failed_keyframes"] = dense.failed;
+    json["dense_metres_per_unit"] = run.dense_metres_per_unit;
     json["map_points"] = dense_stage->map().output_size();
-    json["map_remapped"] = remapped;
-    json["remap_ms"] = 1000.0 * remap_seconds;
-    if (dense_failed) json["dense_first_error"] = dense_first_error;
+    json["map_remapped"] = dense.remapped;
+    json["remap_ms"] = 1000.0 * dense.remap_seconds;
+    if (dense.failed) json["dense_first_error"] = dense.first_error;
   }
+  return json;
+}
 
-  if (eval && !seq->groundtruth.empty() && estimate.size() >= 3) {
-    TrajectoryEvalOptions eo;
-    eo.alignment = AlignmentModel::kSim3;
-    StatusOr<AteResult> ate = ComputeAte(seq->groundtruth, estimate, eo);
-    if (ate.ok()) {
-      json["ate_rmse_m"] = ate->error_m.rmse;
-      json["path_length_m"] = ate->trajectory_length_m;
-      json["ate_percent_of_path"] = 100.0 * ate->error_m.rmse / std::max(1e-12, ate->trajectory_length_m);
-      json["sim3_scale"] = ate->gt_from_est.scale;
-      json["orientation_rmse_deg"] = ate->orientation_error_deg.rmse;
-      json["orientation_max_deg"] = ate->orientation_error_deg.max;
-      json["net_rotation_gt_deg"] = ate->net_rotation_deg_gt;
-      json["net_rotation_est_deg"] = ate->net_rotation_deg_est;
-      if (shading_scale)
-        json["shading_metres_per_unit_rel_error"] = shading_scale->metres_per_world_unit / ate->gt_from_est.scale - 1.0;
-      // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
-      DepthErrorAccumulator acc;
-      long claimed = 0;
-      Json per_keyframe = Json::array(), per_keyframe_fused = Json::array();
-      for (const SlamKeyframe& k : keyframes) {
-        if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq_index.size()) continue;
-        const size_t frame = seq_index[static_cast<size_t>(k.frame_id)];  // in the sequence
-        if (seq->frames[frame].depth_file.empty()) continue;
-        StatusOr<cv::Mat> gt = seq->ReadDepth(frame);
-        if (gt.ok()) gt = undistorter->UndistortNearest(*gt);
-        if (!gt.ok()) continue;
-        cv::Mat est = cv::Mat::zeros(k.depth.inverse_depth.size(), CV_32F);
-        for (int y = 0; y < est.rows; ++y)
-          for (int x = 0; x < est.cols; ++x) {
-            const float d = k.depth.inverse_depth.at<float>(y, x);
-            if (d > 0)
-              est.at<float>(y, x) =
-                  static_cast<float>(ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale / d),
-                               ++claimed;
-          }
-        (void)acc.Add(est, *gt);
-        DepthEvalOptions per;
-        StatusOr<DepthErrorStats> one = ComputeDepthError(est, *gt, cv::Mat(), per);
-        auto fused = fused_depth.find(k.id);
-        if (fused != fused_depth.end() && !fused->second.empty()) {
-          StatusOr<DepthErrorStats> f = ComputeDepthError(fused->second, *gt, cv::Mat(), per);
-          if (f.ok())
-            per_keyframe_fused.push_back(
-                Json{{"id", k.id}, {"coverage", f->coverage}, {"median_rel_error_own_scale", f->median_rel_error}});
+// The evaluation against the sequence's ground truth, into `json`: the ATE (Sim(3)-aligned), the
+// orientation error and the keyframe depth error.
+void EvaluateAgainstGroundTruth(const Input& input, const SlamRun& run, const DenseRun& dense, const Outputs& outputs,
+                                Json* out) {
+  Json& json = *out;
+  const std::optional<Sequence>& seq = input.seq;
+  const std::optional<ImageUndistorter>& undistorter = input.undistorter;
+  const std::optional<MetricScaleEstimate>& shading_scale = run.shading_scale;
+  const std::vector<size_t>& seq_index = run.seq_index;
+  const std::vector<Sim3d>& keyframe_poses = outputs.keyframe_poses;
+  const std::map<int, cv::Mat>& fused_depth = dense.fused_depth;
+  TrajectoryEvalOptions eo;
+  eo.alignment = AlignmentModel::kSim3;
+  StatusOr<AteResult> ate = ComputeAte(seq->groundtruth, outputs.estimate, eo);
+  if (ate.ok()) {
+    json["ate_rmse_m"] = ate->error_m.rmse;
+    json["path_length_m"] = ate->trajectory_length_m;
+    json["ate_percent_of_path"] = 100.0 * ate->error_m.rmse / std::max(1e-12, ate->trajectory_length_m);
+    json["sim3_scale"] = ate->gt_from_est.scale;
+    json["orientation_rmse_deg"] = ate->orientation_error_deg.rmse;
+    json["orientation_max_deg"] = ate->orientation_error_deg.max;
+    json["net_rotation_gt_deg"] = ate->net_rotation_deg_gt;
+    json["net_rotation_est_deg"] = ate->net_rotation_deg_est;
+    if (shading_scale)
+      json["shading_metres_per_unit_rel_error"] = shading_scale->metres_per_world_unit / ate->gt_from_est.scale - 1.0;
+    // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
+    DepthErrorAccumulator acc;
+    long claimed = 0;
+    Json per_keyframe = Json::array(), per_keyframe_fused = Json::array();
+    for (const SlamKeyframe& k : run.keyframes) {
+      if (k.frame_id < 0 || static_cast<size_t>(k.frame_id) >= seq_index.size()) continue;
+      const size_t frame = seq_index[static_cast<size_t>(k.frame_id)];  // in the sequence
+      if (seq->frames[frame].depth_file.empty()) continue;
+      StatusOr<cv::Mat> gt = seq->ReadDepth(frame);
+      if (gt.ok()) gt = undistorter->UndistortNearest(*gt);
+      if (!gt.ok()) continue;
+      cv::Mat est = cv::Mat::zeros(k.depth.inverse_depth.size(), CV_32F);
+      for (int y = 0; y < est.rows; ++y)
+        for (int x = 0; x < est.cols; ++x) {
+          const float d = k.depth.inverse_depth.at<float>(y, x);
+          if (d > 0)
+            est.at<float>(y, x) =
+                static_cast<float>(ate->gt_from_est.scale * keyframe_poses[static_cast<size_t>(k.id)].scale / d),
+                             ++claimed;
         }
-        if (one.ok())
-          per_keyframe.push_back(Json{{"id", k.id},
-                                      {"points", one->pixels},
-                                      {"scale", one->scale},
-                                      {"median_rel_error_own_scale", one->median_rel_error}});
+      (void)acc.Add(est, *gt);
+      DepthEvalOptions per;
+      StatusOr<DepthErrorStats> one = ComputeDepthError(est, *gt, cv::Mat(), per);
+      auto fused = fused_depth.find(k.id);
+      if (fused != fused_depth.end() && !fused->second.empty()) {
+        StatusOr<DepthErrorStats> f = ComputeDepthError(fused->second, *gt, cv::Mat(), per);
+        if (f.ok())
+          per_keyframe_fused.push_back(
+              Json{{"id", k.id}, {"coverage", f->coverage}, {"median_rel_error_own_scale", f->median_rel_error}});
       }
-      DepthEvalOptions de;
-      de.scale_alignment = DepthScaleAlignment::kNone;
-      StatusOr<DepthErrorStats> ds = acc.Summarize(de);
-      if (ds.ok()) {
-        json["depth_pixels"] = ds->pixels;
-        json["depth_median_rel_error"] = ds->median_rel_error;
-        json["depth_coverage_of_image"] = ds->coverage;
-        DepthEvalOptions dm;
-        StatusOr<DepthErrorStats> dsm = acc.Summarize(dm);
-        if (dsm.ok()) json["depth_median_rel_error_median_scaled"] = dsm->median_rel_error;
-        json["keyframe_depth"] = per_keyframe;
-        if (!fused_depth.empty()) json["keyframe_fused_depth"] = per_keyframe_fused;
-      }
-    } else {
-      json["ate_error"] = std::string(ate.status().message());
+      if (one.ok())
+        per_keyframe.push_back(Json{{"id", k.id},
+                                    {"points", one->pixels},
+                                    {"scale", one->scale},
+                                    {"median_rel_error_own_scale", one->median_rel_error}});
     }
+    DepthEvalOptions de;
+    de.scale_alignment = DepthScaleAlignment::kNone;
+    StatusOr<DepthErrorStats> ds = acc.Summarize(de);
+    if (ds.ok()) {
+      json["depth_pixels"] = ds->pixels;
+      json["depth_median_rel_error"] = ds->median_rel_error;
+      json["depth_coverage_of_image"] = ds->coverage;
+      DepthEvalOptions dm;
+      StatusOr<DepthErrorStats> dsm = acc.Summarize(dm);
+      if (dsm.ok()) json["depth_median_rel_error_median_scaled"] = dsm->median_rel_error;
+      json["keyframe_depth"] = per_keyframe;
+      if (!fused_depth.empty()) json["keyframe_fused_depth"] = per_keyframe_fused;
+    }
+  } else {
+    json["ate_error"] = std::string(ate.status().message());
   }
-  if (!skipped.empty()) json["skipped"] = skipped;
-  if (!stop_error.empty()) json["stopped_at_bad_frame"] = stop_error;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Settings settings;
+  if (const int exit = ParseCommandLine(argc, argv, &settings); exit != cli::kContinue) return exit;
+  SetMinLogLevel(settings.log_level);
+  Input input;
+  if (const int exit = ReadInput(settings, &input); exit != cli::kContinue) return exit;
+  const std::optional<Sequence>& seq = input.seq;
+
+  ThreadPool pool(settings.threads);
+  StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(input.rig, settings.options, &pool);
+  if (!slam.ok()) return Fail(slam.status().ToString());
+
+  SlamRun run;
+  run.n = settings.max_frames > 0 ? std::min<size_t>(seq->frames.size(), static_cast<size_t>(settings.max_frames))
+                                  : seq->frames.size();
+  DenseRun dense;
+  dense.eval = settings.eval;
+  if (settings.dense) {
+    StatusOr<std::unique_ptr<DenseStage>> d = DenseStage::Create(input.rig, settings.dense_options, &pool);
+    if (!d.ok()) return Fail(d.status().ToString());
+    dense.stage = std::move(d).value();
+  }
+  if (const int exit = RunSlam(settings, input, slam->get(), &dense, &run); exit != cli::kContinue) return exit;
+  RefineAndScale(settings, slam->get(), &run);
+  if (const int exit = FinishDense(settings, slam->get(), &dense, &run); exit != cli::kContinue) return exit;
+  Outputs outputs;
+  if (const int exit = WriteOutputs(settings, slam->get(), run, &outputs); exit != cli::kContinue) return exit;
+
+  Json json = Summary(settings, input, slam->get(), run, dense, outputs);
+  if (settings.eval && !seq->groundtruth.empty() && outputs.estimate.size() >= 3)
+    EvaluateAgainstGroundTruth(input, run, dense, outputs, &json);
+  if (!run.skipped.empty()) json["skipped"] = run.skipped;
+  if (!run.stop_error.empty()) json["stopped_at_bad_frame"] = run.stop_error;
   const std::string text = JsonText(json, 2);
-  std::ofstream(out_dir + "/summary.json") << text;
+  std::ofstream(settings.out_dir + "/summary.json") << text;
   std::cout << text;
   // --on-bad-frame stop: everything up to the bad frame is written; the exit status says the run ended there.
-  if (!stop_error.empty()) return Fail("stopped at " + stop_error + " (outputs cover the frames before it)");
-  if (seq_index.empty()) return Fail("none of the sequence's " + std::to_string(n) + " frames could be used");
+  if (!run.stop_error.empty()) return Fail("stopped at " + run.stop_error + " (outputs cover the frames before it)");
+  if (run.seq_index.empty()) return Fail("none of the sequence's " + std::to_string(run.n) + " frames could be used");
   return 0;
 }

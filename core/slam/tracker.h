@@ -232,6 +232,9 @@ class Tracker {
   std::vector<internal::TrackerPointArrays> point_arrays_;  // per level
   // Per level, votes of the keyframe's pixels (camera_attached_min_votes): attached / moving, CV_8U.
   std::vector<cv::Mat> attached_votes_, moving_votes_;
+  // Fills keyframe_image_ and keyframe_image_levels_ from a new keyframe image (tracker_keyframe.cc).
+  void BuildKeyframeImage(const cv::Mat& rgb, bool predict, const Eigen::Matrix3f& demix,
+                          const Eigen::RowVector3f& grey_of_light);
   void VoteCameraAttached(const Rigid3d& frame_from_keyframe, double a, double b);
   void UpdateKeep();
   internal::TrackerScratch scratch_;
