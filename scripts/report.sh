@@ -39,14 +39,14 @@ machine() {
 }
 # Google Benchmark JSON (repetitions) -> "| name | median ms |" rows of the medians.
 benchmark_medians() {
-  python3 -c '
+  python3 - "$1" <<'PY'
 import json, sys
 for b in json.load(open(sys.argv[1]))["benchmarks"]:
     if b.get("aggregate_name") == "median":
         unit = {"ns": 1e-6, "us": 1e-3, "ms": 1.0, "s": 1e3}[b.get("time_unit", "ns")]
         extra = "".join(f", {k} {v:.3g}" for k, v in b.items() if k.endswith("_per_point") or k.endswith("_ms"))
-        print(f"| `{b[\"run_name\"]}` | {b[\"real_time\"] * unit:.2f} |{extra} |")
-' "$1"
+        print(f"| `{b['run_name']}` | {b['real_time'] * unit:.2f}{extra} |")
+PY
 }
 
 case "${1:-}" in
