@@ -28,6 +28,19 @@ Status PinholeCamera::Check() const {
   return InvalidArgumentError(err.str());
 }
 
+PinholeCamera PinholeCamera::AtPyramidLevel(int level) const {
+  PinholeCamera c = *this;
+  const double s = 1.0 / (1 << level);
+  c.width = width >> level;
+  c.height = height >> level;
+  c.fx = fx * s;
+  c.fy = fy * s;
+  // 2x2 averaging: pixel centre x at level l+1 covers x' = 2x + 0.5 at level l.
+  c.cx = (cx + 0.5) * s - 0.5;
+  c.cy = (cy + 0.5) * s - 0.5;
+  return c;
+}
+
 bool PinholeCamera::HasDistortion() const {
   for (double d : distortion)
     if (d != 0.0) return true;

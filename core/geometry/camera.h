@@ -25,6 +25,8 @@ struct PinholeCamera {
   Status Check() const;
   bool HasDistortion() const;
   Eigen::Matrix3d K() const;
+  // The camera of an image pyramid's level (each level a 2x2 average of the one below; level 0 = this).
+  PinholeCamera AtPyramidLevel(int level) const;
 
   // Projects a point in the camera frame to pixel coordinates (with distortion). z must be > 0.
   Eigen::Vector2d Project(const Eigen::Vector3d& point_in_camera) const;

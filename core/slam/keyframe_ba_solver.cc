@@ -188,13 +188,7 @@ DirectBaSummary DirectBaSolver::Run() {
 
 void DirectBaSolver::SetLevel(int level) {
   const double f = std::ldexp(1.0, -level);
-  lcam_ = cam_;
-  lcam_.width = cam_.width >> level;
-  lcam_.height = cam_.height >> level;
-  lcam_.fx = cam_.fx * f;
-  lcam_.fy = cam_.fy * f;
-  lcam_.cx = (cam_.cx + 0.5) * f - 0.5;
-  lcam_.cy = (cam_.cy + 0.5) * f - 0.5;
+  lcam_ = cam_.AtPyramidLevel(level);
   limg_ = &pyramid_[static_cast<size_t>(level)];
   if (levels_ > 1) current_samples_valid_ = false;  // read at another level (or none)
   for (int i = 0; i < num_points_; ++i) {

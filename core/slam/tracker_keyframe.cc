@@ -21,19 +21,6 @@ using internal::NormalizeShading;
 using internal::RigLights;
 using internal::ToGrey;
 
-PinholeCamera LevelCamera(const PinholeCamera& camera, int level) {
-  PinholeCamera c = camera;
-  const double s = 1.0 / (1 << level);
-  c.width = camera.width >> level;
-  c.height = camera.height >> level;
-  c.fx = camera.fx * s;
-  c.fy = camera.fy * s;
-  // 2x2 averaging: pixel centre x at level l+1 covers x' = 2x + 0.5 at level l.
-  c.cx = (camera.cx + 0.5) * s - 0.5;
-  c.cy = (camera.cy + 0.5) * s - 0.5;
-  return c;
-}
-
 // Inverse depth and variance at the next level: the mean of the valid pixels of each 2x2 block;
 // blocks straddling a depth discontinuity (spread > 10%) become invalid.
 void DownsampleInverseDepth(const cv::Mat& idepth, const cv::Mat& var, cv::Mat* idepth_out, cv::Mat* var_out) {
@@ -146,7 +133,7 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
   if (!SameImageBytes(keyframe_image_, rgb)) BuildKeyframeImage(rgb, predict, demix, grey_of_light);
   for (int l = 0; l < options_.pyramid_levels; ++l) {
     TrackingKeyframe::Level& level = kf.levels[l];
-    level.camera = LevelCamera(camera_, l);
+    level.camera = camera_.AtPyramidLevel(l);
     if (l > 0) {
       cv::Mat idepth_next, var_next;
       DownsampleInverseDepth(idepth, var, &idepth_next, &var_next);
