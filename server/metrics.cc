@@ -147,6 +147,8 @@ void DeclareServerMetrics(Metrics* m) {
   m->Declare("prism_sessions_opened_total", T::kCounter, "Sessions opened.");
   m->Declare("prism_sessions_resumed_total", T::kCounter, "Sessions resumed by id and token.");
   m->Declare("prism_sessions_closed_total", T::kCounter, "Sessions ended with a summary sent.");
+  m->Declare("prism_sessions_deprioritised_total", T::kCounter,
+             "Sessions moved to the lowest CPU priority for sending over max-frame-rate-hz.");
   m->Declare("prism_sessions_failed_total", T::kCounter, "Sessions ended by a fatal pipeline error.");
   m->Declare("prism_sessions_reaped_total", T::kCounter, "Sessions closed after idle-timeout-ms without a message.");
   m->Declare("prism_sessions_limited_total", T::kCounter, "Sessions finished early by a limit, by limit.");

@@ -74,6 +74,7 @@ struct Server::Impl {
     // options.max_frame_rate_hz.
     double rate_tokens = 0;
     Clock::time_point rate_refilled;
+    bool deprioritised = false;  // over the limit once: its SLAM thread runs at the lowest priority
     bool memory_limit_hit = false;
     uint32_t frame_credits_to_grant = 0;
     Clock::time_point last_activity;

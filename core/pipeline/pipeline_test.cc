@@ -1,4 +1,9 @@
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 #include <array>
+#include <cerrno>
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
@@ -73,6 +78,49 @@ TEST(DenseWorkersTest, StrandsRunInOrderOneAtATimeAndInParallelWithEachOther) {
   for (int i = 0; i < 20; ++i) EXPECT_EQ(order_a[i], i);
   EXPECT_EQ(max_running_a.load(), 1);
   EXPECT_EQ(max_total.load(), 2);  // the two strands overlapped
+}
+
+// A strand moved to the background keeps its order and runs on the one background worker, at nice 19,
+// with ParallelFor inline; the other strands keep the ordinary workers.
+TEST(DenseWorkersTest, ABackgroundStrandRunsInOrderOnItsOwnLowPriorityWorker) {
+  ThreadPool pool(2);
+  DenseWorkers workers(1, &pool);
+  EXPECT_EQ(workers.num_workers(), 1);
+  auto flood = workers.NewStrand(), normal = workers.NewStrand();
+  std::mutex m;
+  std::vector<int> order;
+  std::set<std::thread::id> flood_threads, normal_threads, flood_loop_threads;
+  std::vector<int> flood_nice;
+  flood->Post([&] {
+    std::lock_guard<std::mutex> lock(m);
+    order.push_back(0);
+  });
+  flood->MoveToBackground();
+  for (int i = 1; i <= 10; ++i) {
+    flood->Post([&, i] {
+      pool.ParallelFor(0, 64, [&](std::ptrdiff_t) {
+        std::lock_guard<std::mutex> lock(m);
+        flood_loop_threads.insert(std::this_thread::get_id());
+      });
+      std::lock_guard<std::mutex> lock(m);
+      order.push_back(i);
+      flood_threads.insert(std::this_thread::get_id());
+      errno = 0;
+      flood_nice.push_back(getpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid))));
+    });
+    normal->Post([&] {
+      std::lock_guard<std::mutex> lock(m);
+      normal_threads.insert(std::this_thread::get_id());
+    });
+  }
+  while (workers.pending_jobs() > 0) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  ASSERT_EQ(order.size(), 11u);
+  for (int i = 0; i <= 10; ++i) EXPECT_EQ(order[i], i);
+  ASSERT_EQ(flood_threads.size(), 1u);
+  EXPECT_EQ(flood_loop_threads, flood_threads);  // its loops did not fan out to the pool
+  EXPECT_EQ(normal_threads.size(), 1u);
+  EXPECT_EQ(normal_threads.count(*flood_threads.begin()), 0u);
+  for (int n : flood_nice) EXPECT_EQ(n, 19);
 }
 
 // Collects a pipeline's events until kFinished.

@@ -1,5 +1,9 @@
 #include "core/pipeline/session_pipeline.h"
 
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 #include <chrono>
 #include <condition_variable>
 #include <exception>
@@ -57,6 +61,7 @@ StatusOr<std::unique_ptr<SessionPipeline>> SessionPipeline::Create(const RigCali
   PRISM_ASSIGN_OR_RETURN(p->dense_, DenseStage::Create(pinhole_rig, options.dense, workers->pool()));
   p->slam_thread_ = std::thread([raw = p.get()] {
     SetCurrentThreadName("prism-slam");
+    raw->slam_thread_id_ = static_cast<int>(::syscall(SYS_gettid));
     raw->SlamLoop();
   });
   return p;
@@ -70,6 +75,13 @@ SessionPipeline::SessionPipeline(const RigCalibration& rig, const SessionPipelin
       strand_(workers->NewStrand()),
       sink_(std::move(sink)),
       frames_(static_cast<size_t>(options.frame_queue_capacity), options.input_policy) {}
+
+bool SessionPipeline::Deprioritise() {
+  const int tid = slam_thread_id_;
+  if (tid == 0 || ::setpriority(PRIO_PROCESS, static_cast<id_t>(tid), 19) != 0) return false;
+  strand_->MoveToBackground();
+  return true;
+}
 
 SessionPipeline::~SessionPipeline() {
   Abort();

@@ -168,6 +168,12 @@ class SessionPipeline {
   // Stop soon: queued frames and keyframes are dropped, running work completes, then kFinished.
   void Abort();
 
+  // Moves the SLAM thread (decoding, tracking, mapping) to the lowest CPU priority (nice 19) and the
+  // dense stage to the background worker (DenseWorkers) for the session's life, so that it runs on what
+  // other sessions leave: for a client that floods the server. Never blocks. false when the SLAM thread
+  // is not running yet or the system refused.
+  bool Deprioritise();
+
   PipelineStats stats() const;
   // Frames in the queue, not yet taken by the SLAM thread.
   size_t queued_frames() const { return frames_.size(); }
@@ -229,6 +235,7 @@ class SessionPipeline {
   PipelineStats stats_;                   // Guarded by mutex_.
   mutable std::mutex map_mutex_;          // held by dense jobs while they write the map
   std::thread slam_thread_;
+  std::atomic<int> slam_thread_id_{0};  // the kernel's id of slam_thread_ (0 until it runs)
 };
 
 }  // namespace prism

@@ -64,9 +64,19 @@ void ThreadPool::WorkerLoop() {
   }
 }
 
+namespace {
+thread_local bool parallel_for_inline = false;
+}  // namespace
+
+void RunParallelForInlineOnThisThread() { parallel_for_inline = true; }
+
 void ThreadPool::ParallelFor(std::ptrdiff_t begin, std::ptrdiff_t end, const std::function<void(std::ptrdiff_t)>& fn,
                              std::ptrdiff_t grain) {
   if (end <= begin) return;
+  if (parallel_for_inline) {
+    for (std::ptrdiff_t i = begin; i < end; ++i) fn(i);
+    return;
+  }
   if (grain < 1) grain = 1;
   // The helpers' tasks share this state and may outlive the call: a helper still in the queue when the
   // caller has claimed every chunk finds the call closed and does nothing. The caller waits only for the

@@ -18,6 +18,10 @@ void SetCurrentThreadName(const char* name);
 // Sets the calling thread's niceness (Linux; raising it needs no privilege). false when refused.
 bool SetCurrentThreadNice(int nice);
 
+// From now on, ParallelFor called on this thread runs its whole range here, without the pool's
+// workers: for background work that must take no CPU from the pool's other users.
+void RunParallelForInlineOnThisThread();
+
 class ThreadPool {
  public:
   // num_threads <= 0 means std::thread::hardware_concurrency(). The workers run at `nice` (Linux
