@@ -76,28 +76,54 @@ double ProcStatusMb(pid_t pid, const std::string& key) {
   return -1;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+// The command line.
+struct Settings {
   std::string preset = "bunny-multicolor-forward", codecs = "png,jpeg,raw";
   int frames = 150;
   double fps = 0;
   bool live = false;
-  std::vector<std::string> server_option_pairs, server_options;
+  std::vector<std::string> server_options;  // --KEY VALUE pairs for prism-server
+};
+
+// The preset rendered in memory.
+struct RenderedPreset {
+  prism::synth::SynthSetup setup;
+  prism::Trajectory trajectory;
+  std::vector<cv::Mat> images;
+};
+
+// A prism-server process on a free port, with its files in a temporary folder.
+struct ServerProcess {
+  pid_t pid = 0;
+  std::string tmp, err_file, endpoint;
+
+  // Stops the server and removes its folder.
+  void Stop() {
+    kill(pid, SIGTERM);
+    int status = 0;
+    waitpid(pid, &status, 0);
+    std::filesystem::remove_all(tmp);
+  }
+};
+
+// Parses the command line into `settings`: prism::cli::kContinue or the exit status.
+int ParseCommandLine(int argc, char** argv, Settings* settings) {
+  Settings& s = *settings;
+  std::vector<std::string> server_option_pairs;
   CLI::App app{"", "prism-bench-e2e"};
   prism::cli::Setup(&app, "the networked system end to end: prism-server and the SDK streaming a rendered preset",
                     {"prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F] [--live]",
                      "                [--server-option KEY=VALUE ...]"},
                     kNotes);
-  app.add_option("--preset", preset, "the scene (prism-synth --list-presets)")->type_name("NAME");
-  app.add_option("--frames", frames, "frames rendered and streamed, >= 20")
+  app.add_option("--preset", s.preset, "the scene (prism-synth --list-presets)")->type_name("NAME");
+  app.add_option("--frames", s.frames, "frames rendered and streamed, >= 20")
       ->type_name("N")
       ->check(CLI::Range(20, 1 << 20));
-  app.add_option("--codecs", codecs, "the codecs, one session each, comma-separated")->type_name("LIST");
-  app.add_option("--fps", fps, "push at F frames/s as a live camera (0 = as fast as credits allow)")
+  app.add_option("--codecs", s.codecs, "the codecs, one session each, comma-separated")->type_name("LIST");
+  app.add_option("--fps", s.fps, "push at F frames/s as a live camera (0 = as fast as credits allow)")
       ->type_name("F")
       ->check(CLI::NonNegativeNumber);
-  app.add_flag("--live", live, "open the sessions as a live camera's");
+  app.add_flag("--live", s.live, "open the sessions as a live camera's");
   app.add_option("--server-option", server_option_pairs, "passed to prism-server as --KEY VALUE (repeatable)")
       ->type_name("KEY=VALUE")
       ->expected(1)
@@ -107,39 +133,51 @@ int main(int argc, char** argv) {
   for (const std::string& v : server_option_pairs) {
     const size_t eq = v.find('=');
     if (eq == std::string::npos || eq == 0) return Fail("--server-option wants KEY=VALUE, got '" + v + "'");
-    server_options.push_back("--" + v.substr(0, eq));
-    server_options.push_back(v.substr(eq + 1));
+    s.server_options.push_back("--" + v.substr(0, eq));
+    s.server_options.push_back(v.substr(eq + 1));
   }
+  return prism::cli::kContinue;
+}
 
-  // Render.
+// Renders the preset's frames: prism::cli::kContinue or the exit status.
+int Render(const Settings& s, RenderedPreset* rendered) {
   prism::synth::PresetOptions po;
-  po.frames = frames;
-  prism::StatusOr<prism::synth::SynthSetup> setup = prism::synth::MakePreset(preset, po);
+  po.frames = s.frames;
+  prism::StatusOr<prism::synth::SynthSetup> setup = prism::synth::MakePreset(s.preset, po);
   if (!setup.ok()) return Fail(setup.status().ToString());
-  const prism::Trajectory trajectory = prism::synth::MakeTrajectory(setup->trajectory);
-  std::vector<cv::Mat> images(frames);
+  rendered->setup = std::move(setup).value();
+  const prism::synth::SynthSetup& preset = rendered->setup;
+  rendered->trajectory = prism::synth::MakeTrajectory(preset.trajectory);
+  const prism::Trajectory& trajectory = rendered->trajectory;
+  std::vector<cv::Mat>& images = rendered->images;
+  images.resize(s.frames);
   {
     prism::ThreadPool pool;
-    pool.ParallelFor(0, frames, [&](std::ptrdiff_t i) {
-      images[i] = prism::synth::RenderFrame(setup->scene, setup->rig, trajectory[i].world_from_camera, setup->render,
+    pool.ParallelFor(0, s.frames, [&](std::ptrdiff_t i) {
+      images[i] = prism::synth::RenderFrame(preset.scene, preset.rig, trajectory[i].world_from_camera, preset.render,
                                             1000003ull + static_cast<uint64_t>(i))
                       .rgb;
     });
   }
+  return prism::cli::kContinue;
+}
 
-  // Server.
-  const std::string dir = std::filesystem::path(argv[0]).parent_path().string();
-  const std::string server = (dir.empty() ? std::string(".") : dir) + "/prism-server";
+// Starts prism-server (next to argv0) and waits for its endpoint: prism::cli::kContinue or the exit status.
+int StartServer(const std::string& argv0, const std::vector<std::string>& server_options, ServerProcess* server) {
+  const std::string dir = std::filesystem::path(argv0).parent_path().string();
+  const std::string binary = (dir.empty() ? std::string(".") : dir) + "/prism-server";
   const std::string tmp =
       (std::filesystem::temp_directory_path() / ("prism_bench_e2e_" + std::to_string(getpid()))).string();
+  server->tmp = tmp;
   std::filesystem::create_directories(tmp);
   const std::string out_file = tmp + "/server.json", err_file = tmp + "/server.log";
+  server->err_file = err_file;
   posix_spawn_file_actions_t actions;
   posix_spawn_file_actions_init(&actions);
   posix_spawn_file_actions_addopen(&actions, 1, out_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   posix_spawn_file_actions_addopen(&actions, 2, err_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   const std::string data_dir = tmp + "/data";
-  std::vector<std::string> args = {server,
+  std::vector<std::string> args = {binary,
                                    "--bind",
                                    "tcp://127.0.0.1:*",
                                    "--data-dir",
@@ -156,10 +194,9 @@ int main(int argc, char** argv) {
   std::vector<char*> cargs;
   for (std::string& s : args) cargs.push_back(s.data());
   cargs.push_back(nullptr);
-  pid_t pid = 0;
-  if (posix_spawn(&pid, server.c_str(), &actions, nullptr, cargs.data(), environ) != 0)
-    return Fail("cannot start '" + server + "'");
-  std::string endpoint;
+  if (posix_spawn(&server->pid, binary.c_str(), &actions, nullptr, cargs.data(), environ) != 0)
+    return Fail("cannot start '" + binary + "'");
+  std::string& endpoint = server->endpoint;
   for (int i = 0; i < 200 && endpoint.empty(); ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
     std::ifstream f(out_file);
@@ -167,155 +204,192 @@ int main(int argc, char** argv) {
     const size_t a = s.find("\"endpoint\": \"");
     if (a != std::string::npos) endpoint = s.substr(a + 13, s.find('"', a + 13) - (a + 13));
   }
-  auto stop_server = [&]() {
-    kill(pid, SIGTERM);
-    int status = 0;
-    waitpid(pid, &status, 0);
-    std::filesystem::remove_all(tmp);
-  };
   if (endpoint.empty()) {
-    stop_server();
+    server->Stop();
     return Fail("prism-server did not report its endpoint (see " + err_file + ")");
   }
+  return prism::cli::kContinue;
+}
 
+// What one session's events show, with their arrival times (the session's event callback).
+struct StreamEvents {
+  std::map<uint64_t, Clock::time_point> sent;  // frame sequence number -> send time
+  std::vector<double> frame_to_pose;
+  // Keyframe id -> arrival of the pose of the frame that became it. Keyframes are numbered in
+  // creation order and the first one's frame is still initialising when its pose is sent, so the
+  // n-th live is_keyframe pose made keyframe n.
+  std::map<uint64_t, Clock::time_point> keyframe_pose_time;
+  uint64_t live_keyframes = 0;
+  std::map<uint64_t, Clock::time_point> chunk_time;  // keyframe id -> first chunk arrival
+  uint64_t chunk_bytes = 0, chunk_points = 0, chunks = 0;
+  Clock::time_point last_pose;
+  // The latest pose of each tracked frame (a refined one replaces the first).
+  std::map<uint64_t, prism::Rigid3d> tracked_poses;
+
+  void Handle(const prism::client::Event& e);
+};
+
+void StreamEvents::Handle(const prism::client::Event& e) {
+  const auto now = Clock::now();
+  if (e.kind == prism::client::Event::Kind::kPose) {
+    if (e.pose.state == prism::client::TrackingState::kTracking) {
+      const auto& q = e.pose.rotation_xyzw;
+      prism::Rigid3d p;
+      p.rotation = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized();
+      p.translation = Eigen::Vector3d(e.pose.translation[0], e.pose.translation[1], e.pose.translation[2]);
+      tracked_poses[e.pose.frame_sequence_number] = p;
+    } else {
+      tracked_poses.erase(e.pose.frame_sequence_number);
+    }
+  }
+  if (e.kind == prism::client::Event::Kind::kPose && !e.pose.refined) {
+    auto it = sent.find(e.pose.frame_sequence_number);
+    if (it != sent.end()) frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
+    if (e.pose.is_keyframe) keyframe_pose_time.emplace(++live_keyframes, now);
+    last_pose = now;
+  } else if (e.kind == prism::client::Event::Kind::kChunk) {
+    ++chunks;
+    chunk_bytes += e.chunk.draco.size();
+    chunk_points += e.chunk.points.size();
+    chunk_time.emplace(e.chunk.keyframe_id, now);
+  }
+}
+
+// Pushes every frame (at --fps from t0, or as fast as credits allow), recording when each was sent: an
+// empty string, or what failed.
+std::string PushFrames(const Settings& settings, const RenderedPreset& rendered, Clock::time_point t0,
+                       prism::client::Session* session, StreamEvents* events) {
+  const double fps = settings.fps;
+  const std::vector<cv::Mat>& images = rendered.images;
+  for (int i = 0; i < settings.frames; ++i) {
+    if (fps > 0) {
+      // Wait for the frame's time while taking events: callbacks run only inside the session's calls, so
+      // a sleep would hold every pose until the next frame and quantise frame-to-pose to the interval.
+      const auto due = t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(i / fps));
+      prism::client::Event ignored;
+      for (auto now = Clock::now(); now < due; now = Clock::now())
+        session->Poll(&ignored,
+                      std::max(1, static_cast<int>(std::chrono::duration<double, std::milli>(due - now).count())));
+    }
+    events->sent[static_cast<uint64_t>(i)] = Clock::now();
+    const prism::client::Status s =
+        session->PushFrame(static_cast<int64_t>(rendered.trajectory[i].timestamp_s * 1e9), images[i].data,
+                           images[i].cols, images[i].rows, static_cast<int>(images[i].step));
+    if (!s.ok()) return "push frame " + std::to_string(i) + ": " + s.ToString();
+  }
+  return "";
+}
+
+// The ATE of the tracked poses received as a percentage of the path (Sim(3)-aligned to the rendered
+// truth); -1 when too few to align.
+double AtePercentOfPath(const StreamEvents& events, const prism::Trajectory& trajectory, int frames) {
+  double ate_percent = -1;
+  prism::Trajectory gt, est;
+  for (const auto& [seq, pose] : events.tracked_poses) {
+    if (seq >= static_cast<uint64_t>(frames)) continue;
+    gt.push_back(trajectory[seq]);
+    est.push_back({trajectory[seq].timestamp_s, pose});
+  }
+  prism::TrajectoryEvalOptions eo;
+  eo.alignment = prism::AlignmentModel::kSim3;
+  const prism::StatusOr<prism::AteResult> ate = prism::ComputeAte(gt, est, eo);
+  if (ate.ok() && ate->trajectory_length_m > 0) ate_percent = 100.0 * ate->error_m.rmse / ate->trajectory_length_m;
+  return ate_percent;
+}
+
+// Streams the frames through one session with the codec and measures it into *result (server_pid's
+// RSS after it included): an empty string, or what failed.
+std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, const prism::client::Rig& rig,
+                     const std::string& endpoint, pid_t server_pid, const std::string& codec_name,
+                     prism::Json* result) {
+  const int frames = settings.frames;
+  prism::client::SessionOptions so;
+  if (codec_name == "png") so.codec = prism::client::Codec::kPng;
+  else if (codec_name == "jpeg") so.codec = prism::client::Codec::kJpeg;
+  else if (codec_name == "raw") so.codec = prism::client::Codec::kRaw;
+  else return "unknown codec '" + codec_name + "'";
+  so.timeout_ms = 60000;
+  so.live = settings.live;
+  std::unique_ptr<prism::client::Session> session;
+  prism::client::Status s = prism::client::Session::Open(endpoint, rig, so, &session);
+  if (!s.ok()) return "open: " + s.ToString();
+  StreamEvents events;
+  session->SetEventCallback([&events](const prism::client::Event& e) { events.Handle(e); });
+  const auto t0 = Clock::now();
+  if (std::string error = PushFrames(settings, rendered, t0, session.get(), &events); !error.empty()) return error;
+  // The sequence numbers the SDK assigns are 0, 1, 2... in push order (checked by the pose count).
+  prism::client::Summary summary;
+  s = session->Close(600000, &summary);
+  if (!s.ok()) return "close: " + s.ToString();
+  const auto t_done = Clock::now();
+  const double seconds = std::chrono::duration<double>(events.last_pose - t0).count();
+  const double ate_percent = AtePercentOfPath(events, rendered.trajectory, frames);
+  const double map_seconds = std::chrono::duration<double>(t_done - t0).count();
+  std::vector<double> kf_to_chunk;
+  for (const auto& [kf, t] : events.chunk_time) {
+    // Keyframe kf is finished when keyframe kf + 1 is made (or at the end of the stream).
+    if (auto next = events.keyframe_pose_time.find(kf + 1); next != events.keyframe_pose_time.end())
+      kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - next->second).count());
+  }
+  const std::vector<double>& frame_to_pose = events.frame_to_pose;
+  *result = {
+      {"frames_per_s", Round2(frames / std::max(1e-9, seconds))},
+      {"map_frames_per_s", Round2(frames / std::max(1e-9, map_seconds))},
+      {"map_done_after_last_pose_s", Round2(map_seconds - seconds)},
+      {"poses", frame_to_pose.size()},
+      {"frame_to_pose_ms_p50", Round2(Percentile(frame_to_pose, 0.5))},
+      {"frame_to_pose_ms_p95", Round2(Percentile(frame_to_pose, 0.95))},
+      {"keyframe_to_chunk_ms_p50", Round2(Percentile(kf_to_chunk, 0.5))},
+      {"keyframe_to_chunk_ms_p95", Round2(Percentile(kf_to_chunk, 0.95))},
+      {"uplink_bytes_per_frame", Round2(static_cast<double>(session->bytes_sent()) / frames)},
+      {"chunks", events.chunks},
+      {"chunk_bits_per_point", Round2(events.chunk_points ? 8.0 * events.chunk_bytes / events.chunk_points : -1)},
+      {"keyframes", summary.keyframes},
+      {"keyframes_dropped", summary.keyframes_dropped},
+      {"keyframes_failed", summary.keyframes_failed},
+      {"frames_depth_update_skipped", summary.frames_depth_update_skipped},
+      {"frames_dropped", summary.frames_dropped},
+      {"ate_percent_of_path", Round2(ate_percent)},
+      {"server_rss_mb_after", Round2(ProcStatusMb(server_pid, "VmRSS"))}};
+  return "";
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Settings settings;
+  if (const int exit = ParseCommandLine(argc, argv, &settings); exit != prism::cli::kContinue) return exit;
+  RenderedPreset rendered;
+  if (const int exit = Render(settings, &rendered); exit != prism::cli::kContinue) return exit;
+  ServerProcess server;
+  if (const int exit = StartServer(argv[0], settings.server_options, &server); exit != prism::cli::kContinue)
+    return exit;
+
+  const prism::RigCalibration& rig = rendered.setup.rig;
   prism::Json json;
-  json["preset"] = preset;
-  json["frames"] = frames;
-  json["push_fps"] = Round2(fps);
-  json["live"] = live;
-  json["size"] = std::to_string(setup->rig.camera.width) + "x" + std::to_string(setup->rig.camera.height);
+  json["preset"] = settings.preset;
+  json["frames"] = settings.frames;
+  json["push_fps"] = Round2(settings.fps);
+  json["live"] = settings.live;
+  json["size"] = std::to_string(rig.camera.width) + "x" + std::to_string(rig.camera.height);
   json["hardware_threads"] = std::thread::hardware_concurrency();
-  json["server_rss_mb_idle"] = Round2(ProcStatusMb(pid, "VmRSS"));
+  json["server_rss_mb_idle"] = Round2(ProcStatusMb(server.pid, "VmRSS"));
   json["codecs"] = prism::Json::object();
-  const prism::client::Rig rig = prism::ToClientRig(setup->rig);
-  std::stringstream codec_list(codecs);
+  const prism::client::Rig client_rig = prism::ToClientRig(rig);
+  std::stringstream codec_list(settings.codecs);
   std::string codec_name;
   while (std::getline(codec_list, codec_name, ',')) {
-    prism::client::SessionOptions so;
-    if (codec_name == "png") so.codec = prism::client::Codec::kPng;
-    else if (codec_name == "jpeg") so.codec = prism::client::Codec::kJpeg;
-    else if (codec_name == "raw") so.codec = prism::client::Codec::kRaw;
-    else {
-      stop_server();
-      return Fail("unknown codec '" + codec_name + "'");
+    prism::Json result;
+    const std::string error =
+        RunCodec(settings, rendered, client_rig, server.endpoint, server.pid, codec_name, &result);
+    if (!error.empty()) {
+      server.Stop();
+      return Fail(error);
     }
-    so.timeout_ms = 60000;
-    so.live = live;
-    std::unique_ptr<prism::client::Session> session;
-    prism::client::Status s = prism::client::Session::Open(endpoint, rig, so, &session);
-    if (!s.ok()) {
-      stop_server();
-      return Fail("open: " + s.ToString());
-    }
-    std::map<uint64_t, Clock::time_point> sent;  // frame sequence number -> send time
-    std::vector<double> frame_to_pose;
-    // Keyframe id -> arrival of the pose of the frame that became it. Keyframes are numbered in
-    // creation order and the first one's frame is still initialising when its pose is sent, so the
-    // n-th live is_keyframe pose made keyframe n.
-    std::map<uint64_t, Clock::time_point> keyframe_pose_time;
-    uint64_t live_keyframes = 0;
-    std::map<uint64_t, Clock::time_point> chunk_time;  // keyframe id -> first chunk arrival
-    uint64_t chunk_bytes = 0, chunk_points = 0, chunks = 0;
-    Clock::time_point last_pose;
-    // The latest pose of each tracked frame (a refined one replaces the first).
-    std::map<uint64_t, prism::Rigid3d> tracked_poses;
-    auto handle = [&](const prism::client::Event& e) {
-      const auto now = Clock::now();
-      if (e.kind == prism::client::Event::Kind::kPose) {
-        if (e.pose.state == prism::client::TrackingState::kTracking) {
-          const auto& q = e.pose.rotation_xyzw;
-          prism::Rigid3d p;
-          p.rotation = Eigen::Quaterniond(q[3], q[0], q[1], q[2]).normalized();
-          p.translation = Eigen::Vector3d(e.pose.translation[0], e.pose.translation[1], e.pose.translation[2]);
-          tracked_poses[e.pose.frame_sequence_number] = p;
-        } else {
-          tracked_poses.erase(e.pose.frame_sequence_number);
-        }
-      }
-      if (e.kind == prism::client::Event::Kind::kPose && !e.pose.refined) {
-        auto it = sent.find(e.pose.frame_sequence_number);
-        if (it != sent.end())
-          frame_to_pose.push_back(std::chrono::duration<double, std::milli>(now - it->second).count());
-        if (e.pose.is_keyframe) keyframe_pose_time.emplace(++live_keyframes, now);
-        last_pose = now;
-      } else if (e.kind == prism::client::Event::Kind::kChunk) {
-        ++chunks;
-        chunk_bytes += e.chunk.draco.size();
-        chunk_points += e.chunk.points.size();
-        chunk_time.emplace(e.chunk.keyframe_id, now);
-      }
-    };
-    session->SetEventCallback(handle);
-    const auto t0 = Clock::now();
-    for (int i = 0; i < frames; ++i) {
-      if (fps > 0) {
-        // Wait for the frame's time while taking events: callbacks run only inside the session's calls, so
-        // a sleep would hold every pose until the next frame and quantise frame-to-pose to the interval.
-        const auto due = t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(i / fps));
-        prism::client::Event ignored;
-        for (auto now = Clock::now(); now < due; now = Clock::now())
-          session->Poll(&ignored,
-                        std::max(1, static_cast<int>(std::chrono::duration<double, std::milli>(due - now).count())));
-      }
-      sent[static_cast<uint64_t>(i)] = Clock::now();
-      s = session->PushFrame(static_cast<int64_t>(trajectory[i].timestamp_s * 1e9), images[i].data, images[i].cols,
-                             images[i].rows, static_cast<int>(images[i].step));
-      if (!s.ok()) {
-        stop_server();
-        return Fail("push frame " + std::to_string(i) + ": " + s.ToString());
-      }
-    }
-    // The sequence numbers the SDK assigns are 0, 1, 2... in push order (checked by the pose count).
-    prism::client::Summary summary;
-    s = session->Close(600000, &summary);
-    if (!s.ok()) {
-      stop_server();
-      return Fail("close: " + s.ToString());
-    }
-    const auto t_done = Clock::now();
-    const double seconds = std::chrono::duration<double>(last_pose - t0).count();
-    double ate_percent = -1;  // -1: too few tracked poses to align
-    {
-      prism::Trajectory gt, est;
-      for (const auto& [seq, pose] : tracked_poses) {
-        if (seq >= static_cast<uint64_t>(frames)) continue;
-        gt.push_back(trajectory[seq]);
-        est.push_back({trajectory[seq].timestamp_s, pose});
-      }
-      prism::TrajectoryEvalOptions eo;
-      eo.alignment = prism::AlignmentModel::kSim3;
-      const prism::StatusOr<prism::AteResult> ate = prism::ComputeAte(gt, est, eo);
-      if (ate.ok() && ate->trajectory_length_m > 0) ate_percent = 100.0 * ate->error_m.rmse / ate->trajectory_length_m;
-    }
-    const double map_seconds = std::chrono::duration<double>(t_done - t0).count();
-    std::vector<double> kf_to_chunk;
-    for (const auto& [kf, t] : chunk_time) {
-      // Keyframe kf is finished when keyframe kf + 1 is made (or at the end of the stream).
-      if (auto next = keyframe_pose_time.find(kf + 1); next != keyframe_pose_time.end())
-        kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - next->second).count());
-    }
-    json["codecs"][codec_name] = {
-        {"frames_per_s", Round2(frames / std::max(1e-9, seconds))},
-        {"map_frames_per_s", Round2(frames / std::max(1e-9, map_seconds))},
-        {"map_done_after_last_pose_s", Round2(map_seconds - seconds)},
-        {"poses", frame_to_pose.size()},
-        {"frame_to_pose_ms_p50", Round2(Percentile(frame_to_pose, 0.5))},
-        {"frame_to_pose_ms_p95", Round2(Percentile(frame_to_pose, 0.95))},
-        {"keyframe_to_chunk_ms_p50", Round2(Percentile(kf_to_chunk, 0.5))},
-        {"keyframe_to_chunk_ms_p95", Round2(Percentile(kf_to_chunk, 0.95))},
-        {"uplink_bytes_per_frame", Round2(static_cast<double>(session->bytes_sent()) / frames)},
-        {"chunks", chunks},
-        {"chunk_bits_per_point", Round2(chunk_points ? 8.0 * chunk_bytes / chunk_points : -1)},
-        {"keyframes", summary.keyframes},
-        {"keyframes_dropped", summary.keyframes_dropped},
-        {"keyframes_failed", summary.keyframes_failed},
-        {"frames_depth_update_skipped", summary.frames_depth_update_skipped},
-        {"frames_dropped", summary.frames_dropped},
-        {"ate_percent_of_path", Round2(ate_percent)},
-        {"server_rss_mb_after", Round2(ProcStatusMb(pid, "VmRSS"))}};
+    json["codecs"][codec_name] = result;
   }
-  json["server_peak_rss_mb"] = Round2(ProcStatusMb(pid, "VmHWM"));
-  stop_server();
+  json["server_peak_rss_mb"] = Round2(ProcStatusMb(server.pid, "VmHWM"));
+  server.Stop();
   std::cout << prism::JsonText(json, 2);
   return 0;
 }

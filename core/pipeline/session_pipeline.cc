@@ -177,169 +177,175 @@ void SessionPipeline::SlamLoop() {
       ++stats_.frames_dropped;
       continue;
     }
-    const auto t0 = std::chrono::steady_clock::now();
-    // Behind the input: this frame's pose only (the frames still waiting, not counting this one).
-    const bool skip_depth_update = options_.skip_depth_update_backlog > 0 &&
-                                   frames_.size() >= static_cast<size_t>(options_.skip_depth_update_backlog);
-    Status decoded = DecodeFrame(frame->bytes.data(), frame->bytes.size(), frame->codec, rig_.camera.width,
-                                 rig_.camera.height, &rgb);
-    if (decoded.ok() && !undistorter_->identity()) {
-      StatusOr<cv::Mat> undistorted = undistorter_->Undistort(rgb);
-      if (undistorted.ok()) rgb = std::move(undistorted).value();
-      else decoded = undistorted.status();
-    }
-    if (!decoded.ok()) {
-      {
-        std::lock_guard<std::mutex> lock(mutex_);
-        ++stats_.frames_bad;
-      }
-      PipelineEvent e;
-      e.kind = PipelineEvent::Kind::kError;
-      e.status = Status(decoded.code(), "frame " + std::to_string(frame->sequence_number) + ": " + decoded.message());
-      e.has_frame = true;
-      e.frame_sequence_number = frame->sequence_number;
-      sink_(std::move(e));
-      continue;
-    }
-    try {
-      StatusOr<SlamFrameResult> r =
-          slam_->ProcessFrame(static_cast<double>(frame->timestamp_ns) * 1e-9, rgb, skip_depth_update);
-      if (!r.ok()) {
-        PipelineEvent e;
-        e.kind = PipelineEvent::Kind::kError;
-        e.status =
-            Status(r.status().code(), "frame " + std::to_string(frame->sequence_number) + ": " + r.status().message());
-        e.has_frame = true;
-        e.frame_sequence_number = frame->sequence_number;
-        sink_(std::move(e));
-        continue;
-      }
-      {
-        std::lock_guard<std::mutex> lock(mutex_);
-        ++stats_.frames_processed;
-        // Asked to skip and did (a frame that made a keyframe, or was tracked while initialising, did not).
-        stats_.frames_depth_update_skipped +=
-            skip_depth_update && r->state == SlamState::kTracking && !r->depth_updated;
-        stats_.slam_ms_total += MsSince(t0);
-      }
-      PipelineEvent e;
-      e.kind = PipelineEvent::Kind::kPose;
-      e.frame_sequence_number = frame->sequence_number;
-      e.timestamp_ns = frame->timestamp_ns;
-      e.slam = *r;
-      e.metres_per_unit = metres_per_unit_;
-      // By SLAM frame id (a frame the SLAM recorded before failing leaves a gap).
-      if (r->frame_id >= 0) {
-        if (reported_.size() <= static_cast<size_t>(r->frame_id))
-          reported_.resize(static_cast<size_t>(r->frame_id) + 1);
-        reported_[static_cast<size_t>(r->frame_id)] = {true, frame->sequence_number, frame->timestamp_ns, r->state,
-                                                       r->world_from_camera};
-      }
-      sink_(std::move(e));
-      if (UpdateStartCheck()) {
-        for (PipelineEvent& refined : RefinedPoses(/*untracked_too=*/true)) {
-          refined.metres_per_unit = metres_per_unit_;
-          sink_(std::move(refined));
-        }
-      }
-      for (SlamKeyframe& kf : slam_->TakeFinishedKeyframes()) QueueKeyframe(std::move(kf));
-    } catch (const std::exception& ex) {
-      Fail(InternalError(std::string("SLAM failed: ") + ex.what()));
-    }
+    TrackFrame(*frame, &rgb);
   }
   std::vector<Sim3d> final_keyframe_poses;
   std::vector<PipelineEvent> refined;  // sent with the session's final scale, by the strand's last job
+  if (!aborted_ && !failed_) FinishSlam(&final_keyframe_poses, &refined);
+  // Last job of the strand: after every keyframe queued above.
+  strand_->Post([this, final_keyframe_poses = std::move(final_keyframe_poses), refined = std::move(refined)]() mutable {
+    FinishMap(final_keyframe_poses, &refined);
+  });
+}
+
+void SessionPipeline::TrackFrame(const EncodedFrame& frame, cv::Mat* rgb) {
+  const auto t0 = std::chrono::steady_clock::now();
+  // Behind the input: this frame's pose only (the frames still waiting, not counting this one).
+  const bool skip_depth_update = options_.skip_depth_update_backlog > 0 &&
+                                 frames_.size() >= static_cast<size_t>(options_.skip_depth_update_backlog);
+  Status decoded =
+      DecodeFrame(frame.bytes.data(), frame.bytes.size(), frame.codec, rig_.camera.width, rig_.camera.height, rgb);
+  if (decoded.ok() && !undistorter_->identity()) {
+    StatusOr<cv::Mat> undistorted = undistorter_->Undistort(*rgb);
+    if (undistorted.ok()) *rgb = std::move(undistorted).value();
+    else decoded = undistorted.status();
+  }
+  if (!decoded.ok()) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.frames_bad;
+    }
+    SendFrameError(frame.sequence_number, decoded);
+    return;
+  }
+  try {
+    StatusOr<SlamFrameResult> r =
+        slam_->ProcessFrame(static_cast<double>(frame.timestamp_ns) * 1e-9, *rgb, skip_depth_update);
+    if (!r.ok()) {
+      SendFrameError(frame.sequence_number, r.status());
+      return;
+    }
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.frames_processed;
+      // Asked to skip and did (a frame that made a keyframe, or was tracked while initialising, did not).
+      stats_.frames_depth_update_skipped += skip_depth_update && r->state == SlamState::kTracking && !r->depth_updated;
+      stats_.slam_ms_total += MsSince(t0);
+    }
+    PipelineEvent e;
+    e.kind = PipelineEvent::Kind::kPose;
+    e.frame_sequence_number = frame.sequence_number;
+    e.timestamp_ns = frame.timestamp_ns;
+    e.slam = *r;
+    e.metres_per_unit = metres_per_unit_;
+    // By SLAM frame id (a frame the SLAM recorded before failing leaves a gap).
+    if (r->frame_id >= 0) {
+      if (reported_.size() <= static_cast<size_t>(r->frame_id)) reported_.resize(static_cast<size_t>(r->frame_id) + 1);
+      reported_[static_cast<size_t>(r->frame_id)] = {true, frame.sequence_number, frame.timestamp_ns, r->state,
+                                                     r->world_from_camera};
+    }
+    sink_(std::move(e));
+    if (UpdateStartCheck()) {
+      for (PipelineEvent& refined : RefinedPoses(/*untracked_too=*/true)) {
+        refined.metres_per_unit = metres_per_unit_;
+        sink_(std::move(refined));
+      }
+    }
+    for (SlamKeyframe& kf : slam_->TakeFinishedKeyframes()) QueueKeyframe(std::move(kf));
+  } catch (const std::exception& ex) {
+    Fail(InternalError(std::string("SLAM failed: ") + ex.what()));
+  }
+}
+
+void SessionPipeline::SendFrameError(uint64_t sequence_number, const Status& status) {
+  PipelineEvent e;
+  e.kind = PipelineEvent::Kind::kError;
+  e.status = Status(status.code(), "frame " + std::to_string(sequence_number) + ": " + status.message());
+  e.has_frame = true;
+  e.frame_sequence_number = sequence_number;
+  sink_(std::move(e));
+}
+
+void SessionPipeline::FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::vector<PipelineEvent>* refined) {
+  try {
+    for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
+    const bool second_start_at_finish = UpdateStartCheck();
+    if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
+    if (options_.slam.scale_drift_correction) {
+      StatusOr<ScaleDriftCorrection> drift = slam_->CorrectScaleDrift();
+      if (!drift.ok()) {
+        PRISM_LOG(INFO) << "pipeline: no scale drift correction: " << drift.status();
+      }
+    }
+    if (options_.remap_at_end && options_.metric_scale_at_end) EstimateFinalMetricScale();
+    *refined = RefinedPoses(/*untracked_too=*/second_start_at_finish);
+    if (options_.remap_at_end) *final_keyframe_poses = slam_->KeyframePoses();
+  } catch (const std::exception& ex) {
+    Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));
+  }
+}
+
+void SessionPipeline::EstimateFinalMetricScale() {
+  const auto t0 = std::chrono::steady_clock::now();
+  StatusOr<MetricScaleEstimate> metric = slam_->EstimateMetricScale();
+  if (!metric.ok()) {
+    PRISM_LOG(INFO) << "pipeline: no metric scale from the co-moving lights: " << metric.status();
+    return;
+  }
+  PRISM_LOG(INFO) << "pipeline: metric scale from the co-moving lights " << metric->metres_per_world_unit
+                  << " m per unit (dense stage " << metres_per_unit_ << ") in " << MsSince(t0) << " ms";
+  final_metres_per_unit_ = metric->metres_per_world_unit;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stats_.shading_check = metric->consistent ? 1 : 2;
+    stats_.shading_pair_spread = metric->pair_spread;
+  }
+  if (!metric->consistent) {
+    PRISM_LOG(WARNING) << "pipeline: the session's reconstruction disagrees with the co-moving lights' "
+                          "shading (keyframe pairs' shading scales spread by "
+                       << metric->pair_spread << " of their median): its trajectory and map are probably "
+                       << "distorted";
+  }
+}
+
+void SessionPipeline::FinishMap(const std::vector<Sim3d>& final_keyframe_poses, std::vector<PipelineEvent>* refined) {
   if (!aborted_ && !failed_) {
     try {
-      for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
-      const bool second_start_at_finish = UpdateStartCheck();
-      if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
-      if (options_.slam.scale_drift_correction) {
-        StatusOr<ScaleDriftCorrection> drift = slam_->CorrectScaleDrift();
-        if (!drift.ok()) {
-          PRISM_LOG(INFO) << "pipeline: no scale drift correction: " << drift.status();
-        }
+      StatusOr<MapChunk> rest = InternalError("not run");
+      size_t map_points = 0;
+      {
+        std::lock_guard<std::mutex> lock(map_mutex_);
+        rest = dense_->Flush();
+        map_points = dense_->map().output_size();
       }
-      if (options_.remap_at_end && options_.metric_scale_at_end) {
+      if (rest.ok() && !rest->empty()) EmitChunk(*rest, 0, Rigid3d(), map_points);
+      StatusOr<MapChunk> rebuilt = InternalError("not run");
+      if (options_.remap_at_end && !final_keyframe_poses.empty() && dense_->kept_clouds() > 0) {
         const auto t0 = std::chrono::steady_clock::now();
-        StatusOr<MetricScaleEstimate> metric = slam_->EstimateMetricScale();
-        if (metric.ok()) {
-          PRISM_LOG(INFO) << "pipeline: metric scale from the co-moving lights " << metric->metres_per_world_unit
-                          << " m per unit (dense stage " << metres_per_unit_ << ") in " << MsSince(t0) << " ms";
-          final_metres_per_unit_ = metric->metres_per_world_unit;
-          {
-            std::lock_guard<std::mutex> lock(mutex_);
-            stats_.shading_check = metric->consistent ? 1 : 2;
-            stats_.shading_pair_spread = metric->pair_spread;
-          }
-          if (!metric->consistent) {
-            PRISM_LOG(WARNING) << "pipeline: the session's reconstruction disagrees with the co-moving lights' "
-                                  "shading (keyframe pairs' shading scales spread by "
-                               << metric->pair_spread << " of their median): its trajectory and map are probably "
-                               << "distorted";
-          }
-        } else {
-          PRISM_LOG(INFO) << "pipeline: no metric scale from the co-moving lights: " << metric.status();
-        }
-      }
-      refined = RefinedPoses(/*untracked_too=*/second_start_at_finish);
-      if (options_.remap_at_end) final_keyframe_poses = slam_->KeyframePoses();
-    } catch (const std::exception& ex) {
-      Fail(InternalError(std::string("SLAM failed at the end: ") + ex.what()));
-    }
-  }
-  // Last job of the strand: after every keyframe queued above. Clouds still waiting for the session
-  // scale (it had not settled: DenseStageOptions::scale_keyframes) enter the map now; then the map is
-  // rebuilt at the final keyframe poses when they moved (remap_at_end). The refined poses go out once
-  // the session's final scale is known (the summary's and the rebuilt map's), before the rebuilt map.
-  strand_->Post([this, final_keyframe_poses = std::move(final_keyframe_poses), refined = std::move(refined)]() mutable {
-    auto send_refined = [&] {
-      for (PipelineEvent& e : refined) {
-        e.metres_per_unit = metres_per_unit_;
-        sink_(std::move(e));
-      }
-      refined.clear();
-    };
-    if (!aborted_ && !failed_) {
-      try {
-        StatusOr<MapChunk> rest = InternalError("not run");
-        size_t map_points = 0;
         {
           std::lock_guard<std::mutex> lock(map_mutex_);
-          rest = dense_->Flush();
+          rebuilt = dense_->Remap(final_keyframe_poses, 1e-6, final_metres_per_unit_);
           map_points = dense_->map().output_size();
         }
-        if (rest.ok() && !rest->empty()) EmitChunk(*rest, 0, Rigid3d(), map_points);
-        StatusOr<MapChunk> rebuilt = InternalError("not run");
-        if (options_.remap_at_end && !final_keyframe_poses.empty() && dense_->kept_clouds() > 0) {
-          const auto t0 = std::chrono::steady_clock::now();
-          {
-            std::lock_guard<std::mutex> lock(map_mutex_);
-            rebuilt = dense_->Remap(final_keyframe_poses, 1e-6, final_metres_per_unit_);
-            map_points = dense_->map().output_size();
-          }
-          if (!rebuilt.ok()) {
-            PRISM_LOG(WARNING) << "pipeline: map not rebuilt at the final keyframe poses: " << rebuilt.status();
-          } else if (rebuilt->replaces_map) {
-            PRISM_LOG(INFO) << "pipeline: map rebuilt at the final keyframe poses, " << map_points << " voxels from "
-                            << dense_->kept_clouds() << " keyframe clouds in " << MsSince(t0) << " ms";
-            // The rebuilt map is at the SLAM's metric scale when there was one: the summary says so.
-            if (final_metres_per_unit_ > 0) metres_per_unit_ = final_metres_per_unit_.load();
-          }
+        if (!rebuilt.ok()) {
+          PRISM_LOG(WARNING) << "pipeline: map not rebuilt at the final keyframe poses: " << rebuilt.status();
+        } else if (rebuilt->replaces_map) {
+          PRISM_LOG(INFO) << "pipeline: map rebuilt at the final keyframe poses, " << map_points << " voxels from "
+                          << dense_->kept_clouds() << " keyframe clouds in " << MsSince(t0) << " ms";
+          // The rebuilt map is at the SLAM's metric scale when there was one: the summary says so.
+          if (final_metres_per_unit_ > 0) metres_per_unit_ = final_metres_per_unit_.load();
         }
-        send_refined();
-        if (rebuilt.ok() && !rebuilt->empty()) EmitChunk(*rebuilt, 0, Rigid3d(), map_points);
-      } catch (const std::exception& ex) {
-        Fail(InternalError(std::string("dense stage failed at the end: ") + ex.what()));
       }
+      SendRefined(refined);
+      if (rebuilt.ok() && !rebuilt->empty()) EmitChunk(*rebuilt, 0, Rigid3d(), map_points);
+    } catch (const std::exception& ex) {
+      Fail(InternalError(std::string("dense stage failed at the end: ") + ex.what()));
     }
-    // The SLAM's refined poses do not depend on the map: they go out even when its end failed.
-    if (!aborted_) send_refined();
-    PipelineEvent e;
-    e.kind = PipelineEvent::Kind::kFinished;
-    e.stats = stats();
+  }
+  // The SLAM's refined poses do not depend on the map: they go out even when its end failed.
+  if (!aborted_) SendRefined(refined);
+  PipelineEvent e;
+  e.kind = PipelineEvent::Kind::kFinished;
+  e.stats = stats();
+  sink_(std::move(e));
+}
+
+void SessionPipeline::SendRefined(std::vector<PipelineEvent>* refined) {
+  for (PipelineEvent& e : *refined) {
+    e.metres_per_unit = metres_per_unit_;
     sink_(std::move(e));
-  });
+  }
+  refined->clear();
 }
 
 std::vector<PipelineEvent> SessionPipeline::RefinedPoses(bool untracked_too) {

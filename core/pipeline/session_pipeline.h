@@ -185,7 +185,26 @@ class SessionPipeline {
  private:
   SessionPipeline(const RigCalibration& rig, const SessionPipelineOptions& options, DenseWorkers* workers,
                   PipelineEventSink sink);
+  // The SLAM thread: every frame off the queue, then the end of the stream and the strand's last job.
   void SlamLoop();
+  // One frame: decoded, undistorted and tracked; its pose (or error) to the sink and the keyframes it
+  // finished to the dense stage. `rgb` is the decode buffer, reused from frame to frame.
+  void TrackFrame(const EncodedFrame& frame, cv::Mat* rgb);
+  // A frame's error event, the frame's sequence number before the message.
+  void SendFrameError(uint64_t sequence_number, const Status& status);
+  // After the last frame (SLAM thread): the SLAM's last keyframes to the dense stage, the final
+  // adjustment, the scale drift correction and the metric scale; gives the final keyframe poses
+  // (remap_at_end) and the refined pose events for FinishMap.
+  void FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::vector<PipelineEvent>* refined);
+  // The SLAM's metric scale from the co-moving lights into final_metres_per_unit_ and the stats.
+  void EstimateFinalMetricScale();
+  // The strand's last job. Clouds still waiting for the session scale (it had not settled:
+  // DenseStageOptions::scale_keyframes) enter the map; then the map is rebuilt at the final keyframe
+  // poses when they moved (remap_at_end). The refined poses go out once the session's final scale is
+  // known (the summary's and the rebuilt map's), before the rebuilt map; then kFinished.
+  void FinishMap(const std::vector<Sim3d>& final_keyframe_poses, std::vector<PipelineEvent>* refined);
+  // Sends the refined pose events with the current metres_per_unit_ and empties the list.
+  void SendRefined(std::vector<PipelineEvent>* refined);
   void QueueKeyframe(SlamKeyframe keyframe);
   void DenseJob();
   // Encodes the changed voxels and hands the chunk to the sink (strand jobs only).
