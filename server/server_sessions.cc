@@ -327,8 +327,8 @@ void Server::Impl::HandleFrame(const std::string& peer, const v1::Frame& frame, 
         s->deprioritised = true;
         metrics.Add("prism_sessions_deprioritised_total");
         PRISM_LOG(WARNING) << "event=session_deprioritised session=" << s->id << " peer=" << PeerName(peer)
-                           << " message=\"frames over max-frame-rate-hz; the session's SLAM runs at the lowest CPU "
-                              "priority from now on\"";
+                           << " message=\"frames over max-frame-rate-hz; the session runs at the lowest CPU priority "
+                              "(nice 19) from now on\"";
       }
       return refuse(ResourceExhaustedError("over the session frame-rate limit of " +
                                            std::to_string(options.max_frame_rate_hz) + " Hz (max-frame-rate-hz)"),

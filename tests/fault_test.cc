@@ -10,6 +10,7 @@
 //     (median of the last minute vs the second), no errors.
 // Each prints its measurements (chunks lost, RSS before/after) for the report.
 #include <fcntl.h>
+#include <sched.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -66,38 +67,48 @@ std::string ReadAll(const fs::path& p) {
   return ss.str();
 }
 
-// The nice values of the threads of process `pid` named `name` (/proc/PID/task/*/comm and stat).
-std::vector<int> ThreadNiceValues(pid_t pid, const std::string& name) {
-  std::vector<int> out;
+// The scheduling of the threads of process `pid` named `name`: nice value and policy (0 ordinary,
+// 5 idle), from /proc/PID/task/*/comm and stat.
+struct ThreadPriority {
+  int nice = 0;
+  int policy = 0;
+  bool operator==(const ThreadPriority& o) const { return nice == o.nice && policy == o.policy; }
+};
+std::vector<ThreadPriority> ThreadPriorities(pid_t pid, const std::string& name) {
+  std::vector<ThreadPriority> out;
   std::error_code ec;
   for (const fs::directory_entry& task : fs::directory_iterator("/proc/" + std::to_string(pid) + "/task", ec)) {
     std::string comm = ReadAll(task.path() / "comm");
     if (!comm.empty() && comm.back() == '\n') comm.pop_back();
     if (comm != name) continue;
-    // stat: "tid (comm) state ..." with the nice value the 19th field; comm may hold spaces, so count after ')'.
+    // stat: "tid (comm) state ..." with the nice value the 19th field and the policy the 41st; comm may
+    // hold spaces, so count after ')'.
     const std::string stat = ReadAll(task.path() / "stat");
     std::istringstream fields(stat.substr(stat.rfind(')') + 2));
     std::string field;
-    for (int i = 3; i <= 19 && fields >> field; ++i) {
-      if (i == 19) out.push_back(std::stoi(field));
+    ThreadPriority p;
+    for (int i = 3; i <= 41 && fields >> field; ++i) {
+      if (i == 19) p.nice = std::stoi(field);
+      if (i == 41) p.policy = std::stoi(field);
     }
+    out.push_back(p);
   }
   return out;
 }
 
-// Whether, within 10 s, a thread named `name` has the nice value `nice` (all of them when `all`).
-bool ThreadsReachNice(pid_t pid, const std::string& name, int nice, bool all) {
-  std::vector<int> values;
+// Whether, within 10 s, a thread named `name` has the priority `want` (all of them when `all`).
+bool ThreadsReachPriority(pid_t pid, const std::string& name, ThreadPriority want, bool all) {
+  std::vector<ThreadPriority> values;
   for (int i = 0; i < 200; ++i) {
-    values = ThreadNiceValues(pid, name);
-    const auto is_nice = [nice](int v) { return v == nice; };
-    if (all ? !values.empty() && std::all_of(values.begin(), values.end(), is_nice)
-            : std::any_of(values.begin(), values.end(), is_nice))
+    values = ThreadPriorities(pid, name);
+    const auto is = [want](const ThreadPriority& v) { return v == want; };
+    if (all ? !values.empty() && std::all_of(values.begin(), values.end(), is)
+            : std::any_of(values.begin(), values.end(), is))
       return true;
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
-  std::cerr << "threads named " << name << ", nice values:";
-  for (int v : values) std::cerr << " " << v;
+  std::cerr << "threads named " << name << ", nice/policy:";
+  for (const ThreadPriority& v : values) std::cerr << " " << v.nice << "/" << v.policy;
   std::cerr << "\n";
   return false;
 }
@@ -461,7 +472,7 @@ TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBou
   std::optional<v1::Envelope> opened = client.Receive(10000);
   ASSERT_TRUE(opened && opened->has_session_opened());
   const std::string id = opened->session_opened().session_id();
-  EXPECT_TRUE(ThreadsReachNice(server->pid(), "prism-slam", 0, /*all=*/true));
+  EXPECT_TRUE(ThreadsReachPriority(server->pid(), "prism-slam", {0, SCHED_OTHER}, /*all=*/true));
   // 300 frames/s, ignoring credits: the sequence twice over.
   std::vector<std::string> pngs;
   for (const SequenceFrame& f : seq->frames) pngs.push_back(ReadAll(seq->Path(f.rgb_file)));
@@ -491,9 +502,9 @@ TEST_F(FaultTest, ClientAtTenTimesTheFrameRateIsDroppedCountedAndLatencyStaysBou
     client.Send(WireClient::Frame(id, static_cast<uint64_t>(i), ts), &pngs[static_cast<size_t>(k)]);
     while (std::optional<v1::Envelope> m = client.Receive(0)) handle(*m);
   }
-  // Over the limit: the session's SLAM thread now runs at the lowest CPU priority. (Threads it started
-  // before carry its name but keep their priority: OpenCV's worker threads, shared by every session.)
-  EXPECT_TRUE(ThreadsReachNice(server->pid(), "prism-slam", 19, /*all=*/false));
+  // Over the limit: the session's SLAM thread now runs at nice 19. (Threads it started before carry its
+  // name but keep their priority: OpenCV's worker threads, shared by every session.)
+  EXPECT_TRUE(ThreadsReachPriority(server->pid(), "prism-slam", {19, SCHED_OTHER}, /*all=*/false));
   v1::Envelope close;
   close.set_protocol_version(v1::PROTOCOL_VERSION_1);
   close.mutable_close()->set_session_id(id);

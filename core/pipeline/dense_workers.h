@@ -4,7 +4,7 @@
 // has one writer), different strands run in parallel, and ready strands take turns (round robin), so
 // N sessions never start N x cores threads and one busy session cannot starve the others. A strand
 // moved to the background (a session that floods the server) runs on one more worker of its own at the
-// lowest priority (nice 19), its loops inline: it gets the CPU the other sessions leave.
+// lowest priority (nice 19), its loops inline: it gets little CPU while other sessions want it.
 #pragma once
 
 #include <condition_variable>

@@ -1,3 +1,4 @@
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -90,7 +91,7 @@ TEST(DenseWorkersTest, ABackgroundStrandRunsInOrderOnItsOwnLowPriorityWorker) {
   std::mutex m;
   std::vector<int> order;
   std::set<std::thread::id> flood_threads, normal_threads, flood_loop_threads;
-  std::vector<int> flood_nice;
+  std::vector<int> flood_nice, flood_policy;
   flood->Post([&] {
     std::lock_guard<std::mutex> lock(m);
     order.push_back(0);
@@ -107,6 +108,7 @@ TEST(DenseWorkersTest, ABackgroundStrandRunsInOrderOnItsOwnLowPriorityWorker) {
       flood_threads.insert(std::this_thread::get_id());
       errno = 0;
       flood_nice.push_back(getpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid))));
+      flood_policy.push_back(sched_getscheduler(0));
     });
     normal->Post([&] {
       std::lock_guard<std::mutex> lock(m);
@@ -121,6 +123,7 @@ TEST(DenseWorkersTest, ABackgroundStrandRunsInOrderOnItsOwnLowPriorityWorker) {
   EXPECT_EQ(normal_threads.size(), 1u);
   EXPECT_EQ(normal_threads.count(*flood_threads.begin()), 0u);
   for (int n : flood_nice) EXPECT_EQ(n, 19);
+  for (int p : flood_policy) EXPECT_EQ(p, SCHED_OTHER);
 }
 
 // Collects a pipeline's events until kFinished.

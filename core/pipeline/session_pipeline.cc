@@ -1,6 +1,5 @@
 #include "core/pipeline/session_pipeline.h"
 
-#include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
@@ -78,7 +77,7 @@ SessionPipeline::SessionPipeline(const RigCalibration& rig, const SessionPipelin
 
 bool SessionPipeline::Deprioritise() {
   const int tid = slam_thread_id_;
-  if (tid == 0 || ::setpriority(PRIO_PROCESS, static_cast<id_t>(tid), 19) != 0) return false;
+  if (tid == 0 || !SetThreadNice(tid, 19)) return false;
   strand_->MoveToBackground();
   return true;
 }

@@ -21,6 +21,16 @@ void SetCurrentThreadName(const char* name) {
 #endif
 }
 
+bool SetThreadNice(int tid, int nice) {
+#if defined(__linux__)
+  return setpriority(PRIO_PROCESS, static_cast<id_t>(tid), nice) == 0;
+#else
+  (void)tid;
+  (void)nice;
+  return false;
+#endif
+}
+
 bool SetCurrentThreadNice(int nice) {
 #if defined(__linux__)
   return setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), nice) == 0;

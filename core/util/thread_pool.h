@@ -18,6 +18,10 @@ void SetCurrentThreadName(const char* name);
 // Sets the calling thread's niceness (Linux; raising it needs no privilege). false when refused.
 bool SetCurrentThreadNice(int nice);
 
+// Sets thread `tid`'s niceness (the kernel's thread id; Linux; raising it needs no privilege, lowering
+// it back does). false when refused.
+bool SetThreadNice(int tid, int nice);
+
 // From now on, ParallelFor called on this thread runs its whole range here, without the pool's
 // workers: for background work that must take no CPU from the pool's other users.
 void RunParallelForInlineOnThisThread();
