@@ -557,12 +557,12 @@ void RunAbuserCase(const Settings& s, const Context& c, const GroupServer& g, bo
   std::vector<std::string> failed;
   if (!r.ok) failed.push_back("session: " + r.error);
   if (!(ratio > 0 && ratio <= bars.max_p95_ratio)) failed.push_back("p95");
-  const bool latency_only = failed.size() == 1 && failed[0] == "p95";
   if (!(open_ms >= 0 && open_ms <= bars.max_open_ms)) failed.push_back("open");
   if (!(health_max >= 0 && health_max <= bars.max_healthz_ms)) failed.push_back("healthz");
   if (!(rss_after <= bars.max_rss_ratio * *rss_base)) failed.push_back("rss");
   if (!(counted > 0)) failed.push_back("counted");
   if (log.repeats > 0 || log.churn_lines > max_churn_lines) failed.push_back("log");
+  const bool latency_only = failed.size() == 1 && failed[0] == "p95";
   if (a->reference) {
     failed.clear();
     // An ordinary neighbour's session leaves the allocator where two sessions at once put it: that

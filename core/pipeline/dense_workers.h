@@ -67,8 +67,8 @@ class DenseWorkers {
   std::condition_variable cv_, background_cv_;
   std::deque<std::shared_ptr<Strand>> ready_;             // Guarded by mutex_.
   std::deque<std::shared_ptr<Strand>> background_ready_;  // Guarded by mutex_.
-  size_t pending_ = 0;                         // Guarded by mutex_.
-  bool stop_ = false;                          // Guarded by mutex_.
+  size_t pending_ = 0;                                    // Guarded by mutex_.
+  bool stop_ = false;                                     // Guarded by mutex_.
   std::vector<std::thread> threads_;
 };
 
