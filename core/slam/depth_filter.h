@@ -185,6 +185,11 @@ class KeyframeDepth {
     uint16_t outliers = 0;
     uint16_t attached = 0;  // camera-attached votes (DepthFilterOptions::camera_attached_min_votes)
   };
+  // UpdateRows's state for one frame and its passes over a row (depth_filter_update.cc).
+  class RowUpdate;
+  // A patch is 2 kPatchHalf + 1 = 5 samples along the epipolar line, 1 px apart in the keyframe.
+  static constexpr int kPatchHalf = 2;
+
   KeyframeDepth() = default;
   void UpdateRows(int y0, int y1, const cv::Mat& frame, const Rigid3d& frame_from_keyframe, double mean_idepth,
                   DepthUpdateStats* out_stats);
