@@ -378,159 +378,165 @@ struct Session::Impl {
     v1::Envelope env;
     if (parts.empty() || !env.ParseFromArray(parts[0].data(), static_cast<int>(parts[0].size()))) return;
     switch (env.body_case()) {
-      case v1::Envelope::kSessionOpened: {
-        const v1::SessionOpened& o = env.session_opened();
-        session_id = o.session_id();
-        if (!o.resume_token().empty()) resume_token = o.resume_token();
-        frame_credits = o.initial_frame_credits();
-        if (o.map_voxel_m() > 0) voxel_m = o.map_voxel_m();
-        read_only = o.read_only();
-        max_frame_rate_hz = o.max_frame_rate_hz();
-        max_frame_bytes = o.max_frame_bytes();
-        rate_burst = std::max<double>(1.0, o.initial_frame_credits());
-        rate_tokens = std::min(rate_tokens, rate_burst);
-        if (!o.resumed()) rate_tokens = rate_burst;
-        rate_refilled = Clock::now();
-        resume_next_frame = o.next_frame_sequence();
-        got_opened = true;
-        opened = true;
-        return;
-      }
+      case v1::Envelope::kSessionOpened:
+        return OnSessionOpened(env.session_opened());
       case v1::Envelope::kFrameCredits:
         frame_credits += env.frame_credits().frames();
         return;
-      case v1::Envelope::kPoseUpdate: {
-        const v1::PoseUpdate& p = env.pose_update();
-        if (!p.refined()) {
-          if (p.frame_sequence_number() < next_pose) return;  // resent after a resume, already seen
-          next_pose = p.frame_sequence_number() + 1;
-          while (!unanswered.empty() &&
-                 unanswered.front().envelope.frame().sequence_number() <= p.frame_sequence_number())
-            unanswered.pop_front();
-        }
-        Event e;
-        e.kind = Event::Kind::kPose;
-        e.pose.frame_sequence_number = p.frame_sequence_number();
-        e.pose.timestamp_ns = p.timestamp_ns();
-        const v1::Pose& w = p.world_from_camera();
-        e.pose.rotation_xyzw = {w.rotation().x(), w.rotation().y(), w.rotation().z(), w.rotation().w()};
-        e.pose.translation = {w.translation().x(), w.translation().y(), w.translation().z()};
-        e.pose.state = p.state() == v1::PoseUpdate::TRACKING_STATE_TRACKING       ? TrackingState::kTracking
-                       : p.state() == v1::PoseUpdate::TRACKING_STATE_INITIALISING ? TrackingState::kInitialising
-                       : p.state() == v1::PoseUpdate::TRACKING_STATE_LOST         ? TrackingState::kLost
-                                                                                  : TrackingState::kUnknown;
-        e.pose.is_keyframe = p.is_keyframe();
-        e.pose.keyframe_id = p.keyframe_id();
-        e.pose.refined = p.refined();
-        e.pose.metres_per_unit = p.metres_per_unit();
-        e.pose.has_tracking = p.has_tracking();
-        if (p.has_tracking()) {
-          const v1::TrackingQuality& t = p.tracking();
-          e.pose.tracking = {t.residual_rms(), t.visible_fraction(), t.inlier_fraction(), t.iterations(), t.retried(),
-                             t.step(),         t.rotation_deg(),     t.guess_correction()};
-        }
-        Emit(std::move(e));
-        return;
-      }
-      case v1::Envelope::kMapChunk: {
-        // Grant the credit back: this chunk is consumed.
-        v1::Envelope credit = NewEnvelope();
-        credit.mutable_chunk_credits()->set_session_id(session_id);
-        credit.mutable_chunk_credits()->set_chunks(1);
-        SendEnvelope(credit);
-        const uint64_t seq = env.map_chunk().chunk_sequence_number();
-        if (!chunks_seen.insert(seq).second) return;  // resent after a resume, already seen
-        last_chunk = std::max(last_chunk, static_cast<int64_t>(seq));
-        Event e;
-        e.kind = Event::Kind::kChunk;
-        e.chunk.keyframe_id = env.map_chunk().keyframe_id();
-        e.chunk.sequence_number = seq;
-        if (parts.size() >= 2) {
-          const auto* d = static_cast<const uint8_t*>(parts[1].data());
-          e.chunk.draco.assign(d, d + parts[1].size());
-        }
-        const Status s = DecodeChunk(e.chunk.draco.data(), e.chunk.draco.size(), &e.chunk.points);
-        if (!s.ok()) {
-          Event err;
-          err.kind = Event::Kind::kError;
-          err.error = Make(Code::kDataLoss, "map chunk " + std::to_string(e.chunk.sequence_number) + ": " + s.message);
-          Emit(std::move(err));
-          return;
-        }
-        e.chunk.replaces_map = env.map_chunk().replaces_map();
-        if (e.chunk.replaces_map && static_cast<int64_t>(seq) > map_replaced_at) {
-          map.clear();
-          map_replaced_at = static_cast<int64_t>(seq);
-        }
-        // A chunk older than the latest rebuilt map is void (its voxels are in the rebuilt map).
-        if (static_cast<int64_t>(seq) >= map_replaced_at)
-          for (const Point& p : e.chunk.points) map[VoxelKey(p, voxel_m)] = p;
-        Emit(std::move(e));
-        return;
-      }
-      case v1::Envelope::kSessionSummary: {
-        const v1::SessionSummary& s = env.session_summary();
-        summary.frames_received = s.frames_received();
-        summary.frames_dropped = s.frames_dropped();
-        summary.frames_rejected = s.frames_rejected();
-        summary.keyframes = s.keyframes();
-        summary.keyframes_dropped = s.keyframes_dropped();
-        summary.keyframes_failed = s.keyframes_failed();
-        summary.frames_depth_update_skipped = s.frames_depth_update_skipped();
-        summary.chunks_sent = s.chunks_sent();
-        summary.map_points = s.map_points();
-        summary.metres_per_unit = s.metres_per_unit();
-        summary.reason = s.reason();
-        summary.shading_check = s.shading_check() == v1::SHADING_CHECK_CONSISTENT  ? Summary::ShadingCheck::kConsistent
-                                : s.shading_check() == v1::SHADING_CHECK_DISTORTED ? Summary::ShadingCheck::kDistorted
-                                                                                   : Summary::ShadingCheck::kNotRun;
-        summary.shading_pair_spread = s.shading_pair_spread();
-        summary.start_check = s.start_check() == v1::START_CHECK_PASSED         ? Summary::StartCheck::kPassed
-                              : s.start_check() == v1::START_CHECK_SECOND_START ? Summary::StartCheck::kSecondStart
-                              : s.start_check() == v1::START_CHECK_FIRST_KEPT   ? Summary::StartCheck::kFirstKept
-                                                                                : Summary::StartCheck::kNotRun;
-        summary.start_pair_spread = s.start_pair_spread();
-        summary_received = true;
-        closed = true;
-        Event e;
-        e.kind = Event::Kind::kSummary;
-        e.summary = summary;
-        Emit(std::move(e));
-        return;
-      }
-      case v1::Envelope::kError: {
-        const v1::Error& w = env.error();
-        Status s = Make(FromWire(w.code()), w.message(), w.retryable());
-        if (!opened || reconnecting) {
-          open_error = s;
-          return;
-        }
-        // The session is gone once its summary is here: a NOT_FOUND for it answers a message sent before
-        // the summary arrived (the credit for its last chunks), and changes nothing.
-        if (summary_received && w.code() == v1::ERROR_CODE_NOT_FOUND && w.session_id() == session_id) return;
-        if (w.has_frame()) {
-          for (auto it = unanswered.begin(); it != unanswered.end(); ++it)
-            if (it->envelope.frame().sequence_number() == w.frame_sequence_number()) {
-              unanswered.erase(it);
-              break;
-            }
-        }
-        // A server that restarted does not know this session on this connection: resume it.
-        if (w.session_closed() && w.code() == v1::ERROR_CODE_NOT_FOUND && w.session_id() == session_id &&
-            options.reconnect_timeout_ms > 0) {
-          need_reconnect = true;
-          return;
-        }
-        if (w.session_closed()) closed = true;
-        Event e;
-        e.kind = Event::Kind::kError;
-        e.error = s;
-        Emit(std::move(e));
-        return;
-      }
+      case v1::Envelope::kPoseUpdate:
+        return OnPoseUpdate(env.pose_update());
+      case v1::Envelope::kMapChunk:
+        return OnMapChunk(env.map_chunk(), parts);
+      case v1::Envelope::kSessionSummary:
+        return OnSessionSummary(env.session_summary());
+      case v1::Envelope::kError:
+        return OnError(env.error());
       default:
         return;
     }
+  }
+
+  void OnSessionOpened(const v1::SessionOpened& o) {
+    session_id = o.session_id();
+    if (!o.resume_token().empty()) resume_token = o.resume_token();
+    frame_credits = o.initial_frame_credits();
+    if (o.map_voxel_m() > 0) voxel_m = o.map_voxel_m();
+    read_only = o.read_only();
+    max_frame_rate_hz = o.max_frame_rate_hz();
+    max_frame_bytes = o.max_frame_bytes();
+    rate_burst = std::max<double>(1.0, o.initial_frame_credits());
+    rate_tokens = std::min(rate_tokens, rate_burst);
+    if (!o.resumed()) rate_tokens = rate_burst;
+    rate_refilled = Clock::now();
+    resume_next_frame = o.next_frame_sequence();
+    got_opened = true;
+    opened = true;
+  }
+
+  void OnPoseUpdate(const v1::PoseUpdate& p) {
+    if (!p.refined()) {
+      if (p.frame_sequence_number() < next_pose) return;  // resent after a resume, already seen
+      next_pose = p.frame_sequence_number() + 1;
+      while (!unanswered.empty() && unanswered.front().envelope.frame().sequence_number() <= p.frame_sequence_number())
+        unanswered.pop_front();
+    }
+    Event e;
+    e.kind = Event::Kind::kPose;
+    e.pose.frame_sequence_number = p.frame_sequence_number();
+    e.pose.timestamp_ns = p.timestamp_ns();
+    const v1::Pose& w = p.world_from_camera();
+    e.pose.rotation_xyzw = {w.rotation().x(), w.rotation().y(), w.rotation().z(), w.rotation().w()};
+    e.pose.translation = {w.translation().x(), w.translation().y(), w.translation().z()};
+    e.pose.state = p.state() == v1::PoseUpdate::TRACKING_STATE_TRACKING       ? TrackingState::kTracking
+                   : p.state() == v1::PoseUpdate::TRACKING_STATE_INITIALISING ? TrackingState::kInitialising
+                   : p.state() == v1::PoseUpdate::TRACKING_STATE_LOST         ? TrackingState::kLost
+                                                                              : TrackingState::kUnknown;
+    e.pose.is_keyframe = p.is_keyframe();
+    e.pose.keyframe_id = p.keyframe_id();
+    e.pose.refined = p.refined();
+    e.pose.metres_per_unit = p.metres_per_unit();
+    e.pose.has_tracking = p.has_tracking();
+    if (p.has_tracking()) {
+      const v1::TrackingQuality& t = p.tracking();
+      e.pose.tracking = {t.residual_rms(), t.visible_fraction(), t.inlier_fraction(), t.iterations(), t.retried(),
+                         t.step(),         t.rotation_deg(),     t.guess_correction()};
+    }
+    Emit(std::move(e));
+  }
+
+  // A chunk: [envelope][Draco bytes]; its credit goes back at once.
+  void OnMapChunk(const v1::MapChunk& c, const std::vector<zmq::message_t>& parts) {
+    // Grant the credit back: this chunk is consumed.
+    v1::Envelope credit = NewEnvelope();
+    credit.mutable_chunk_credits()->set_session_id(session_id);
+    credit.mutable_chunk_credits()->set_chunks(1);
+    SendEnvelope(credit);
+    const uint64_t seq = c.chunk_sequence_number();
+    if (!chunks_seen.insert(seq).second) return;  // resent after a resume, already seen
+    last_chunk = std::max(last_chunk, static_cast<int64_t>(seq));
+    Event e;
+    e.kind = Event::Kind::kChunk;
+    e.chunk.keyframe_id = c.keyframe_id();
+    e.chunk.sequence_number = seq;
+    if (parts.size() >= 2) {
+      const auto* d = static_cast<const uint8_t*>(parts[1].data());
+      e.chunk.draco.assign(d, d + parts[1].size());
+    }
+    const Status s = DecodeChunk(e.chunk.draco.data(), e.chunk.draco.size(), &e.chunk.points);
+    if (!s.ok()) {
+      Event err;
+      err.kind = Event::Kind::kError;
+      err.error = Make(Code::kDataLoss, "map chunk " + std::to_string(e.chunk.sequence_number) + ": " + s.message);
+      Emit(std::move(err));
+      return;
+    }
+    e.chunk.replaces_map = c.replaces_map();
+    if (e.chunk.replaces_map && static_cast<int64_t>(seq) > map_replaced_at) {
+      map.clear();
+      map_replaced_at = static_cast<int64_t>(seq);
+    }
+    // A chunk older than the latest rebuilt map is void (its voxels are in the rebuilt map).
+    if (static_cast<int64_t>(seq) >= map_replaced_at)
+      for (const Point& p : e.chunk.points) map[VoxelKey(p, voxel_m)] = p;
+    Emit(std::move(e));
+  }
+
+  void OnSessionSummary(const v1::SessionSummary& s) {
+    summary.frames_received = s.frames_received();
+    summary.frames_dropped = s.frames_dropped();
+    summary.frames_rejected = s.frames_rejected();
+    summary.keyframes = s.keyframes();
+    summary.keyframes_dropped = s.keyframes_dropped();
+    summary.keyframes_failed = s.keyframes_failed();
+    summary.frames_depth_update_skipped = s.frames_depth_update_skipped();
+    summary.chunks_sent = s.chunks_sent();
+    summary.map_points = s.map_points();
+    summary.metres_per_unit = s.metres_per_unit();
+    summary.reason = s.reason();
+    summary.shading_check = s.shading_check() == v1::SHADING_CHECK_CONSISTENT  ? Summary::ShadingCheck::kConsistent
+                            : s.shading_check() == v1::SHADING_CHECK_DISTORTED ? Summary::ShadingCheck::kDistorted
+                                                                               : Summary::ShadingCheck::kNotRun;
+    summary.shading_pair_spread = s.shading_pair_spread();
+    summary.start_check = s.start_check() == v1::START_CHECK_PASSED         ? Summary::StartCheck::kPassed
+                          : s.start_check() == v1::START_CHECK_SECOND_START ? Summary::StartCheck::kSecondStart
+                          : s.start_check() == v1::START_CHECK_FIRST_KEPT   ? Summary::StartCheck::kFirstKept
+                                                                            : Summary::StartCheck::kNotRun;
+    summary.start_pair_spread = s.start_pair_spread();
+    summary_received = true;
+    closed = true;
+    Event e;
+    e.kind = Event::Kind::kSummary;
+    e.summary = summary;
+    Emit(std::move(e));
+  }
+
+  void OnError(const v1::Error& w) {
+    Status s = Make(FromWire(w.code()), w.message(), w.retryable());
+    if (!opened || reconnecting) {
+      open_error = s;
+      return;
+    }
+    // The session is gone once its summary is here: a NOT_FOUND for it answers a message sent before
+    // the summary arrived (the credit for its last chunks), and changes nothing.
+    if (summary_received && w.code() == v1::ERROR_CODE_NOT_FOUND && w.session_id() == session_id) return;
+    if (w.has_frame()) {
+      for (auto it = unanswered.begin(); it != unanswered.end(); ++it)
+        if (it->envelope.frame().sequence_number() == w.frame_sequence_number()) {
+          unanswered.erase(it);
+          break;
+        }
+    }
+    // A server that restarted does not know this session on this connection: resume it.
+    if (w.session_closed() && w.code() == v1::ERROR_CODE_NOT_FOUND && w.session_id() == session_id &&
+        options.reconnect_timeout_ms > 0) {
+      need_reconnect = true;
+      return;
+    }
+    if (w.session_closed()) closed = true;
+    Event e;
+    e.kind = Event::Kind::kError;
+    e.error = s;
+    Emit(std::move(e));
   }
 
   // Handles incoming messages, waiting up to timeout_ms for the first; resumes after a lost connection.
