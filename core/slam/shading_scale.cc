@@ -218,6 +218,21 @@ class ShadingResiduals {
   void InlierStatistics(double k, const std::vector<Rigid3d>& poses, double cut, int* inliers, double* sse) const;
 
  private:
+  // Calls visit(f, p, q, r, uv) for each point p in front of frame f's camera (q = its position in the
+  // camera, r the frame's rotation) and inside its image at uv, frame by frame in point order.
+  template <typename Visit>
+  void ForEachVisible(const std::vector<Rigid3d>& poses, Visit&& visit) const {
+    for (size_t f = 0; f < poses.size(); ++f) {
+      const Eigen::Matrix3d r = poses[f].RotationMatrix();
+      for (const ScalePoint& p : points_) {
+        const Eigen::Vector3d q = r * p.x + poses[f].translation;
+        if (q.z() <= 0) continue;
+        const Eigen::Vector2d uv = rig_.camera.Project(q);
+        if (!Inside(uv)) continue;
+        visit(f, p, q, r, uv);
+      }
+    }
+  }
   bool Inside(const Eigen::Vector2d& uv) const {
     const PinholeCamera& cam = rig_.camera;
     const int b = options_.border_px;
@@ -252,17 +267,10 @@ ShadingResiduals::ShadingResiduals(const RigCalibration& rig, const ShadingScale
 }
 
 void ShadingResiduals::AbsResiduals(double k, const std::vector<Rigid3d>& ps, std::vector<double>* abs_res) const {
-  const PinholeCamera& cam = rig_.camera;
-  for (size_t f = 0; f < ps.size(); ++f) {
-    const Eigen::Matrix3d r = ps[f].RotationMatrix();
-    for (const ScalePoint& p : points_) {
-      const Eigen::Vector3d q = r * p.x + ps[f].translation;
-      if (q.z() <= 0) continue;
-      const Eigen::Vector2d uv = cam.Project(q);
-      if (!Inside(uv)) continue;
-      abs_res->push_back(std::abs(Bilinear(images_[f].grey, uv.x(), uv.y()) - PredictGrey(rig_, q, r * p.m, k)));
-    }
-  }
+  ForEachVisible(ps, [&](size_t f, const ScalePoint& p, const Eigen::Vector3d& q, const Eigen::Matrix3d& r,
+                         const Eigen::Vector2d& uv) {
+    abs_res->push_back(std::abs(Bilinear(images_[f].grey, uv.x(), uv.y()) - PredictGrey(rig_, q, r * p.m, k)));
+  });
 }
 
 double ShadingResiduals::Cost(double k, const std::vector<Rigid3d>& ps, double huber, double cut) const {
@@ -278,39 +286,32 @@ double ShadingResiduals::Cost(double k, const std::vector<Rigid3d>& ps, double h
 
 void ShadingResiduals::NormalEquations(double k, const std::vector<Rigid3d>& poses, double huber, double cut,
                                        Eigen::MatrixXd* hessian_out, Eigen::VectorXd* gradient_out) const {
-  const PinholeCamera& cam = rig_.camera;
   Eigen::MatrixXd& hessian = *hessian_out;
   Eigen::VectorXd& gradient = *gradient_out;
   const int nf = static_cast<int>(poses.size());
   const int dim = 6 * nf + 1;
   hessian.setZero();
   gradient.setZero();
-  for (int f = 0; f < nf; ++f) {
-    const Eigen::Matrix3d r = poses[f].RotationMatrix();
-    for (const ScalePoint& p : points_) {
-      const Eigen::Vector3d q = r * p.x + poses[f].translation;
-      if (q.z() <= 0) continue;
-      const Eigen::Vector2d uv = cam.Project(q);
-      if (!Inside(uv)) continue;
-      const Eigen::Vector3d m_frame = r * p.m;
-      const double pred = PredictGrey(rig_, q, m_frame, k);
-      const double res = Bilinear(images_[f].grey, uv.x(), uv.y()) - pred;
-      const double a = std::abs(res);
-      if (a > cut) continue;
-      const double w = a <= huber ? 1.0 : huber / a;
-      const Eigen::Matrix<double, 1, 7> jac = Jacobian(images_[f], r, p, q, m_frame, uv, k);
-      // Scatter into the frame's pose block and the shared log k.
-      const int o = 6 * f;
-      Eigen::Matrix<double, 7, 7> jtj = w * jac.transpose() * jac;
-      Eigen::Matrix<double, 7, 1> jtr = w * jac.transpose() * res;
-      hessian.block<6, 6>(o, o) += jtj.topLeftCorner<6, 6>();
-      hessian.block<6, 1>(o, dim - 1) += jtj.topRightCorner<6, 1>();
-      hessian.block<1, 6>(dim - 1, o) += jtj.bottomLeftCorner<1, 6>();
-      hessian(dim - 1, dim - 1) += jtj(6, 6);
-      gradient.segment<6>(o) += jtr.head<6>();
-      gradient[dim - 1] += jtr[6];
-    }
-  }
+  ForEachVisible(poses, [&](size_t f, const ScalePoint& p, const Eigen::Vector3d& q, const Eigen::Matrix3d& r,
+                            const Eigen::Vector2d& uv) {
+    const Eigen::Vector3d m_frame = r * p.m;
+    const double pred = PredictGrey(rig_, q, m_frame, k);
+    const double res = Bilinear(images_[f].grey, uv.x(), uv.y()) - pred;
+    const double a = std::abs(res);
+    if (a > cut) return;
+    const double w = a <= huber ? 1.0 : huber / a;
+    const Eigen::Matrix<double, 1, 7> jac = Jacobian(images_[f], r, p, q, m_frame, uv, k);
+    // Scatter into the frame's pose block and the shared log k.
+    const int o = 6 * static_cast<int>(f);
+    Eigen::Matrix<double, 7, 7> jtj = w * jac.transpose() * jac;
+    Eigen::Matrix<double, 7, 1> jtr = w * jac.transpose() * res;
+    hessian.block<6, 6>(o, o) += jtj.topLeftCorner<6, 6>();
+    hessian.block<6, 1>(o, dim - 1) += jtj.topRightCorner<6, 1>();
+    hessian.block<1, 6>(dim - 1, o) += jtj.bottomLeftCorner<1, 6>();
+    hessian(dim - 1, dim - 1) += jtj(6, 6);
+    gradient.segment<6>(o) += jtr.head<6>();
+    gradient[dim - 1] += jtr[6];
+  });
   if (!options_.refine_poses) {
     for (int i = 0; i < 6 * nf; ++i) {
       hessian.row(i).setZero();
@@ -352,20 +353,13 @@ Eigen::Matrix<double, 1, 7> ShadingResiduals::Jacobian(const FrameImages& image,
 
 void ShadingResiduals::InlierStatistics(double k, const std::vector<Rigid3d>& poses, double cut, int* inliers,
                                         double* sse) const {
-  const PinholeCamera& cam = rig_.camera;
-  for (size_t f = 0; f < poses.size(); ++f) {
-    const Eigen::Matrix3d r = poses[f].RotationMatrix();
-    for (const ScalePoint& p : points_) {
-      const Eigen::Vector3d q = r * p.x + poses[f].translation;
-      if (q.z() <= 0) continue;
-      const Eigen::Vector2d uv = cam.Project(q);
-      if (!Inside(uv)) continue;
-      const double res = Bilinear(images_[f].grey, uv.x(), uv.y()) - PredictGrey(rig_, q, r * p.m, k);
-      if (std::abs(res) > cut) continue;
-      ++*inliers;
-      *sse += res * res;
-    }
-  }
+  ForEachVisible(poses, [&](size_t f, const ScalePoint& p, const Eigen::Vector3d& q, const Eigen::Matrix3d& r,
+                            const Eigen::Vector2d& uv) {
+    const double res = Bilinear(images_[f].grey, uv.x(), uv.y()) - PredictGrey(rig_, q, r * p.m, k);
+    if (std::abs(res) > cut) return;
+    ++*inliers;
+    *sse += res * res;
+  });
 }
 
 // Coarse scan of k at the given poses: the cost is the robust one with a sigma from the median absolute
