@@ -130,7 +130,18 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
   }
   // The image's own pyramid (it depends on nothing else: the options and the rig are fixed): kept
   // from the previous call when the image is the same, byte for byte (a refresh with new depth).
-  if (!SameImageBytes(keyframe_image_, rgb)) BuildKeyframeImage(rgb, predict, demix, grey_of_light);
+  // A refusal below leaves the tracker as it was: the previous image's pyramid and votes are put back.
+  const bool new_image = !SameImageBytes(keyframe_image_, rgb);
+  cv::Mat previous_image;
+  std::vector<KeyframeImageLevel> previous_levels;
+  std::vector<cv::Mat> previous_attached, previous_moving;
+  if (new_image) {
+    previous_image = std::move(keyframe_image_);
+    previous_levels = std::move(keyframe_image_levels_);
+    previous_attached = std::move(attached_votes_);
+    previous_moving = std::move(moving_votes_);
+    BuildKeyframeImage(rgb, predict, demix, grey_of_light);
+  }
   for (int l = 0; l < options_.pyramid_levels; ++l) {
     TrackingKeyframe::Level& level = kf.levels[l];
     level.camera = camera_.AtPyramidLevel(l);
@@ -206,6 +217,12 @@ Status Tracker::SetKeyframe(const cv::Mat& rgb, const InverseDepthMap& depth) {
       std::ostringstream e;
       e << "Tracker::SetKeyframe: only " << kf.levels[l].points.size() << " points at pyramid level " << l << " (need "
         << kMinPoints << "): too little texture or depth";
+      if (new_image) {
+        keyframe_image_ = std::move(previous_image);
+        keyframe_image_levels_ = std::move(previous_levels);
+        attached_votes_ = std::move(previous_attached);
+        moving_votes_ = std::move(previous_moving);
+      }
       return FailedPreconditionError(e.str());
     }
   }

@@ -263,6 +263,36 @@ TEST(TrackerTest, RejectsInvalidInput) {
   EXPECT_EQ(tracker->SetKeyframe(key.rgb, empty).code(), StatusCode::kFailedPrecondition);
 }
 
+// A keyframe refused for too few points (a new image without depth) leaves the tracker as it was: the
+// next frame tracks against the previous keyframe exactly as on a tracker that never saw the refusal.
+TEST(TrackerTest, ARefusedKeyframeLeavesTheTrackerAsItWas) {
+  SynthSequence seq;
+  std::string why;
+  ASSERT_TRUE(MakeSequence("sphere-multicolor-sideways", 320, 240, &seq, &why)) << why;
+  TrackerOptions options;
+  options.camera_attached_min_votes = 2;  // as the SLAM runs it: per-keyframe vote images
+  StatusOr<Tracker> refused = Tracker::Create(seq.setup.rig.camera, options);
+  StatusOr<Tracker> plain = Tracker::Create(seq.setup.rig.camera, options);
+  ASSERT_TRUE(refused.ok() && plain.ok());
+  const synth::RenderedFrame key = seq.Render(0);
+  ASSERT_TRUE(refused->SetKeyframe(key.rgb, GroundTruthInverseDepth(key.depth)).ok());
+  ASSERT_TRUE(plain->SetKeyframe(key.rgb, GroundTruthInverseDepth(key.depth)).ok());
+  const cv::Mat frame1 = seq.Render(1).rgb;
+  ASSERT_TRUE(refused->Track(frame1, Rigid3d()).ok());
+  ASSERT_TRUE(plain->Track(frame1, Rigid3d()).ok());
+  InverseDepthMap empty;
+  empty.inverse_depth = cv::Mat::zeros(key.depth.size(), CV_32F);
+  EXPECT_EQ(refused->SetKeyframe(seq.Render(3).rgb, empty).code(), StatusCode::kFailedPrecondition);
+  const cv::Mat frame2 = seq.Render(2).rgb;
+  StatusOr<TrackingResult> a = refused->Track(frame2, Rigid3d()), b = plain->Track(frame2, Rigid3d());
+  ASSERT_TRUE(a.ok() && b.ok());
+  ASSERT_TRUE(b->ok);
+  EXPECT_EQ(a->ok, b->ok);
+  EXPECT_EQ(a->frame_from_keyframe.translation, b->frame_from_keyframe.translation);
+  EXPECT_EQ(a->frame_from_keyframe.rotation.coeffs(), b->frame_from_keyframe.rotation.coeffs());
+  EXPECT_EQ(a->residual_rms, b->residual_rms);
+}
+
 // A guess 90 degrees off (or a frame looking elsewhere) leaves the keyframe's points outside the
 // image: reported as lost, not as a pose.
 TEST(TrackerTest, HugeMotionIsReportedLost) {
