@@ -280,42 +280,77 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::Initialise(int64_t frame_id, double 
   return frames.back().result;
 }
 
-bool SlamSystem::Impl::TryInitialise(std::string* why) {
+namespace {
+
+// Median distance between where each inlier would appear in the second frame after the rotation alone
+// and where it was tracked, pixels: the parallax that triangulates, whatever the path (an arc round the
+// objects keeps them still in the image while the rays between the two views open up).
+double RotationCompensatedParallax(const PinholeCamera& cam, const Eigen::Matrix3d& R,
+                                   const std::vector<cv::Point2f>& p0, const std::vector<cv::Point2f>& p1,
+                                   const cv::Mat& inlier_mask) {
+  std::vector<double> disp;
+  for (size_t i = 0; i < p0.size(); ++i) {
+    if (!inlier_mask.at<uint8_t>(static_cast<int>(i))) continue;
+    const Eigen::Vector3d ray = R * cam.Unproject(Eigen::Vector2d(p0[i].x, p0[i].y));
+    if (ray.z() <= 0) continue;
+    disp.push_back((cam.Project(ray) - Eigen::Vector2d(p1[i].x, p1[i].y)).norm());
+  }
+  if (disp.empty()) return 0;
+  std::nth_element(disp.begin(), disp.begin() + disp.size() / 2, disp.end());
+  return disp[disp.size() / 2];
+}
+
+}  // namespace
+
+bool SlamSystem::Impl::EstimateInitMotion(double* parallax, Eigen::Matrix3d* R, Eigen::Vector3d* t,
+                                          cv::Mat* inlier_mask, std::string* why) const {
   const PinholeCamera& cam = rig.camera;
   std::vector<double> disp;
   for (size_t i = 0; i < init_points.size(); ++i) disp.push_back(cv::norm(init_points[i] - init_points0[i]));
   std::nth_element(disp.begin(), disp.begin() + disp.size() / 2, disp.end());
-  const double parallax = disp[disp.size() / 2];
-  if (parallax < options.init_min_parallax_fraction * cam.width) {
-    *why = "waiting for parallax";
-    return false;
-  }
+  const double raw = disp[disp.size() / 2];
+  const double needed = options.init_min_parallax_fraction * cam.width;
   cv::Mat K = (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
-  cv::Mat inlier_mask;
   cv::Mat E =
-      cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.0 * cam.width / 512.0, inlier_mask);
+      cv::findEssentialMat(init_points0, init_points, K, cv::RANSAC, 0.999, 1.0 * cam.width / 512.0, *inlier_mask);
   if (E.rows != 3 || E.cols != 3) {
-    *why = "essential matrix estimation failed";
+    *why = raw < needed ? "waiting for parallax" : "essential matrix estimation failed";
     return false;
   }
   cv::Mat Rm, tm;
-  const int good = cv::recoverPose(E, init_points0, init_points, K, Rm, tm, inlier_mask);
-  const int inliers = cv::countNonZero(inlier_mask);
+  const int good = cv::recoverPose(E, init_points0, init_points, K, Rm, tm, *inlier_mask);
+  const int inliers = cv::countNonZero(*inlier_mask);
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) (*R)(r, c) = Rm.at<double>(r, c);
+    (*t)(r) = tm.at<double>(r, 0);
+  }
+  *parallax = raw;
+  if (raw < needed) {
+    *parallax = RotationCompensatedParallax(cam, *R, init_points0, init_points, *inlier_mask);
+    if (*parallax < needed) {
+      *why = "waiting for parallax";
+      return false;
+    }
+  }
   // Features on shading (terminators, shadow edges, highlights) move with the lights, not with the
   // surface, so only a part of them is consistent with one rigid motion: ask for enough RANSAC inliers,
   // nearly all in front of both cameras.
   if (inliers < 30 || inliers < 0.15 * static_cast<double>(init_points.size()) || good < 0.9 * inliers) {
     *why = "relative pose ambiguous (" + std::to_string(good) + " of " + std::to_string(init_points.size()) +
            " features consistent, " + std::to_string(inliers) + " RANSAC inliers, parallax " +
-           std::to_string(parallax) + " px)";
+           std::to_string(*parallax) + " px)";
     return false;
   }
+  return true;
+}
+
+bool SlamSystem::Impl::TryInitialise(std::string* why) {
+  const PinholeCamera& cam = rig.camera;
+  double parallax = 0;
   Eigen::Matrix3d R;
   Eigen::Vector3d t;
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) R(r, c) = Rm.at<double>(r, c);
-    t(r) = tm.at<double>(r, 0);
-  }
+  cv::Mat inlier_mask;
+  if (!EstimateInitMotion(&parallax, &R, &t, &inlier_mask, why)) return false;
   // Triangulate (midpoint of the two rays) in the first camera.
   std::vector<Eigen::Vector3d> points;
   std::vector<cv::Point2f> pixels;

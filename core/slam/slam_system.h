@@ -89,7 +89,8 @@ struct SlamOptions {
   int init_min_frames = 10;
   // The first keyframe needs this fraction of its candidate pixels converged, in [0, 1]: higher = later, safer start.
   double init_min_converged_fraction = 0.3;
-  // Median KLT motion needed first, fraction of the image width, > 0: higher = better conditioned, later start.
+  // Median KLT motion needed first (raw, or with the essential matrix's rotation taken out), fraction of the
+  // image width, > 0: higher = better conditioned, later start.
   double init_min_parallax_fraction = 0.03;
   // Initialisation restarts from the current frame after this many frames without success, >= init_min_frames.
   int init_max_frames = 90;

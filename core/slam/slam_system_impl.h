@@ -172,6 +172,11 @@ struct SlamSystem::Impl {
 
   StatusOr<SlamFrameResult> Initialise(int64_t frame_id, double timestamp, const cv::Mat& rgb);
   bool TryInitialise(std::string* why);
+  // The last buffered frame's pose relative to the first from the essential matrix of the KLT features
+  // (R, t, the RANSAC inliers) and the parallax it rests on, pixels. False, with *why, while the parallax
+  // is short of init_min_parallax_fraction or the motion is ambiguous.
+  bool EstimateInitMotion(double* parallax, Eigen::Matrix3d* R, Eigen::Vector3d* t, cv::Mat* inlier_mask,
+                          std::string* why) const;
   // The initialisation's RANSAC inliers (inlier_mask) triangulated at the midpoint of the two rays, in the
   // first camera, with their pixels there; R, t: the essential matrix's pose of the last frame.
   void TriangulateInitFeatures(const Eigen::Matrix3d& R, const Eigen::Vector3d& t, const cv::Mat& inlier_mask,
@@ -188,6 +193,9 @@ struct SlamSystem::Impl {
   Status MakeKeyframe(int64_t frame_id, double timestamp, const cv::Mat& rgb, int reference_kf,
                       const Rigid3d& frame_from_reference, const KeyframeDepth& source);
   Status RefreshTracker();
+  // RefreshTracker, or, when the current keyframe's depth has too few points for it, the tracker goes on
+  // with its earlier copy of the same keyframe (Tracker::SetKeyframe changes nothing when it fails).
+  void RefreshTrackerOrKeep(int64_t frame_id);
   // Hands `depth` (of the keyframe image `rgb`) to the frame tracker, with the SlamOptions::tracking_*
   // thresholds.
   Status SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDepth& depth);

@@ -17,6 +17,13 @@ using slam_internal::SecondsSince;
 
 Status SlamSystem::Impl::RefreshTracker() { return SetTrackerKeyframe(keyframes.back().rgb, *current_depth); }
 
+void SlamSystem::Impl::RefreshTrackerOrKeep(int64_t frame_id) {
+  const Status refreshed = RefreshTracker();
+  if (refreshed.ok()) return;
+  PRISM_LOG(WARNING) << "slam: frame " << frame_id << ": the tracker keeps its earlier copy of keyframe "
+                     << keyframes.back().id << " (" << refreshed.message() << ")";
+}
+
 Status SlamSystem::Impl::SetTrackerKeyframe(const cv::Mat& rgb, const KeyframeDepth& depth) {
   return tracker->SetKeyframe(
       rgb, depth.ToInverseDepthMap(options.tracking_min_observations, options.tracking_max_relative_sigma));
@@ -118,7 +125,7 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
       }
       frames.pop_back();
       // The current keyframe stays; restore the tracker's copy of it (MakeKeyframe replaced it).
-      PRISM_RETURN_IF_ERROR(RefreshTracker());
+      RefreshTrackerOrKeep(frame_id);
       reloc_failure =
           " (relocalised against keyframe " + std::to_string(reloc_kf) + " but " + std::string(made.message()) + ")";
       rec = FrameRecord();
@@ -203,11 +210,11 @@ StatusOr<SlamFrameResult> SlamSystem::Impl::TrackFrame(int64_t frame_id, double 
     } else {
       // Keep tracking against the current keyframe; restore the tracker's copy.
       frames.back().result.message = "no new keyframe: " + std::string(made.message());
-      PRISM_RETURN_IF_ERROR(RefreshTracker());
+      RefreshTrackerOrKeep(frame_id);
     }
   } else if (frames_since_keyframe % options.tracker_refresh_frames == 0) {
     current_depth->Regularise();
-    PRISM_RETURN_IF_ERROR(RefreshTracker());
+    RefreshTrackerOrKeep(frame_id);
   }
   return frames.back().result;
 }
