@@ -49,7 +49,7 @@ struct CalibrateOptions {
   double max_reprojection_rms_px = 1.0;
   // Largest RMS residual of the light fit, 8-bit levels, in (0, 255]: above it the images do not
   // follow the model (ambient light, glossy paper, auto exposure, a wrong board).
-  double max_light_rms_levels = 8.0;
+  double max_light_rms_levels = 5.0;
   LightFitOptions light_fit;
 
   Status Check() const;

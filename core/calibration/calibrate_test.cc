@@ -238,6 +238,7 @@ TEST_F(CalibrateInputTest, ExposureChangedBetweenImages) {
   ASSERT_FALSE(report.ok());
   EXPECT_NE(report.status().message().find("do not follow the near-light model"), std::string::npos)
       << report.status().ToString();
+  std::cout << report.status().message() << "\n";
 }
 
 TEST_F(CalibrateInputTest, MissingLightFolder) {

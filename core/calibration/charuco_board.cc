@@ -96,21 +96,22 @@ BoardDetection DetectBoard(const cv::Mat& image, const cv::Ptr<cv::aruco::Charuc
   return d;
 }
 
-std::vector<Eigen::Vector2d> WhitePaperPoints(const CharucoBoardOptions& options, double spacing_m, double inset_m) {
+std::vector<WhitePoint> WhitePaperPoints(const CharucoBoardOptions& options, double spacing_m, double inset_m) {
   const double texel_m = std::min(0.0005, options.square_m / 40);
   const cv::Mat printed = DrawBoard(options, texel_m, 0.0);
   cv::Mat white = printed > 127;
-  // Paper beyond the board's edge is not known to be there: treat it as ink when eroding.
-  cv::Mat padded;
+  // Paper beyond the board's edge is not known to be there: treat it as ink.
+  cv::Mat padded, distance;
   cv::copyMakeBorder(white, padded, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
-  const int r = std::max(1, static_cast<int>(std::ceil(inset_m / texel_m)));
-  cv::erode(padded, padded, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
-  std::vector<Eigen::Vector2d> points;
+  cv::distanceTransform(padded, distance, cv::DIST_L2, cv::DIST_MASK_PRECISE);
+  std::vector<WhitePoint> points;
   const double width_m = options.squares_x * options.square_m, height_m = options.squares_y * options.square_m;
   for (double y = 0.5 * spacing_m; y < height_m; y += spacing_m) {
     for (double x = 0.5 * spacing_m; x < width_m; x += spacing_m) {
       const int u = static_cast<int>(x / texel_m) + 1, v = static_cast<int>(y / texel_m) + 1;
-      if (v < padded.rows && u < padded.cols && padded.at<uint8_t>(v, u)) points.emplace_back(x, y);
+      if (v >= distance.rows || u >= distance.cols) continue;
+      const double ink_distance_m = distance.at<float>(v, u) * texel_m;
+      if (ink_distance_m >= inset_m) points.push_back({Eigen::Vector2d(x, y), ink_distance_m});
     }
   }
   return points;

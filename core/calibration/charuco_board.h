@@ -49,8 +49,14 @@ struct BoardDetection {
 // range, so an image lit by one coloured light works).
 BoardDetection DetectBoard(const cv::Mat& image, const cv::Ptr<cv::aruco::CharucoBoard>& board);
 
-// Points of the board frame (z = 0) on white paper at least `inset_m` from any ink or the board's
-// outer edge, on a grid of `spacing_m`.
-std::vector<Eigen::Vector2d> WhitePaperPoints(const CharucoBoardOptions& options, double spacing_m, double inset_m);
+// A point of the board frame (z = 0) on white paper and its distance to the nearest ink or the board's
+// outer edge, metres.
+struct WhitePoint {
+  Eigen::Vector2d point;
+  double ink_distance_m = 0;
+};
+
+// The white-paper points at least `inset_m` from any ink or the board's outer edge, on a grid of `spacing_m`.
+std::vector<WhitePoint> WhitePaperPoints(const CharucoBoardOptions& options, double spacing_m, double inset_m);
 
 }  // namespace prism::calibration
