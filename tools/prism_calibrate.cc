@@ -68,6 +68,7 @@ Json Report(const calibration::CalibrationReport& r, const std::string& out) {
             {"std_px", {r.intrinsics_std[0], r.intrinsics_std[1], r.intrinsics_std[2], r.intrinsics_std[3]}},
             {"distortion_std", r.distortion_std}}},
           {"lights", lights},
+          {"warnings", r.warnings},
           {"crosstalk", Rows(r.rig.crosstalk)},
           {"crosstalk_std", Rows(r.crosstalk_std)},
           {"light_fit",
@@ -149,6 +150,7 @@ int main(int argc, char** argv) {
   // What prism-server and prism-slam will read: the same reader, so a file they reject is caught here.
   if (StatusOr<RigCalibration> back = ReadCalibrationYaml(out); !back.ok())
     return Fail("the written " + out + " does not read back: " + back.status().ToString());
+  for (const std::string& w : report->warnings) std::cerr << "prism-calibrate: warning: " << w << "\n";
   std::cout << JsonText(Report(*report, out), 2);
   return 0;
 }

@@ -324,6 +324,17 @@ Status CalibrateLights(const std::vector<LightView>& views, const CalibrateOptio
                                      kLightFolders[l] + ") are brightest in the camera's " + kChannels[strongest] +
                                      " channel, not its " + kChannels[l] + " one: are the light folders swapped?");
   }
+  // Board poses that leave a light's depth and intensity nearly interchangeable show as a large
+  // position uncertainty (on rendered boards the error then reaches about its one-sigma).
+  constexpr double kUncertainLightM = 0.003;
+  for (int l = 0; l < 3; ++l) {
+    const double sigma = fit->position_std[l].maxCoeff();
+    if (sigma <= kUncertainLightM) continue;
+    std::ostringstream w;
+    w << "the " << kLightFolders[l] << " light's position is uncertain (one-sigma " << std::lround(1000 * sigma)
+      << " mm): add board poses nearer the camera (0.45-0.6 m) and tilted towards that light";
+    report->warnings.push_back(w.str());
+  }
   auto var = [&](int c0, int l0, int c1, int l1) { return fit->covariance(9 + 3 * l0 + c0, 9 + 3 * l1 + c1); };
   for (int l = 0; l < 3; ++l) {
     Light& light = rig.lights[l];

@@ -69,6 +69,8 @@ struct CalibrationReport {
   LightFitResult light_fit;
   std::array<double, 3> intensity_std{};
   Eigen::Matrix3d crosstalk_std = Eigen::Matrix3d::Zero();
+  // What the calibration holds but a person should act on (a light placed with a large uncertainty).
+  std::vector<std::string> warnings;
 };
 
 StatusOr<CalibrationReport> CalibrateRig(const std::string& folder, const CalibrateOptions& options);
