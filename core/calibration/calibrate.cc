@@ -91,52 +91,10 @@ int Percentile99(const cv::Mat& rgb) {
   return 255;
 }
 
-// The intrinsics' board detections; a light image with its detection, folder and board pose.
-struct BoardViews {
+Status CalibrateIntrinsics(const std::vector<fs::path>& files, const fs::path& root, const CalibrateOptions& options,
+                           const cv::Ptr<cv::aruco::CharucoBoard>& board, cv::Size* size, CalibrationReport* report) {
   std::vector<std::vector<cv::Point2f>> corners;
   std::vector<std::vector<int>> ids;
-};
-
-struct LightView {
-  cv::Mat rgb;
-  std::string name;  // relative path
-  int folder = 0;    // index in kLightFolders
-  BoardDetection detection;
-  Eigen::Matrix3d cam_from_board_rotation = Eigen::Matrix3d::Identity();
-  Eigen::Vector3d cam_from_board_translation = Eigen::Vector3d::Zero();
-};
-
-// calibrateCameraCharuco over `views` into report->rig.camera and the report's uncertainties.
-Status SolveIntrinsics(const BoardViews& views, const cv::Size& size, const CalibrateOptions& options,
-                       const cv::Ptr<cv::aruco::CharucoBoard>& board, CalibrationReport* report) {
-  PinholeCamera& cam = report->rig.camera;
-  cv::Mat k, dist, std_intrinsics, std_extrinsics, per_view;
-  const int flags = options.fit_k3 ? 0 : cv::CALIB_FIX_K3;
-  std::vector<cv::Mat> rvecs, tvecs;
-  report->reprojection_rms_px = cv::aruco::calibrateCameraCharuco(
-      views.corners, views.ids, board, size, k, dist, rvecs, tvecs, std_intrinsics, std_extrinsics, per_view, flags);
-  if (!(report->reprojection_rms_px <= options.max_reprojection_rms_px)) {
-    std::ostringstream e;
-    e << "the board does not fit the images: reprojection error " << report->reprojection_rms_px << " px (at most "
-      << options.max_reprojection_rms_px << "); check that the board options (" << options.board.Describe()
-      << ") match the printed board and that the images are sharp";
-    return FailedPreconditionError(e.str());
-  }
-  cam.width = size.width;
-  cam.height = size.height;
-  cam.fx = k.at<double>(0, 0);
-  cam.fy = k.at<double>(1, 1);
-  cam.cx = k.at<double>(0, 2);
-  cam.cy = k.at<double>(1, 2);
-  for (int i = 0; i < 5; ++i) cam.distortion[i] = i < static_cast<int>(dist.total()) ? dist.at<double>(i) : 0.0;
-  for (int i = 0; i < 4; ++i) report->intrinsics_std[i] = std_intrinsics.at<double>(i);
-  for (int i = 0; i < 5; ++i) report->distortion_std[i] = std_intrinsics.at<double>(4 + i);
-  return cam.Check();
-}
-
-Status CalibrateIntrinsics(const std::vector<fs::path>& files, const fs::path& root, const CalibrateOptions& options,
-                           const cv::Ptr<cv::aruco::CharucoBoard>& board, cv::Size* size, BoardViews* views,
-                           CalibrationReport* report) {
   for (const fs::path& f : files) {
     StatusOr<cv::Mat> rgb = ReadSized(f, root, size);
     if (!rgb.ok()) return rgb.status();
@@ -145,22 +103,44 @@ Status CalibrateIntrinsics(const std::vector<fs::path>& files, const fs::path& r
       report->skipped.push_back(Relative(f, root));
       continue;
     }
-    views->corners.push_back(std::move(d.corners));
-    views->ids.push_back(std::move(d.ids));
+    corners.push_back(std::move(d.corners));
+    ids.push_back(std::move(d.ids));
   }
   report->intrinsics_images = static_cast<int>(files.size());
-  report->intrinsics_views = static_cast<int>(views->corners.size());
+  report->intrinsics_views = static_cast<int>(corners.size());
   const fs::path dir = files.front().parent_path();
-  if (views->corners.empty())
+  if (corners.empty())
     return NotFoundError("no ChArUco board (" + options.board.Describe() + ") found in any of the " +
                          std::to_string(files.size()) + " images in " + dir.string() +
                          "; check the board options (--squares, --square-mm, --marker-mm, --dictionary)");
   if (report->intrinsics_views < options.min_intrinsics_views)
     return FailedPreconditionError("too few views: the board (at least " + std::to_string(options.min_corners) +
-                                   " corners) was found in " + std::to_string(views->corners.size()) + " of " +
+                                   " corners) was found in " + std::to_string(corners.size()) + " of " +
                                    std::to_string(files.size()) + " images in " + dir.string() + "; the minimum is " +
                                    std::to_string(options.min_intrinsics_views));
-  return SolveIntrinsics(*views, *size, options, board, report);
+  cv::Mat k, dist, std_intrinsics, std_extrinsics, per_view;
+  std::vector<cv::Mat> rvecs, tvecs;
+  const int flags = options.fit_k3 ? 0 : cv::CALIB_FIX_K3;
+  report->reprojection_rms_px = cv::aruco::calibrateCameraCharuco(corners, ids, board, *size, k, dist, rvecs, tvecs,
+                                                                  std_intrinsics, std_extrinsics, per_view, flags);
+  if (!(report->reprojection_rms_px <= options.max_reprojection_rms_px)) {
+    std::ostringstream e;
+    e << "the board does not fit the images: reprojection error " << report->reprojection_rms_px << " px (at most "
+      << options.max_reprojection_rms_px << "); check that the board options (" << options.board.Describe()
+      << ") match the printed board and that the images are sharp";
+    return FailedPreconditionError(e.str());
+  }
+  PinholeCamera& cam = report->rig.camera;
+  cam.width = size->width;
+  cam.height = size->height;
+  cam.fx = k.at<double>(0, 0);
+  cam.fy = k.at<double>(1, 1);
+  cam.cx = k.at<double>(0, 2);
+  cam.cy = k.at<double>(1, 2);
+  for (int i = 0; i < 5; ++i) cam.distortion[i] = i < static_cast<int>(dist.total()) ? dist.at<double>(i) : 0.0;
+  for (int i = 0; i < 4; ++i) report->intrinsics_std[i] = std_intrinsics.at<double>(i);
+  for (int i = 0; i < 5; ++i) report->distortion_std[i] = std_intrinsics.at<double>(4 + i);
+  return cam.Check();
 }
 
 Eigen::Vector3d Bilinear(const cv::Mat& rgb, const Eigen::Vector2d& p, int* max_level) {
@@ -182,18 +162,26 @@ Eigen::Vector3d Bilinear(const cv::Mat& rgb, const Eigen::Vector2d& p, int* max_
   return v / 255.0;
 }
 
-// The white-paper samples of one light view (its board pose known); an error when it is saturated.
 // A white sample counts only this far from ink in the image, pixels: the bilinear read (1 px) and the
 // pixel's own area (0.5 px) stay on white paper, with a margin for the lens's blur.
 constexpr double kMinInkDistancePx = 2.0;
 
-Status AddLightSamples(const LightView& view, const CalibrateOptions& options, const PinholeCamera& cam,
-                       const std::vector<WhitePoint>& white, std::vector<LightSample>* samples) {
-  const cv::Mat& rgb = view.rgb;
-  const int lit = kLightFolderLit[static_cast<size_t>(view.folder)];
-  const std::string& name = view.name;
-  const Eigen::Matrix3d& cam_from_board_rotation = view.cam_from_board_rotation;
-  const Eigen::Vector3d& cam_from_board_translation = view.cam_from_board_translation;
+// The white-paper samples of one light image; false (and no samples) when the board is not found.
+StatusOr<bool> AddLightSamples(const cv::Mat& rgb, const std::string& name, int lit, const CalibrateOptions& options,
+                               const cv::Ptr<cv::aruco::CharucoBoard>& board, const PinholeCamera& cam,
+                               const std::vector<WhitePoint>& white, std::vector<LightSample>* samples) {
+  const BoardDetection d = DetectBoard(rgb, board);
+  if (static_cast<int>(d.ids.size()) < options.min_corners) return false;
+  cv::Mat k, dist(1, 5, CV_64F), rvec, tvec;
+  cv::eigen2cv(cam.K(), k);
+  for (int i = 0; i < 5; ++i) dist.at<double>(i) = cam.distortion[i];
+  if (!cv::aruco::estimatePoseCharucoBoard(d.corners, d.ids, board, k, dist, rvec, tvec)) return false;
+  cv::Mat r;
+  cv::Rodrigues(rvec, r);
+  Eigen::Matrix3d cam_from_board_rotation;
+  Eigen::Vector3d cam_from_board_translation;
+  cv::cv2eigen(r, cam_from_board_rotation);
+  cv::cv2eigen(tvec, cam_from_board_translation);
   const Eigen::Vector3d normal = -cam_from_board_rotation.col(2);  // the printed side faces the board's -z
   int used = 0, saturated = 0;
   for (const WhitePoint& w : white) {
@@ -224,29 +212,16 @@ Status AddLightSamples(const LightView& view, const CalibrateOptions& options, c
       << "% of the board's white paper is at level " << options.saturation_level << " or above (at most "
       << std::lround(100 * options.max_saturated_fraction)
       << "%); lower the exposure or gain, or move the board further away";
-    return FailedPreconditionError(e.str());
+    return Status(FailedPreconditionError(e.str()));
   }
-  return Status::Ok();
-}
-
-// The board's pose in a view from its detection and the calibrated camera; false when it is not found.
-bool EstimateBoardPose(const PinholeCamera& cam, const cv::Ptr<cv::aruco::CharucoBoard>& board, LightView* view) {
-  cv::Mat k, dist(1, 5, CV_64F), rvec, tvec;
-  cv::eigen2cv(cam.K(), k);
-  for (int i = 0; i < 5; ++i) dist.at<double>(i) = cam.distortion[i];
-  if (!cv::aruco::estimatePoseCharucoBoard(view->detection.corners, view->detection.ids, board, k, dist, rvec, tvec))
-    return false;
-  cv::Mat r;
-  cv::Rodrigues(rvec, r);
-  cv::cv2eigen(r, view->cam_from_board_rotation);
-  cv::cv2eigen(tvec, view->cam_from_board_translation);
   return true;
 }
 
-// The light folders' images with the board found and its pose, checked (dark, too few views).
-Status ReadLightViews(const fs::path& root, const CalibrateOptions& options,
-                      const cv::Ptr<cv::aruco::CharucoBoard>& board, cv::Size* size, std::vector<LightView>* views,
-                      CalibrationReport* report) {
+Status CalibrateLights(const fs::path& root, const CalibrateOptions& options,
+                       const cv::Ptr<cv::aruco::CharucoBoard>& board, cv::Size* size, CalibrationReport* report) {
+  const std::vector<WhitePoint> white =
+      WhitePaperPoints(options.board, options.sample_spacing_m, options.sample_inset_m);
+  std::vector<LightSample> samples;
   for (int f = 0; f < 4; ++f) {
     const fs::path dir = root / "lights" / kLightFolders[f];
     const bool optional = kLightFolderLit[f] == 7;
@@ -260,23 +235,16 @@ Status ReadLightViews(const fs::path& root, const CalibrateOptions& options,
       if (!rgb.ok()) return rgb.status();
       const int level = Percentile99(*rgb);
       brightest = std::max(brightest, level);
-      LightView view;
-      view.name = Relative(file, root);
       if (level < options.dark_level) {
         ++dark;
-        report->skipped.push_back(view.name);
+        report->skipped.push_back(Relative(file, root));
         continue;
       }
-      view.detection = DetectBoard(*rgb, board);
-      if (static_cast<int>(view.detection.ids.size()) < options.min_corners ||
-          !EstimateBoardPose(report->rig.camera, board, &view)) {
-        report->skipped.push_back(view.name);
-        continue;
-      }
-      view.rgb = std::move(rgb).value();
-      view.folder = f;
-      views->push_back(std::move(view));
-      ++report->light_views[f];
+      StatusOr<bool> found = AddLightSamples(*rgb, Relative(file, root), kLightFolderLit[f], options, board,
+                                             report->rig.camera, white, &samples);
+      if (!found.ok()) return found.status();
+      if (*found) ++report->light_views[f];
+      else report->skipped.push_back(Relative(file, root));
     }
     if (dark == static_cast<int>(files->size()))
       return FailedPreconditionError(std::string("the ") + kLightFolders[f] + " light never lit the board: all " +
@@ -290,16 +258,6 @@ Status ReadLightViews(const fs::path& root, const CalibrateOptions& options,
                                      " of " + std::to_string(files->size()) + " images in " + dir.string() +
                                      "; the minimum is " + std::to_string(needed));
   }
-  return Status::Ok();
-}
-
-Status CalibrateLights(const std::vector<LightView>& views, const CalibrateOptions& options,
-                       CalibrationReport* report) {
-  const std::vector<WhitePoint> white =
-      WhitePaperPoints(options.board, options.sample_spacing_m, options.sample_inset_m);
-  std::vector<LightSample> samples;
-  for (const LightView& v : views)
-    PRISM_RETURN_IF_ERROR(AddLightSamples(v, options, report->rig.camera, white, &samples));
   StatusOr<LightFitResult> fit = FitLights(samples, options.light_fit);
   if (!fit.ok()) return fit.status();
   report->light_fit = *fit;
@@ -368,11 +326,8 @@ StatusOr<CalibrationReport> CalibrateRig(const std::string& folder, const Calibr
   StatusOr<std::vector<fs::path>> files = ListImages(root / "intrinsics");
   if (!files.ok()) return files.status();
   cv::Size size;
-  BoardViews views;
-  PRISM_RETURN_IF_ERROR(CalibrateIntrinsics(*files, root, options, board, &size, &views, &report));
-  std::vector<LightView> light_views;
-  PRISM_RETURN_IF_ERROR(ReadLightViews(root, options, board, &size, &light_views, &report));
-  PRISM_RETURN_IF_ERROR(CalibrateLights(light_views, options, &report));
+  PRISM_RETURN_IF_ERROR(CalibrateIntrinsics(*files, root, options, board, &size, &report));
+  PRISM_RETURN_IF_ERROR(CalibrateLights(root, options, board, &size, &report));
   return report;
 }
 
