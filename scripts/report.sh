@@ -3,6 +3,7 @@
 #   scripts/report.sh metrics [--write]   the metrics prism-server exports (docs/operations.md)
 #   scripts/report.sh abuse [--write]     prism-bench-abuse: a session beside each misbehaving peer (~12 min)
 #   scripts/report.sh slam [--write]      prism-slam on the standard presets, seeds 1-6 and held-out 7-9 (~50 min)
+#   scripts/report.sh maps [--write]      prism-slam --dense on the standard presets, seed 1: map accuracy (~30 min)
 #   scripts/report.sh generalisation [--write]  prism-slam --dense on 40 held-out family scenes (~60 min)
 #   scripts/report.sh e2e [--write]       prism-bench-e2e: unpaced per codec, and a live camera at 30 frames/s (~6 min)
 #   scripts/report.sh speed [--write]     slam_benchmark: tracking and mapping per frame per preset (~15 min)
@@ -17,7 +18,7 @@ if [ "${2:-}" = "--write" ]; then
   doc=""
   case "$1" in
     metrics | abuse) doc=docs/operations.md ;;
-    slam | generalisation | e2e | speed | parts) doc=docs/benchmarks.md ;;
+    slam | maps | generalisation | e2e | speed | parts) doc=docs/benchmarks.md ;;
     slam-options) doc=docs/method.md ;;
   esac
   table=$(mktemp)
@@ -105,6 +106,45 @@ PY
     echo
     echo "Made by \`scripts/report.sh slam\` (\`scripts/slam_presets.sh\`, prism-slam with one thread per run, two" \
       "runs at a time) on $(machine)."
+    ;;
+  maps)
+    dir=$(mktemp -d)
+    presets="bunny-multicolor-forward sphere-multicolor-sideways dragon-multicolor-sideways sphere-uniform-sideways
+      relief-uniform-sideways boxes-multicolor-forward bunny-uniform-sideways armadillo-textured-forward
+      torus-textured-forward"
+    one_map() {
+      local p=$1 d=$2
+      "$BIN/prism-synth" --preset "$p" --frames 150 --seed 1 --out "$d/seq-$p" > /dev/null
+      "$BIN/prism-slam" --sequence "$d/seq-$p" --dense --threads 1 --out "$d/out-$p" > "$d/$p.log" 2>&1 || return 0
+      "$BIN/prism-eval" cloud --sequence "$d/seq-$p" --cloud "$d/out-$p/map.ply" --object-only \
+        --align-trajectory "$d/out-$p/trajectory_metres.txt" > "$d/$p.json"
+      python3 -c 'import json, sys; s = json.load(open(sys.argv[1])); print(s["ate_percent_of_path"])' \
+        "$d/out-$p/summary.json" > "$d/$p.ate"
+      rm -rf "$d/seq-$p" "$d/out-$p"
+    }
+    export -f one_map
+    export BIN
+    echo $presets | tr ' ' '\n' | xargs -P 2 -I{} bash -c 'one_map {} '"$dir"
+    echo "| preset | F-score | precision | completeness | accuracy, median mm | ATE % of path |"
+    echo "|---|---|---|---|---|---|"
+    for p in $presets; do
+      python3 - "$dir" "$p" <<'PY'
+import json, os, sys
+d, p = sys.argv[1], sys.argv[2]
+f = os.path.join(d, p + ".json")
+if not os.path.exists(f) or not os.path.getsize(f):
+    print(f"| {p} | failed (see prism-slam's log) | | | | |")
+else:
+    e = json.load(open(f))
+    ate = float(open(os.path.join(d, p + ".ate")).read())
+    print(f"| {p} | {e['fscore']:.3f} | {e['precision']:.3f} | {e['completeness']:.3f} | "
+          f"{1000 * e['accuracy_median_m']:.2f} | {ate:.3f} |")
+PY
+    done
+    rm -rf "$dir"
+    echo
+    echo "Made by \`scripts/report.sh maps\` (prism-slam --dense, 150 frames at 512x512, one thread per run, two runs" \
+      "at a time; prism-eval cloud --object-only, tau 1% of the object's size) on $(machine)."
     ;;
   generalisation)
     dir=$(mktemp -d)

@@ -634,6 +634,71 @@ TEST(DenseStageRemapTest, TheMapRebuiltAtTheTruePosesIsTheMapMergedAtThem) {
   EXPECT_EQ(none->Remap(true_poses).status().code(), StatusCode::kFailedPrecondition);
 }
 
+// A depth scale fixed from outside (prism-slam --dense: the SLAM's metric scale from the lights) is used
+// by every keyframe: none estimates it, none waits for the session to settle it, and the clouds enter the
+// map in metres at once.
+TEST(DenseStageTest, AFixedDepthScaleIsUsedByEveryKeyframe) {
+  synth::PresetOptions po;
+  po.width = 256;
+  po.height = 256;
+  po.frames = 20;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset("sphere-multicolor-sideways", po);
+  ASSERT_TRUE(setup.ok()) << setup.status();
+  const Trajectory trajectory = synth::MakeTrajectory(setup->trajectory);
+  ThreadPool pool(2);
+  constexpr double kMetresPerUnit = 0.5;
+  DenseStageOptions options;
+  options.icp_enabled = false;
+  StatusOr<std::unique_ptr<DenseStage>> fixed = DenseStage::Create(setup->rig, options, &pool);
+  StatusOr<std::unique_ptr<DenseStage>> estimating = DenseStage::Create(setup->rig, options, &pool);
+  DenseStageOptions metric_options = options;
+  metric_options.world_in_slam_units = false;  // the same keyframes in metres, merged at once
+  StatusOr<std::unique_ptr<DenseStage>> metric = DenseStage::Create(setup->rig, metric_options, &pool);
+  ASSERT_TRUE(fixed.ok() && estimating.ok() && metric.ok());
+  EXPECT_EQ((*fixed)->FixDepthScale(0.0).code(), StatusCode::kInvalidArgument);
+  ASSERT_TRUE((*fixed)->FixDepthScale(kMetresPerUnit).ok());
+  ASSERT_TRUE((*metric)->FixDepthScale(1.0).ok());
+  for (int i = 0; i < 20; i += 10) {
+    const Rigid3d& pose = trajectory[static_cast<size_t>(i)].world_from_camera;
+    const synth::RenderedFrame r = synth::RenderFrame(setup->scene, setup->rig, pose, setup->render, i + 1, &pool);
+    synth::SemiDenseOptions sd;
+    sd.seed = static_cast<uint32_t>(i + 1);
+    DenseKeyframe k;
+    k.id = static_cast<uint64_t>(i);
+    k.rgb = r.rgb;
+    k.depth = synth::SimulateSemiDenseDepth(r.depth, r.rgb, sd);  // 1/m
+    k.world_from_keyframe = Sim3d(1.0, pose.rotation, pose.translation);
+    ASSERT_TRUE((*metric)->Process(k).ok());
+    k.depth.inverse_depth *= kMetresPerUnit;
+    k.depth.variance *= kMetresPerUnit * kMetresPerUnit;
+    k.world_from_keyframe = Sim3d(1.0, pose.rotation, pose.translation / kMetresPerUnit);
+    StatusOr<DenseKeyframeResult> a = (*fixed)->Process(k);
+    StatusOr<DenseKeyframeResult> b = (*estimating)->Process(k);
+    ASSERT_TRUE(a.ok() && b.ok()) << a.status() << " " << b.status();
+    EXPECT_FALSE(a->estimated_depth_scale);
+    EXPECT_FALSE(a->pending);
+    EXPECT_DOUBLE_EQ(a->photometric.depth_scale, kMetresPerUnit);
+    EXPECT_DOUBLE_EQ(a->metres_per_unit, kMetresPerUnit);
+    EXPECT_GT(a->insert.merged_points, 10000u);
+    EXPECT_TRUE(b->estimated_depth_scale);  // the default: 3 estimates must agree first
+    EXPECT_TRUE(b->pending);
+  }
+  EXPECT_DOUBLE_EQ((*fixed)->depth_scale().value(), kMetresPerUnit);
+  // In metres, as the metric stage's map: the same voxels, to within a few near-ties.
+  const PointCloud map = (*fixed)->map().ToPointCloud();
+  const PointCloud want = (*metric)->map().ToPointCloud();
+  ASSERT_GT(want.size(), 1000u);
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero(), want_centre = Eigen::Vector3d::Zero();
+  for (const Eigen::Vector3f& p : map.positions) centre += p.cast<double>() / static_cast<double>(map.size());
+  for (const Eigen::Vector3f& p : want.positions) want_centre += p.cast<double>() / static_cast<double>(want.size());
+  std::cout << "fixed depth scale: " << map.size() << " voxels, " << want.size() << " in metres; centres "
+            << 1000 * (centre - want_centre).norm() << " mm apart\n";
+  constexpr double kVoxelCountTolerance = 0.02, kCentreToleranceM = 0.001;
+  EXPECT_NEAR(static_cast<double>(map.size()), static_cast<double>(want.size()),
+              kVoxelCountTolerance * static_cast<double>(want.size()));
+  EXPECT_LT((centre - want_centre).norm(), kCentreToleranceM);
+}
+
 TEST(SessionPipelineTest, InvalidOptionsAreRefused) {
   SessionPipelineOptions options;
   options.frame_queue_capacity = 0;

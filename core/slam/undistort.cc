@@ -44,7 +44,7 @@ StatusOr<cv::Mat> ImageUndistorter::Remap(const cv::Mat& image, int interpolatio
   return out;
 }
 
-StatusOr<cv::Mat> ImageUndistorter::Undistort(const cv::Mat& image) const { return Remap(image, cv::INTER_LINEAR); }
+StatusOr<cv::Mat> ImageUndistorter::Undistort(const cv::Mat& image) const { return Remap(image, cv::INTER_CUBIC); }
 
 StatusOr<cv::Mat> ImageUndistorter::UndistortNearest(const cv::Mat& image) const {
   return Remap(image, cv::INTER_NEAREST);

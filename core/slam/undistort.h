@@ -29,8 +29,9 @@ class ImageUndistorter {
   const PinholeCamera& distorted_camera() const { return distorted_; }
   bool identity() const { return map1_.empty(); }
 
-  // Bilinear remap of an image of the distorted camera's size (any type OpenCV remaps), border pixels
-  // replicated. INVALID_ARGUMENT on a size mismatch.
+  // Bicubic remap of an image of the distorted camera's size (any type OpenCV remaps), border pixels
+  // replicated. INVALID_ARGUMENT on a size mismatch. Bicubic, not bilinear: a bilinear read between
+  // pixels averages them, so the remap blurs and denoises the image by an amount that varies across it.
   StatusOr<cv::Mat> Undistort(const cv::Mat& image) const;
   // Nearest-neighbour remap, for depth maps and labels (no mixing across edges).
   StatusOr<cv::Mat> UndistortNearest(const cv::Mat& image) const;
