@@ -90,8 +90,7 @@ void CalibratedRigTest::MapBothWays(const std::string& lens, const std::string& 
   double worst_light_mm = 0;
   for (int l = 0; l < 3; ++l)
     worst_light_mm = std::max(
-        worst_light_mm,
-        1000 * (calibrated->lights[l].position_in_camera - truth->lights[l].position_in_camera).norm());
+        worst_light_mm, 1000 * (calibrated->lights[l].position_in_camera - truth->lights[l].position_in_camera).norm());
   const double focal_percent = 100 * std::abs(calibrated->camera.fx / truth->camera.fx - 1);
   std::printf("%s lens, calibrated rig: focal length %.3f%% off, lights up to %.2f mm off\n", lens.c_str(),
               focal_percent, worst_light_mm);
@@ -101,9 +100,10 @@ void CalibratedRigTest::MapBothWays(const std::string& lens, const std::string& 
   double truth_fscore = 0, truth_ate = 0, calibrated_fscore = 0, calibrated_ate = 0;
   ASSERT_NO_FATAL_FAILURE(Map(seq, P(seq + "/camera.yaml"), lens + "_truth", &truth_fscore, &truth_ate));
   ASSERT_NO_FATAL_FAILURE(Map(seq, calibrated_yaml, lens + "_calibrated", &calibrated_fscore, &calibrated_ate));
-  std::printf("%s lens: object F-score %.3f with the true camera.yaml, %.3f with prism-calibrate's; ATE %.3f%% "
-              "and %.3f%% of the path\n",
-              lens.c_str(), truth_fscore, calibrated_fscore, truth_ate, calibrated_ate);
+  std::printf(
+      "%s lens: object F-score %.3f with the true camera.yaml, %.3f with prism-calibrate's; ATE %.3f%% "
+      "and %.3f%% of the path\n",
+      lens.c_str(), truth_fscore, calibrated_fscore, truth_ate, calibrated_ate);
   ASSERT_GE(truth_fscore, /*min_truth_fscore=*/0.5);
   EXPECT_GE(calibrated_fscore, truth_fscore - max_fscore_loss);
   constexpr double kAtePercentBar = 1.0;

@@ -176,7 +176,8 @@ Status DenseStage::FixDepthScale(double metres_per_unit) {
 }
 
 bool DenseStage::ScaleSettled() const {
-  return depth_scale_fixed_ || depth_scale_.agreeing() >= options_.scale_keyframes || depth_scale_.count() >= options_.max_scale_keyframes;
+  return depth_scale_fixed_ || depth_scale_.agreeing() >= options_.scale_keyframes ||
+         depth_scale_.count() >= options_.max_scale_keyframes;
 }
 
 StatusOr<MapChunk> DenseStage::Flush() {
