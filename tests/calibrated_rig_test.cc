@@ -117,9 +117,8 @@ TEST_F(CalibratedRigTest, ADistortedLensMapsAsWellAsWithItsTrueCalibration) {
 }
 
 // A distortion-free lens: prism-calibrate finds a distortion of about 0.2 px at the corners, so its file
-// has every frame resampled where the true one has none, which costs about 0.02 of F-score (board seeds
-// 1, 3, 5 and 9 measured 0.011-0.031 below the truth; the truth perturbed by 0.2% of focal length
-// moves by 0.01).
+// has every frame resampled where the true one has none. Both F-scores also carry the dense stage's own
+// depth-scale estimate, which moves them by several hundredths between files a fraction of a pixel apart.
 TEST_F(CalibratedRigTest, ADistortionFreeLensMapsNearlyAsWellAsWithItsTrueCalibration) {
   constexpr double kCalibratedFscoreLossWithResampling = 0.04;
   MapBothWays("pinhole", "", kCalibratedFscoreLossWithResampling);

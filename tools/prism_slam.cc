@@ -459,13 +459,8 @@ void RefineAndScale(const Settings& s, SlamSystem* slam, SlamRun* run) {
 // the final poses), the output scale, and map.ply: cli::kContinue or the exit status.
 int FinishDense(const Settings& s, SlamSystem* slam, DenseRun* dense, SlamRun* run) {
   const std::unique_ptr<DenseStage>& dense_stage = dense->stage;
-  // The dense stage on the final keyframes: their refined depth at their final poses, at the SLAM's metric
-  // scale when it has one (the map's voxels are then of their size in metres).
+  // The dense stage on the final keyframes: their refined depth at their final poses.
   if (dense_stage && !s.dense_online) {
-    if (run->shading_scale) {
-      if (Status st = dense_stage->FixDepthScale(run->shading_scale->metres_per_world_unit); !st.ok())
-        return Fail("dense stage: " + st.ToString());
-    }
     const std::vector<Sim3d> final_poses = slam->KeyframePoses();
     for (const SlamKeyframe& k : run->keyframes) {
       SlamKeyframe placed = k;
@@ -479,17 +474,15 @@ int FinishDense(const Settings& s, SlamSystem* slam, DenseRun* dense, SlamRun* r
   if (dense_stage) {
     if (s.dense_online && s.remap) {
       const auto remap_start = std::chrono::steady_clock::now();
-      // At the SLAM's metric scale, as prism-server rebuilds its map (voxels of their size in metres).
-      const double metres = run->shading_scale ? run->shading_scale->metres_per_world_unit : 0.0;
-      StatusOr<MapChunk> changed = dense_stage->Remap(slam->KeyframePoses(), 1e-6, metres);
+      StatusOr<MapChunk> changed = dense_stage->Remap(slam->KeyframePoses());
       dense->remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
       if (!changed.ok()) std::cerr << "prism-slam: map not rebuilt at the final poses: " << changed.status() << "\n";
       else dense->remapped = changed->replaces_map;
     }
   }
   // Metres per world unit of the outputs: the SLAM's estimate from the co-moving lights when there is one
-  // (the more accurate), else the dense stage's session scale. --dense ran the stage at the SLAM's estimate,
-  // and --dense-online rebuilt its map at it; without a rebuild (--no-remap) the map is rescaled.
+  // (the more accurate), else the dense stage's session scale. The dense stage keeps its own scale for its
+  // photometric stereo, and the map it built is rescaled to the output scale.
   const double dense_metres_per_unit =
       dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
   const double metres_per_unit = run->shading_scale ? run->shading_scale->metres_per_world_unit : dense_metres_per_unit;

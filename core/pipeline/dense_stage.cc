@@ -165,19 +165,8 @@ Status DenseStage::MergePending(double metres_per_unit, DenseKeyframeResult* res
   return Status::Ok();
 }
 
-Status DenseStage::FixDepthScale(double metres_per_unit) {
-  if (!(metres_per_unit > 0) || !std::isfinite(metres_per_unit))
-    return InvalidArgumentError("FixDepthScale: metres per unit must be finite and > 0, got " +
-                                std::to_string(metres_per_unit));
-  depth_scale_ = SessionDepthScale();
-  depth_scale_.Add(metres_per_unit);
-  depth_scale_fixed_ = true;
-  return Status::Ok();
-}
-
 bool DenseStage::ScaleSettled() const {
-  return depth_scale_fixed_ || depth_scale_.agreeing() >= options_.scale_keyframes ||
-         depth_scale_.count() >= options_.max_scale_keyframes;
+  return depth_scale_.agreeing() >= options_.scale_keyframes || depth_scale_.count() >= options_.max_scale_keyframes;
 }
 
 StatusOr<MapChunk> DenseStage::Flush() {

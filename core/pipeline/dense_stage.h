@@ -143,11 +143,6 @@ class DenseStage {
   // Memory of a kept point: position (3 floats), normal (3 int16), colour (3 bytes), confidence.
   static constexpr int kKeptBytesPerPoint = 25;
 
-  // Fixes the session depth scale (metres per SLAM world unit) from outside, as prism-slam --dense does
-  // with the SLAM's metric scale from the lights: the keyframes after it use it, none estimates it, and
-  // none waits for the session to settle it. INVALID_ARGUMENT (nothing changed) unless finite and > 0.
-  Status FixDepthScale(double metres_per_unit);
-
   const GlobalMap& map() const { return map_; }
   const SessionDepthScale& depth_scale() const { return depth_scale_; }
   const RigCalibration& rig() const { return rig_; }
@@ -169,7 +164,6 @@ class DenseStage {
   DepthNormalFusion fusion_;
   GlobalMap map_;
   SessionDepthScale depth_scale_;
-  bool depth_scale_fixed_ = false;
   struct PendingCloud {
     uint64_t keyframe_id = 0;
     PointCloud cloud_in_slam_world;
