@@ -211,6 +211,7 @@ struct SlamRun {
   double shading_scale_seconds = 0;
   // Metres per world unit of the outputs (0 = unknown), and the dense stage's own.
   double metres_per_unit = 0, dense_metres_per_unit = 0;
+  bool metres_per_unit_from_shading = false;  // ChooseMetresPerUnit took the SLAM's
 };
 
 // What the outputs hold that the summary and the evaluation read.
@@ -470,32 +471,33 @@ int FinishDense(const Settings& s, SlamSystem* slam, DenseRun* dense, SlamRun* r
     StatusOr<MapChunk> rest = dense_stage->Flush();
     if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
   }
-  // --dense-online: the keyframe clouds as merged, each placed again at its final pose.
-  if (dense_stage) {
-    if (s.dense_online && s.remap) {
-      const auto remap_start = std::chrono::steady_clock::now();
-      StatusOr<MapChunk> changed = dense_stage->Remap(slam->KeyframePoses());
-      dense->remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
-      if (!changed.ok()) std::cerr << "prism-slam: map not rebuilt at the final poses: " << changed.status() << "\n";
-      else dense->remapped = changed->replaces_map;
-    }
-  }
-  // Metres per world unit of the outputs: the SLAM's estimate from the co-moving lights when there is one
-  // (the more accurate), else the dense stage's session scale. The dense stage keeps its own scale for its
-  // photometric stereo, and the map it built is rescaled to the output scale.
+  // Metres per world unit of the outputs (ChooseMetresPerUnit).
   const double dense_metres_per_unit =
       dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
-  const double metres_per_unit = run->shading_scale ? run->shading_scale->metres_per_world_unit : dense_metres_per_unit;
+  const MetresPerUnit chosen =
+      ChooseMetresPerUnit(dense_metres_per_unit, run->shading_scale ? run->shading_scale->metres_per_world_unit : 0.0,
+                          run->shading_scale && run->shading_scale->consistent);
   run->dense_metres_per_unit = dense_metres_per_unit;
-  run->metres_per_unit = metres_per_unit;
-  if (dense_stage) {
-    PointCloud map = dense_stage->map().ToPointCloud();
-    if (dense_metres_per_unit > 0 && metres_per_unit > 0) {
-      const float f = static_cast<float>(metres_per_unit / dense_metres_per_unit);
-      for (Eigen::Vector3f& p : map.positions) p *= f;
-    }
-    if (Status st = WritePointCloudPly(s.out_dir + "/map.ply", map); !st.ok()) return Fail(st.ToString());
+  run->metres_per_unit = chosen.value;
+  run->metres_per_unit_from_shading = chosen.from_shading;
+  if (!dense_stage) return cli::kContinue;
+  // The map rebuilt at that scale, so that its voxels are MapOptions::voxel_m in metres, and with
+  // --dense-online each keyframe cloud placed again at its final pose (--no-remap: the map as merged,
+  // its points scaled).
+  const bool rebuild = dense_stage->map_metres_per_unit() > 0 && chosen.value > 0 && (!s.dense_online || s.remap);
+  if (rebuild) {
+    const auto remap_start = std::chrono::steady_clock::now();
+    StatusOr<MapChunk> changed = dense_stage->Remap(slam->KeyframePoses(), 1e-6, chosen.value);
+    dense->remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
+    if (!changed.ok()) return Fail("dense stage: the map not rebuilt at the final poses: " + changed.status().ToString());
+    dense->remapped = changed->replaces_map;
   }
+  PointCloud map = dense_stage->map().ToPointCloud();
+  if (!rebuild && dense_stage->map_metres_per_unit() > 0 && chosen.value > 0) {
+    const float f = static_cast<float>(chosen.value / dense_stage->map_metres_per_unit());
+    for (Eigen::Vector3f& p : map.positions) p *= f;
+  }
+  if (Status st = WritePointCloudPly(s.out_dir + "/map.ply", map); !st.ok()) return Fail(st.ToString());
   return cli::kContinue;
 }
 
@@ -604,7 +606,7 @@ Json Summary(const Settings& s, const Input& input, SlamSystem* slam, const Slam
   json["depth_refinement_ms"] = 1000.0 * run.refine_seconds;
   if (metres_per_unit > 0) {
     json["metres_per_unit"] = metres_per_unit;
-    json["metres_per_unit_source"] = shading_scale ? "shading" : "dense_stage";
+    json["metres_per_unit_source"] = run.metres_per_unit_from_shading ? "shading" : "dense_stage";
   }
   if (drift) {
     json["scale_drift_correction"] = Json{{"pairs", drift->pairs},
@@ -663,6 +665,10 @@ void EvaluateAgainstGroundTruth(const Input& input, const SlamRun& run, const De
     json["net_rotation_est_deg"] = ate->net_rotation_deg_est;
     if (shading_scale)
       json["shading_metres_per_unit_rel_error"] = shading_scale->metres_per_world_unit / ate->gt_from_est.scale - 1.0;
+    if (run.dense_metres_per_unit > 0)
+      json["dense_metres_per_unit_rel_error"] = run.dense_metres_per_unit / ate->gt_from_est.scale - 1.0;
+    if (run.metres_per_unit > 0)
+      json["metres_per_unit_rel_error"] = run.metres_per_unit / ate->gt_from_est.scale - 1.0;
     // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
     DepthErrorAccumulator acc;
     long claimed = 0;

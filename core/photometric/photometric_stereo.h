@@ -140,10 +140,13 @@ StatusOr<PhotometricResult> EstimateNormals(const cv::Mat& rgb, const InverseDep
 // that group has enough members (agreeing()). Once settled, it passes the value as
 // PhotometricOptions::depth_scale with estimate_depth_scale = false, which is also several times
 // cheaper. Not thread-safe.
+// Largest ratio between two depth-scale estimates that agree.
+constexpr double kDepthScaleAgreement = 1.25;
+
 class SessionDepthScale {
  public:
   // agreement_factor >= 1 (checked).
-  explicit SessionDepthScale(double agreement_factor = 1.25);
+  explicit SessionDepthScale(double agreement_factor = kDepthScaleAgreement);
   void Add(double keyframe_estimate);  // ignores non-finite or non-positive values
   bool has_value() const { return !estimates_.empty(); }
   int count() const { return static_cast<int>(estimates_.size()); }

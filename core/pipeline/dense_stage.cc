@@ -1,5 +1,6 @@
 #include "core/pipeline/dense_stage.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <string>
@@ -67,7 +68,7 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   // Photometric stereo: the first keyframes estimate the depth scale, then the session fixes it.
   auto t0 = std::chrono::steady_clock::now();
   PhotometricOptions ps_options = options_.photometric;
-  result.estimated_depth_scale = !ScaleSettled();
+  result.estimated_depth_scale = depth_scale_.count() < options_.max_scale_keyframes;
   ps_options.estimate_depth_scale = result.estimated_depth_scale;
   // The photometric depth scale is metres per unit of this keyframe's depth; the session's is metres
   // per SLAM world unit. They differ by the keyframe's Sim(3) scale (1 until a loop closure).
@@ -77,11 +78,14 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   result.photometric_ms = MsSince(t0);
   if (result.estimated_depth_scale) {
     depth_scale_.Add(result.photometric.depth_scale / unit);
-    PRISM_LOG(INFO) << "dense: keyframe " << keyframe.id << " depth scale estimate " << result.photometric.depth_scale
-                    << " m/unit (session " << depth_scale_.value() << ", " << depth_scale_.agreeing() << " of "
+    if (map_metres_per_unit_ == 0 && ScaleSettled()) map_metres_per_unit_ = depth_scale_.value();
+    PRISM_LOG(INFO) << "dense: keyframe " << keyframe.id << " depth scale estimate "
+                    << result.photometric.depth_scale / unit << " m/unit (session " << depth_scale_.value() << ", " << depth_scale_.agreeing() << " of "
                     << depth_scale_.count() << " estimates agree)";
   }
-  result.metres_per_unit = depth_scale_.has_value() ? depth_scale_.value() : result.photometric.depth_scale;
+  result.metres_per_unit = map_metres_per_unit_ > 0    ? map_metres_per_unit_
+                           : depth_scale_.has_value() ? depth_scale_.value()
+                                                      : result.photometric.depth_scale;
 
   // Fusion of the SLAM positions and the PS normals.
   t0 = std::chrono::steady_clock::now();
@@ -119,10 +123,10 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
     PRISM_RETURN_IF_ERROR(Merge(result.cloud, keyframe.id, options_.icp_enabled, &result));
   } else {
     pending_.push_back({keyframe.id, result.cloud});
-    result.pending = !ScaleSettled();
+    result.pending = map_metres_per_unit_ == 0;
     if (!result.pending) {
-      PRISM_RETURN_IF_ERROR(MergePending(depth_scale_.value(), &result));
-      for (Eigen::Vector3f& p : result.cloud.positions) p *= static_cast<float>(depth_scale_.value());
+      PRISM_RETURN_IF_ERROR(MergePending(map_metres_per_unit_, &result));
+      for (Eigen::Vector3f& p : result.cloud.positions) p *= static_cast<float>(map_metres_per_unit_);
     }
   }
   result.changes = map_.TakeChanges();
@@ -171,8 +175,9 @@ bool DenseStage::ScaleSettled() const {
 
 StatusOr<MapChunk> DenseStage::Flush() {
   if (pending_.empty() || !depth_scale_.has_value()) return MapChunk();
+  if (map_metres_per_unit_ == 0) map_metres_per_unit_ = depth_scale_.value();
   DenseKeyframeResult scratch;
-  PRISM_RETURN_IF_ERROR(MergePending(depth_scale_.value(), &scratch));
+  PRISM_RETURN_IF_ERROR(MergePending(map_metres_per_unit_, &scratch));
   return map_.TakeChanges();
 }
 
@@ -265,10 +270,14 @@ StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyfra
   PRISM_ASSIGN_OR_RETURN(MapChunk flushed, Flush());
   if (options_.world_in_slam_units && !depth_scale_.has_value())
     return FailedPreconditionError("remap: the session has no depth scale (no keyframe estimated it)");
-  const double session_metres = options_.world_in_slam_units ? depth_scale_.value() : 1.0;
-  const double metres =
-      options_.world_in_slam_units && metres_per_world_unit > 0 ? metres_per_world_unit : session_metres;
-  bool moved = std::abs(metres / session_metres - 1.0) > min_move_m;
+  // The map is at map_metres_per_unit_ (0 only when every keyframe failed before its cloud).
+  const double map_metres = !options_.world_in_slam_units ? 1.0
+                            : map_metres_per_unit_ > 0    ? map_metres_per_unit_
+                                                          : depth_scale_.value();
+  const double metres = !options_.world_in_slam_units ? 1.0
+                        : metres_per_world_unit > 0   ? metres_per_world_unit
+                                                      : depth_scale_.value();
+  bool moved = std::abs(metres / map_metres - 1.0) > min_move_m;
   for (const KeptCloud& k : kept_) {
     if (k.keyframe_id >= world_from_keyframe.size()) continue;
     const Sim3d& to = world_from_keyframe[k.keyframe_id];
@@ -280,10 +289,7 @@ StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyfra
             std::abs(to.scale / from.scale - 1.0) > min_move_m;
   }
   if (!moved) return flushed;
-  if (metres != session_metres) {
-    depth_scale_ = SessionDepthScale();
-    depth_scale_.Add(metres);
-  }
+  if (options_.world_in_slam_units) map_metres_per_unit_ = metres;
   map_.Clear();
   DenseKeyframeResult scratch;
   for (KeptCloud& k : kept_) {
@@ -294,6 +300,16 @@ StatusOr<MapChunk> DenseStage::Remap(const std::vector<Sim3d>& world_from_keyfra
     PRISM_RETURN_IF_ERROR(Merge(cloud, k.keyframe_id, options_.icp_enabled && options_.remap_icp, &scratch));
   }
   return map_.TakeChanges();
+}
+
+MetresPerUnit ChooseMetresPerUnit(double dense_stage, double shading, bool shading_consistent) {
+  const bool dense_known = dense_stage > 0 && std::isfinite(dense_stage);
+  const bool shading_known = shading > 0 && std::isfinite(shading);
+  if (!dense_known) return shading_known ? MetresPerUnit{shading, true} : MetresPerUnit{};
+  if (shading_known && shading_consistent &&
+      std::max(dense_stage, shading) <= kDepthScaleAgreement * std::min(dense_stage, shading))
+    return {shading, true};
+  return {dense_stage, false};
 }
 
 }  // namespace prism

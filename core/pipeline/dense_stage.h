@@ -39,9 +39,10 @@ struct DenseStageOptions {
   IcpOptions icp;
   // Register each keyframe cloud to the map with ICP before merging it.
   bool icp_enabled = true;
-  // Keyframes estimate the depth scale (metres per SLAM unit) from the shading until scale_keyframes
-  // of the estimates agree (SessionDepthScale), or max_scale_keyframes have estimated it; then the
-  // session fixes it at the median of the agreeing ones. 1 <= scale_keyframes <= max_scale_keyframes.
+  // The first max_scale_keyframes keyframes estimate the depth scale (metres per SLAM unit) from the
+  // shading (SessionDepthScale: the median of the largest group that agrees). The map fixes its scale
+  // as soon as scale_keyframes of the estimates agree, or all max_scale_keyframes have estimated, and
+  // Remap brings it to the session's final estimate. 1 <= scale_keyframes <= max_scale_keyframes.
   int scale_keyframes = 3;
   int max_scale_keyframes = 8;
   // Pixels whose fused depth differs from a neighbour's by more than this (relative) are removed from
@@ -94,7 +95,7 @@ struct DenseKeyframeResult {
   bool estimated_depth_scale = false;  // this keyframe estimated the scale (photometric.depth_scale)
   FusionResult fusion;                 // fusion.depth is before the depth-edge filter
   cv::Mat depth;                       // CV_32F fused depth, SLAM units, depth-edge pixels set to 0
-  double metres_per_unit = 1.0;        // session depth scale after this keyframe
+  double metres_per_unit = 1.0;        // the map's depth scale after this keyframe (map_metres_per_unit)
   // The keyframe cloud in the (metric) world frame before the ICP correction; confidences from PS.
   // While pending (world_in_slam_units, scale not fixed yet) it is in SLAM units and not in the map.
   PointCloud cloud;
@@ -131,9 +132,10 @@ class DenseStage {
   // order, each registered again with ICP when remap_icp. Returns the whole new map as one chunk with
   // replaces_map = true; an empty chunk (map unchanged) when no keyframe moved by more than
   // min_move_m (metres; rotations count as their arc at 1 m). FAILED_PRECONDITION when the clouds were
-  // not kept (over the budget, or remap_max_points = 0). metres_per_world_unit > 0 rebuilds the map at
-  // that scale instead of the session's (world_in_slam_units; the SLAM's own metric scale from
-  // SlamSystem::EstimateMetricScale); depth_scale() then reports that value alone.
+  // not kept (over the budget, or remap_max_points = 0). With world_in_slam_units the map is rebuilt at
+  // metres_per_world_unit when > 0 (ChooseMetresPerUnit), else at the session's depth scale now
+  // (depth_scale().value(), which may have moved since the map fixed its scale); a change of scale
+  // counts as a move.
   StatusOr<MapChunk> Remap(const std::vector<Sim3d>& world_from_keyframe, double min_move_m = 1e-6,
                            double metres_per_world_unit = 0);
   // Clouds kept for Remap, their points, and the thinning (1 = every point, 2 = every other, ...).
@@ -144,7 +146,10 @@ class DenseStage {
   static constexpr int kKeptBytesPerPoint = 25;
 
   const GlobalMap& map() const { return map_; }
+  // The session's depth scale from the keyframes' estimates (DenseStageOptions::max_scale_keyframes).
   const SessionDepthScale& depth_scale() const { return depth_scale_; }
+  // Metres per SLAM unit of the map as it stands (0 before its scale is fixed).
+  double map_metres_per_unit() const { return map_metres_per_unit_; }
   const RigCalibration& rig() const { return rig_; }
   const DenseStageOptions& options() const { return options_; }
 
@@ -164,6 +169,7 @@ class DenseStage {
   DepthNormalFusion fusion_;
   GlobalMap map_;
   SessionDepthScale depth_scale_;
+  double map_metres_per_unit_ = 0;
   struct PendingCloud {
     uint64_t keyframe_id = 0;
     PointCloud cloud_in_slam_world;
@@ -189,5 +195,17 @@ class DenseStage {
   int kept_stride_ = 1;
   bool kept_overflow_ = false;  // even one point in 64 passed the budget: kept_ is empty and stays so
 };
+
+// The session's metres per SLAM unit from two independent estimates: the dense stage's
+// (DenseStage::depth_scale, photometric stereo with an albedo per colour cluster) and the SLAM's from
+// the co-moving lights (SlamSystem::EstimateMetricScale: many frame pairs, but a grey albedo, so
+// coloured surfaces bias it: 51-77% low on the generalisation family where the dense stage's was
+// within 30%). The SLAM's is taken when its shading check passed and it agrees with the dense stage's
+// within kDepthScaleAgreement; else the dense stage's. 0 = no such estimate; both 0 gives 0.
+struct MetresPerUnit {
+  double value = 0;
+  bool from_shading = false;  // the SLAM's estimate was taken
+};
+MetresPerUnit ChooseMetresPerUnit(double dense_stage, double shading, bool shading_consistent);
 
 }  // namespace prism

@@ -7,6 +7,7 @@
 #include <atomic>
 #include <cerrno>
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <iostream>
 #include <map>
@@ -632,6 +633,89 @@ TEST(DenseStageRemapTest, TheMapRebuiltAtTheTruePosesIsTheMapMergedAtThem) {
   options.remap_max_points = 0;
   auto [none, none_sequence] = run(moved);
   EXPECT_EQ(none->Remap(true_poses).status().code(), StatusCode::kFailedPrecondition);
+}
+
+// The session's scale: the lights' (the SLAM's) only when it passed its shading check and agrees with
+// the dense stage's within kDepthScaleAgreement; the dense stage's in every other case.
+TEST(SessionScaleTest, TheLightsScaleIsTakenWhenItPassesItsCheckAndAgreesWithTheDenseStage) {
+  const MetresPerUnit agree = ChooseMetresPerUnit(0.50, 0.45, true);
+  EXPECT_EQ(agree.value, 0.45);
+  EXPECT_TRUE(agree.from_shading);
+  EXPECT_EQ(ChooseMetresPerUnit(0.50, 0.45, false).value, 0.50);  // failed its check
+  // The family's case: the grey-albedo estimate 61% low, its check passed.
+  const MetresPerUnit low = ChooseMetresPerUnit(0.388, 0.150, true);
+  EXPECT_EQ(low.value, 0.388);
+  EXPECT_FALSE(low.from_shading);
+  EXPECT_EQ(ChooseMetresPerUnit(0.40, 0.40 * kDepthScaleAgreement * 1.01, true).value, 0.40);
+  EXPECT_EQ(ChooseMetresPerUnit(0.40, 0.40 * kDepthScaleAgreement * 0.99, true).value,
+            0.40 * kDepthScaleAgreement * 0.99);
+  const MetresPerUnit lights_only = ChooseMetresPerUnit(0, 0.3, false);  // no dense stage
+  EXPECT_EQ(lights_only.value, 0.3);
+  EXPECT_TRUE(lights_only.from_shading);
+  EXPECT_EQ(ChooseMetresPerUnit(0.3, 0, false).value, 0.3);
+  EXPECT_EQ(ChooseMetresPerUnit(0, 0, true).value, 0);
+  EXPECT_EQ(ChooseMetresPerUnit(0.3, std::nan(""), true).value, 0.3);
+}
+
+// In SLAM units the first max_scale_keyframes keyframes estimate the depth scale; the map fixes its
+// scale as soon as scale_keyframes of them agree and keeps it, and Remap brings it to the session's
+// estimate from all of them. Keyframes in units of 0.4 m (the truth), 256x256.
+TEST(DenseStageScaleTest, TheMapFixesItsScaleEarlyAndRemapMovesItToTheSessionsEstimate) {
+  synth::PresetOptions po;
+  po.width = 256;
+  po.height = 256;
+  po.frames = 60;
+  StatusOr<synth::SynthSetup> setup = synth::MakePreset("bunny-uniform-sideways", po);
+  ASSERT_TRUE(setup.ok()) << setup.status();
+  const Trajectory trajectory = synth::MakeTrajectory(setup->trajectory);
+  ThreadPool pool(2);
+  constexpr double kMetresPerUnit = 0.4;
+  DenseStageOptions options;
+  options.scale_keyframes = 2;
+  options.max_scale_keyframes = 4;
+  options.icp_enabled = false;
+  StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(setup->rig, options, &pool);
+  ASSERT_TRUE(stage.ok()) << stage.status();
+  std::vector<Sim3d> poses;
+  double fixed = 0;
+  for (int i = 0; i < 6; ++i) {
+    const Rigid3d& pose = trajectory[static_cast<size_t>(10 * i)].world_from_camera;
+    const synth::RenderedFrame r = synth::RenderFrame(setup->scene, setup->rig, pose, setup->render, i + 1, &pool);
+    synth::SemiDenseOptions sd;
+    sd.seed = static_cast<uint32_t>(i + 1);
+    DenseKeyframe k;
+    k.id = static_cast<uint64_t>(i);
+    k.rgb = r.rgb;
+    k.depth = synth::SimulateSemiDenseDepth(r.depth, r.rgb, sd);
+    k.depth.inverse_depth *= kMetresPerUnit;
+    k.depth.variance *= kMetresPerUnit * kMetresPerUnit;
+    k.world_from_keyframe = Sim3d(1.0, pose.rotation, pose.translation / kMetresPerUnit);
+    poses.push_back(k.world_from_keyframe);
+    StatusOr<DenseKeyframeResult> result = (*stage)->Process(k);
+    ASSERT_TRUE(result.ok()) << result.status();
+    EXPECT_EQ(result->estimated_depth_scale, i < options.max_scale_keyframes) << "keyframe " << i;
+    std::cout << "keyframe " << i << ": estimate " << result->photometric.depth_scale << ", map "
+              << (*stage)->map_metres_per_unit() << ", session " << (*stage)->depth_scale().value() << "\n";
+    if (fixed == 0) fixed = (*stage)->map_metres_per_unit();
+    if (fixed > 0) {
+      EXPECT_EQ((*stage)->map_metres_per_unit(), fixed) << "keyframe " << i;
+    }
+    EXPECT_EQ(result->pending, fixed == 0);
+  }
+  ASSERT_GT(fixed, 0) << "the map fixed its scale";
+  EXPECT_EQ((*stage)->depth_scale().count(), options.max_scale_keyframes);
+  const double session = (*stage)->depth_scale().value();
+  constexpr double kMaxDepthScaleError = 0.15;
+  EXPECT_NEAR(session, kMetresPerUnit, kMaxDepthScaleError * kMetresPerUnit);
+  StatusOr<MapChunk> rebuilt = (*stage)->Remap(poses);
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  EXPECT_EQ(rebuilt->replaces_map, session != fixed);
+  EXPECT_EQ((*stage)->map_metres_per_unit(), session);
+  // At a given scale the rebuilt map's points are the SLAM-unit clouds times that scale.
+  StatusOr<MapChunk> at_truth = (*stage)->Remap(poses, 1e-6, kMetresPerUnit);
+  ASSERT_TRUE(at_truth.ok()) << at_truth.status();
+  EXPECT_TRUE(at_truth->replaces_map);
+  EXPECT_EQ((*stage)->map_metres_per_unit(), kMetresPerUnit);
 }
 
 TEST(SessionPipelineTest, InvalidOptionsAreRefused) {

@@ -284,6 +284,7 @@ void SessionPipeline::EstimateFinalMetricScale() {
   PRISM_LOG(INFO) << "pipeline: metric scale from the co-moving lights " << metric->metres_per_world_unit
                   << " m per unit (dense stage " << metres_per_unit_ << ") in " << MsSince(t0) << " ms";
   final_metres_per_unit_ = metric->metres_per_world_unit;
+  final_shading_consistent_ = metric->consistent;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     stats_.shading_check = metric->consistent ? 1 : 2;
@@ -313,7 +314,13 @@ void SessionPipeline::FinishMap(const std::vector<Sim3d>& final_keyframe_poses, 
         const auto t0 = std::chrono::steady_clock::now();
         {
           std::lock_guard<std::mutex> lock(map_mutex_);
-          rebuilt = dense_->Remap(final_keyframe_poses, 1e-6, final_metres_per_unit_);
+          const double dense_scale = dense_->depth_scale().has_value() ? dense_->depth_scale().value() : 0.0;
+          const MetresPerUnit chosen =
+              ChooseMetresPerUnit(dense_scale, final_metres_per_unit_, final_shading_consistent_);
+          PRISM_LOG(INFO) << "pipeline: the session's scale " << chosen.value << " m per unit from the "
+                          << (chosen.from_shading ? "co-moving lights" : "dense stage") << " (dense stage "
+                          << dense_scale << ", lights " << final_metres_per_unit_ << ")";
+          rebuilt = dense_->Remap(final_keyframe_poses, 1e-6, chosen.value);
           map_points = dense_->map().output_size();
         }
         if (!rebuilt.ok()) {
@@ -321,8 +328,7 @@ void SessionPipeline::FinishMap(const std::vector<Sim3d>& final_keyframe_poses, 
         } else if (rebuilt->replaces_map) {
           PRISM_LOG(INFO) << "pipeline: map rebuilt at the final keyframe poses, " << map_points << " voxels from "
                           << dense_->kept_clouds() << " keyframe clouds in " << MsSince(t0) << " ms";
-          // The rebuilt map is at the SLAM's metric scale when there was one: the summary says so.
-          if (final_metres_per_unit_ > 0) metres_per_unit_ = final_metres_per_unit_.load();
+          metres_per_unit_ = dense_->map_metres_per_unit();
         }
       }
       SendRefined(refined);

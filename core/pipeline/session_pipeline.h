@@ -61,11 +61,11 @@ struct SessionPipelineOptions {
   // and sent as one chunk with replaces_map. false: the map keeps the poses each keyframe had when it
   // was handed over (the refined poses and the map then disagree by what the poses moved).
   bool remap_at_end = true;
-  // With remap_at_end: the map is rebuilt at the SLAM's metric scale from the co-moving lights
-  // (SlamSystem::EstimateMetricScale, after the final adjustment; median error 1.9% on 27 preset runs
-  // against 11.2% for the dense stage's own estimate, see the README), which the session's summary then
-  // carries as metres_per_unit, as do the refined poses of the end (poses sent before carry the dense
-  // stage's). When it fails, or the map is not rebuilt, the dense stage's scale stays.
+  // With remap_at_end the map is rebuilt at the session's final scale (ChooseMetresPerUnit: the SLAM's
+  // metric scale from the co-moving lights, SlamSystem::EstimateMetricScale after the final adjustment,
+  // when it passes its check and agrees with the dense stage's; else the dense stage's final estimate),
+  // which the session's summary then carries as metres_per_unit, as do the refined poses of the end
+  // (poses sent before carry the map's early scale). false: the dense stage's final estimate alone.
   bool metric_scale_at_end = true;
 
   Status Check() const;
@@ -242,8 +242,10 @@ class SessionPipeline {
   std::atomic<bool> aborted_{false};
   std::atomic<bool> failed_{false};
   std::atomic<double> metres_per_unit_{0.0};
-  // The SLAM's metric scale at the end (metric_scale_at_end; 0 = none), for the map's rebuild.
+  // The SLAM's metric scale at the end (metric_scale_at_end; 0 = none) and its shading check, for the
+  // map's rebuild (ChooseMetresPerUnit).
   std::atomic<double> final_metres_per_unit_{0.0};
+  std::atomic<bool> final_shading_consistent_{false};
   mutable std::mutex mutex_;
   std::condition_variable keyframe_room_;  // signalled when keyframes_ shrinks or on Abort/Fail
   struct QueuedKeyframe {
