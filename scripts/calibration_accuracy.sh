@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # prism-calibrate on boards rendered with known truth (prism-synth --charuco-board: the default rig,
-# 640x480 unless --size, 10 intrinsics views and 4 poses per light folder): per seed and lens, the focal-length
+# 640x480 unless --size, 10 intrinsics views and 8 poses per light folder unless --light-views): per seed and lens, the focal-length
 # error (%), the worst light-position error (mm) beside the largest reported standard deviation, the
 # worst intensity error (%) and the worst crosstalk error; then the maxima.
 #
-#   scripts/calibration_accuracy.sh [--seeds "1 2 3"] [--size WxH]
+#   scripts/calibration_accuracy.sh [--seeds "1 2 3"] [--size WxH] [--light-views N] [--lenses "pinhole barrel"]
 #
 # Needs prism-synth and prism-calibrate in BUILD_DIR (default build).
 set -euo pipefail
@@ -12,23 +12,27 @@ cd "$(dirname "$0")/.."
 BUILD_DIR=${BUILD_DIR:-build}
 seeds="1 2 3 4 5 6 7 8 9 10"
 size=640x480
+light_views=8
+lenses="pinhole barrel"
 while [[ $# -gt 0 ]]; do
   case $1 in
     --seeds) seeds=$2; shift 2 ;;
     --size) size=$2; shift 2 ;;
-    *) echo "usage: scripts/calibration_accuracy.sh [--seeds \"1 2 3\"] [--size WxH]" >&2; exit 2 ;;
+    --light-views) light_views=$2; shift 2 ;;
+    --lenses) lenses=$2; shift 2 ;;
+    *) echo "usage: scripts/calibration_accuracy.sh [--seeds \"1 2 3\"] [--size WxH] [--light-views N] [--lenses \"pinhole barrel\"]" >&2; exit 2 ;;
   esac
 done
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
-echo "# $(date -u +%F) $(uname -n) $(nproc) cores, $size"
+echo "# $(date -u +%F) $(uname -n) $(nproc) cores, $size, $light_views poses per light"
 printf "lens\tseed\tfocal_%%\tposition_mm\tposition_std_mm\tintensity_%%\tcrosstalk\n"
-for lens in pinhole barrel; do
+for lens in $lenses; do
   for seed in $seeds; do
     args=()
     if [[ $lens == barrel ]]; then args=(--distortion -0.25,0.08,0,0,0); fi
     "$BUILD_DIR/bin/prism-synth" --charuco-board "$work/$seed" --size "$size" --supersampling 2 --seed "$seed" \
-        "${args[@]}" > /dev/null
+        --light-views "$light_views" "${args[@]}" > /dev/null
     "$BUILD_DIR/bin/prism-calibrate" "$work/$seed" --white-albedo 0.85 > "$work/report.json"
     python3 - "$work/report.json" "$work/$seed/truth.yaml" "$lens" "$seed" <<'PY'
 import json, math, re, sys

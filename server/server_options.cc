@@ -170,8 +170,9 @@ std::vector<ServerOptionKey> MakeKeys() {
               "within a quarter of max-session-memory-mb)",
               [](O& o) -> bool& { return o.pipeline.remap_at_end; }),
       BoolKey("metric-scale-at-end",
-              "with remap-at-end, rebuild the map at the SLAM's metric scale from the\n"
-              "co-moving lights instead of the dense stage's (2-7 s more at the end)",
+              "with remap-at-end, estimate the SLAM's metric scale from the co-moving\n"
+              "lights and rebuild the map at it when it agrees with the dense stage's\n"
+              "(2-7 s more at the end)",
               [](O& o) -> bool& { return o.pipeline.metric_scale_at_end; }),
       IntKey("shutdown-deadline-ms", "MS", "on SIGTERM, time to finish queued work before stopping",
              [](O& o) -> int& { return o.shutdown_deadline_ms; }),

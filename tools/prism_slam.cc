@@ -46,7 +46,8 @@ constexpr char kNotes[] = R"(Writes to DIR:
                    the frame's index in the sequence)
   semidense.ply    the semi-dense points of all keyframes, world frame, with colours
   trajectory_metres.txt  trajectory.txt in metres, when the metric scale is known (from the co-moving
-                   lights, see --no-metric-scale, or with --dense the dense stage's)
+                   lights, see --no-metric-scale; with --dense the lights' when it agrees with the
+                   dense stage's within 25%, else the dense stage's: docs/method.md)
   camera.yaml      the calibration the SLAM ran with: the sequence's, or when it has lens distortion
                    the undistorted pinhole camera every frame was remapped into (keyframe depth maps
                    and poses refer to it; see core/slam/undistort.h)

@@ -36,7 +36,7 @@ struct Settings {
   std::string preset, out, gt_cloud, charuco_board, family = "mixed", size = "512x512", distortion_text;
   bool list = false, list_families = false, describe = false, no_shadows = false, world_lights = false;
   uint32_t random_seed = 0;
-  int threads = 0, supersampling = 0;
+  int threads = 0, supersampling = 0, light_views = 8;
   double noise = -1, ambient = -1;
   bool frames_given = false, random_scene = false;
   std::optional<std::array<double, 5>> distortion;
@@ -70,6 +70,9 @@ int ParseCommandLine(int argc, char** argv, Settings* settings) {
                  "DICT_4X4_50, paper albedo 0.85) at random poses 0.3-1 m, lit by each light alone\n"
                  "and all together; the default rig's truth in DIR/truth.yaml")
       ->type_name("DIR");
+  app.add_option("--light-views", s.light_views, "with --charuco-board: board poses per light folder")
+      ->type_name("N")
+      ->check(CLI::Range(1, 200));
   CLI::Option* frames = app.add_option("--frames", options.frames, "frames at 30 fps (with --random: drawn, 150-300)")
                             ->type_name("N")
                             ->check(CLI::Range(2, 100000));
@@ -142,6 +145,7 @@ void PrintFamilies(bool describe) {
 int RenderCharucoBoard(const Settings& s) {
   calibration::SyntheticCaptureOptions co;
   co.seed = s.options.seed;
+  co.light_views = s.light_views;
   if (s.noise >= 0) co.render.noise_sigma = s.noise;
   if (s.supersampling > 0) co.render.supersampling = s.supersampling;
   RigCalibration rig = synth::MakeDefaultRig(s.options.width, s.options.height);

@@ -23,7 +23,7 @@ struct SyntheticCaptureOptions {
   double ink_albedo = 0.04;
   // Views under all lights for the intrinsics, and board poses per light folder, each in [1, 200].
   int intrinsics_views = 10;
-  int light_views = 4;
+  int light_views = 8;
   // Board-centre distances, metres: intrinsics views and light views (nearer light views saturate).
   double min_distance_m = 0.3;
   double max_distance_m = 1.0;
