@@ -490,7 +490,8 @@ int FinishDense(const Settings& s, SlamSystem* slam, DenseRun* dense, SlamRun* r
     const auto remap_start = std::chrono::steady_clock::now();
     StatusOr<MapChunk> changed = dense_stage->Remap(slam->KeyframePoses(), 1e-6, chosen.value);
     dense->remap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - remap_start).count();
-    if (!changed.ok()) return Fail("dense stage: the map not rebuilt at the final poses: " + changed.status().ToString());
+    if (!changed.ok())
+      return Fail("dense stage: the map not rebuilt at the final poses: " + changed.status().ToString());
     dense->remapped = changed->replaces_map;
   }
   PointCloud map = dense_stage->map().ToPointCloud();
@@ -668,8 +669,7 @@ void EvaluateAgainstGroundTruth(const Input& input, const SlamRun& run, const De
       json["shading_metres_per_unit_rel_error"] = shading_scale->metres_per_world_unit / ate->gt_from_est.scale - 1.0;
     if (run.dense_metres_per_unit > 0)
       json["dense_metres_per_unit_rel_error"] = run.dense_metres_per_unit / ate->gt_from_est.scale - 1.0;
-    if (run.metres_per_unit > 0)
-      json["metres_per_unit_rel_error"] = run.metres_per_unit / ate->gt_from_est.scale - 1.0;
+    if (run.metres_per_unit > 0) json["metres_per_unit_rel_error"] = run.metres_per_unit / ate->gt_from_est.scale - 1.0;
     // Keyframe depth against ground truth, in metres through the trajectory's Sim(3) scale.
     DepthErrorAccumulator acc;
     long claimed = 0;

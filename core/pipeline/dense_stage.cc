@@ -80,10 +80,10 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
     depth_scale_.Add(result.photometric.depth_scale / unit);
     if (map_metres_per_unit_ == 0 && ScaleSettled()) map_metres_per_unit_ = depth_scale_.value();
     PRISM_LOG(INFO) << "dense: keyframe " << keyframe.id << " depth scale estimate "
-                    << result.photometric.depth_scale / unit << " m/unit (session " << depth_scale_.value() << ", " << depth_scale_.agreeing() << " of "
-                    << depth_scale_.count() << " estimates agree)";
+                    << result.photometric.depth_scale / unit << " m/unit (session " << depth_scale_.value() << ", "
+                    << depth_scale_.agreeing() << " of " << depth_scale_.count() << " estimates agree)";
   }
-  result.metres_per_unit = map_metres_per_unit_ > 0    ? map_metres_per_unit_
+  result.metres_per_unit = map_metres_per_unit_ > 0   ? map_metres_per_unit_
                            : depth_scale_.has_value() ? depth_scale_.value()
                                                       : result.photometric.depth_scale;
 
