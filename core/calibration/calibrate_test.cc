@@ -251,8 +251,7 @@ TEST_F(CalibrateInputTest, MissingLightFolder) {
 }
 
 // Board poses that leave a light poorly placed (seed 12 at 512x512 with 4 poses per light: about 9 mm off)
-// are said, by light;
-// the well-placed rigs of CheckRecoversRig say nothing.
+// are said, by light; the well-placed rigs of CheckRecoversRig say nothing.
 TEST(CalibrateTest, AnUncertainLightIsWarnedAbout) {
   SyntheticCaptureOptions captures;
   captures.render.supersampling = 2;
