@@ -343,7 +343,7 @@ int WriteSummary(const Settings& s, const DenseStage& stage, const Totals& t) {
   Json json;
   json["keyframes"] = keyframes;
   json["map_points"] = merged.size();
-  json["session_depth_scale"] = stage.depth_scale().has_value() ? stage.depth_scale().value() : 0.0;
+  json["session_depth_scale"] = stage.session_metres_per_unit();
   json["slam_scale_true"] = s.slam_scale;
   json["ps_median_deg"] = ps_stats.median_deg;
   json["ps_mean_deg"] = ps_stats.mean_deg;

@@ -473,8 +473,7 @@ int FinishDense(const Settings& s, SlamSystem* slam, DenseRun* dense, SlamRun* r
     if (!rest.ok()) return Fail("dense stage: " + rest.status().ToString());
   }
   // Metres per world unit of the outputs (ChooseMetresPerUnit).
-  const double dense_metres_per_unit =
-      dense_stage && dense_stage->depth_scale().has_value() ? dense_stage->depth_scale().value() : 0.0;
+  const double dense_metres_per_unit = dense_stage ? dense_stage->session_metres_per_unit() : 0.0;
   const MetresPerUnit chosen =
       ChooseMetresPerUnit(dense_metres_per_unit, run->shading_scale ? run->shading_scale->metres_per_world_unit : 0.0,
                           run->shading_scale && run->shading_scale->consistent);

@@ -148,6 +148,8 @@ class DenseStage {
   const GlobalMap& map() const { return map_; }
   // The session's depth scale from the keyframes' estimates (DenseStageOptions::max_scale_keyframes).
   const SessionDepthScale& depth_scale() const { return depth_scale_; }
+  // Its value, 0 before any keyframe estimated it.
+  double session_metres_per_unit() const { return depth_scale_.has_value() ? depth_scale_.value() : 0.0; }
   // Metres per SLAM unit of the map as it stands (0 before its scale is fixed).
   double map_metres_per_unit() const { return map_metres_per_unit_; }
   const RigCalibration& rig() const { return rig_; }

@@ -523,6 +523,21 @@ TEST(SessionPipelineTest, ASecondStartReplacesTheFirstAndItsPosesAreSentAgain) {
   EXPECT_LT(percent, kSessionAtePercentTolerance);
 }
 
+// A keyframe of the dense stage rendered at pose (metres), its semi-dense depth simulated; render and
+// depth seed `seed`.
+DenseKeyframe RenderedKeyframe(const synth::SynthSetup& setup, const Rigid3d& pose, uint64_t id, uint32_t seed,
+                               ThreadPool* pool) {
+  const synth::RenderedFrame r = synth::RenderFrame(setup.scene, setup.rig, pose, setup.render, seed, pool);
+  synth::SemiDenseOptions sd;
+  sd.seed = seed;
+  DenseKeyframe k;
+  k.id = id;
+  k.rgb = r.rgb;
+  k.depth = synth::SimulateSemiDenseDepth(r.depth, r.rgb, sd);
+  k.world_from_keyframe = Sim3d(1.0, pose.rotation, pose.translation);
+  return k;
+}
+
 // DenseStage::Remap, the map rebuilt at moved keyframe poses. Keyframes merged at poses off by up to
 // 3 cm and 3 deg, then rebuilt at the true poses, give the very map that merging at the true poses
 // gives (ICP off, so the merge is the same arithmetic): the same voxels in the same order with the same
@@ -541,14 +556,7 @@ TEST(DenseStageRemapTest, TheMapRebuiltAtTheTruePosesIsTheMapMergedAtThem) {
   std::vector<Sim3d> true_poses(40);
   for (int i = 0; i < 40; i += 10) {
     const Rigid3d& pose = trajectory[static_cast<size_t>(i)].world_from_camera;
-    const synth::RenderedFrame r = synth::RenderFrame(setup->scene, setup->rig, pose, setup->render, i + 1, &pool);
-    synth::SemiDenseOptions sd;
-    sd.seed = static_cast<uint32_t>(i + 1);
-    DenseKeyframe k;
-    k.id = static_cast<uint64_t>(i);
-    k.rgb = r.rgb;
-    k.depth = synth::SimulateSemiDenseDepth(r.depth, r.rgb, sd);
-    k.world_from_keyframe = Sim3d(1.0, pose.rotation, pose.translation);
+    DenseKeyframe k = RenderedKeyframe(*setup, pose, static_cast<uint64_t>(i), static_cast<uint32_t>(i + 1), &pool);
     true_poses[static_cast<size_t>(i)] = k.world_from_keyframe;
     truth.push_back(k);
     const double off = i / 10.0;  // keyframe 0 stays, the others drift further and further
@@ -680,13 +688,7 @@ TEST(DenseStageScaleTest, TheMapFixesItsScaleEarlyAndRemapMovesItToTheSessionsEs
   double fixed = 0;
   for (int i = 0; i < 6; ++i) {
     const Rigid3d& pose = trajectory[static_cast<size_t>(10 * i)].world_from_camera;
-    const synth::RenderedFrame r = synth::RenderFrame(setup->scene, setup->rig, pose, setup->render, i + 1, &pool);
-    synth::SemiDenseOptions sd;
-    sd.seed = static_cast<uint32_t>(i + 1);
-    DenseKeyframe k;
-    k.id = static_cast<uint64_t>(i);
-    k.rgb = r.rgb;
-    k.depth = synth::SimulateSemiDenseDepth(r.depth, r.rgb, sd);
+    DenseKeyframe k = RenderedKeyframe(*setup, pose, static_cast<uint64_t>(i), static_cast<uint32_t>(i + 1), &pool);
     k.depth.inverse_depth *= kMetresPerUnit;
     k.depth.variance *= kMetresPerUnit * kMetresPerUnit;
     k.world_from_keyframe = Sim3d(1.0, pose.rotation, pose.translation / kMetresPerUnit);

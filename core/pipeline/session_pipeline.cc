@@ -314,7 +314,7 @@ void SessionPipeline::FinishMap(const std::vector<Sim3d>& final_keyframe_poses, 
         const auto t0 = std::chrono::steady_clock::now();
         {
           std::lock_guard<std::mutex> lock(map_mutex_);
-          const double dense_scale = dense_->depth_scale().has_value() ? dense_->depth_scale().value() : 0.0;
+          const double dense_scale = dense_->session_metres_per_unit();
           const MetresPerUnit chosen =
               ChooseMetresPerUnit(dense_scale, final_metres_per_unit_, final_shading_consistent_);
           PRISM_LOG(INFO) << "pipeline: the session's scale " << chosen.value << " m per unit from the "
