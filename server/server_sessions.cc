@@ -21,6 +21,9 @@
 namespace prism::server {
 namespace {
 
+// A session over max-frame-rate-hz maps no keyframe until it has kept to the limit this long.
+constexpr std::chrono::seconds kDenseSkipAfterRateRefusal(2);
+
 StatusOr<FrameCodec> FromWireCodec(v1::FrameCodec c) {
   switch (c) {
     case v1::FRAME_CODEC_PNG:
@@ -323,12 +326,14 @@ void Server::Impl::HandleFrame(const std::string& peer, const v1::Frame& frame, 
     s->rate_refilled = now;
     if (s->rate_tokens < 1.0) {
       metrics.Add("prism_frames_dropped_total{reason=\"rate\"}");
+      s->pipeline->SkipDenseUntil(now + kDenseSkipAfterRateRefusal);
       if (!s->deprioritised && s->pipeline->Deprioritise()) {
         s->deprioritised = true;
         metrics.Add("prism_sessions_deprioritised_total");
         PRISM_LOG(WARNING) << "event=session_deprioritised session=" << s->id << " peer=" << PeerName(peer)
                            << " message=\"frames over max-frame-rate-hz; the session runs at the lowest CPU priority "
-                              "(nice 19) from now on\"";
+                              "(nice 19) from now on, and its keyframes skip the dense stage until it has kept to "
+                              "the limit for 2 s\"";
       }
       return refuse(ResourceExhaustedError("over the session frame-rate limit of " +
                                            std::to_string(options.max_frame_rate_hz) + " Hz (max-frame-rate-hz)"),

@@ -322,6 +322,36 @@ TEST(SessionPipelineTest, UploadWaitsForTheDenseStageAndLiveDropsTheOldestKeyfra
   }
 }
 
+TEST(SessionPipelineTest, KeyframesSkipTheDenseStageWhileTheSessionIsOverItsRateAndThePosesGoOn) {
+  const RenderedSequence seq = RenderSequence("sphere-multicolor-sideways", 40);
+  if (seq.frames.empty()) GTEST_SKIP() << "preset unavailable";
+  for (const bool over_rate : {true, false}) {
+    SCOPED_TRACE(over_rate ? "over its rate" : "within it");
+    ThreadPool pool(2);
+    DenseWorkers workers(1, &pool);
+    EventLog log;
+    SessionPipelineOptions options;
+    options.frame_queue_capacity = 64;
+    options.input_policy = OverflowPolicy::kReject;
+    StatusOr<std::unique_ptr<SessionPipeline>> p = SessionPipeline::Create(seq.rig, options, &workers, log.Sink());
+    ASSERT_TRUE(p.ok()) << p.status();
+    if (over_rate) (*p)->SkipDenseUntil(std::chrono::steady_clock::now() + std::chrono::hours(1));
+    for (const EncodedFrame& f : seq.frames) ASSERT_TRUE((*p)->Push(f).ok());
+    (*p)->Finish();
+    ASSERT_TRUE(log.WaitFinished(120000));
+    const PipelineStats& s = log.events.back().stats;
+    EXPECT_EQ(s.frames_processed, seq.frames.size());
+    ASSERT_GE(s.keyframes, 3u);
+    if (over_rate) {
+      EXPECT_EQ(s.keyframes_dropped, s.keyframes);
+      EXPECT_EQ(s.chunks, 0u);
+    } else {
+      EXPECT_EQ(s.keyframes_dropped, 0u);
+      EXPECT_GE(s.chunks, 1u);
+    }
+  }
+}
+
 // A camera with lens distortion (a webcam's barrel, k1 = -0.25): the session undistorts every frame
 // and tracks it as a pinhole camera. Before, the session could not be created ("undistort the images
 // first"). The poses are scored against the ground truth of the rendering. Measured (256x256, 90

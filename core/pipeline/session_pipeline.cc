@@ -82,6 +82,10 @@ bool SessionPipeline::Deprioritise() {
   return true;
 }
 
+void SessionPipeline::SkipDenseUntil(std::chrono::steady_clock::time_point until) {
+  skip_dense_until_.store(until.time_since_epoch().count());
+}
+
 SessionPipeline::~SessionPipeline() {
   Abort();
   if (slam_thread_.joinable()) slam_thread_.join();
@@ -473,7 +477,8 @@ void SessionPipeline::DenseJob() {
     queued_at = keyframes_.front().queued_at;
     keyframes_.pop_front();
     keyframe_room_.notify_all();
-    if (aborted_ || failed_) {
+    const bool skip = std::chrono::steady_clock::now().time_since_epoch().count() < skip_dense_until_.load();
+    if (aborted_ || failed_ || skip) {
       ++stats_.keyframes_dropped;
       return;
     }

@@ -173,6 +173,10 @@ class SessionPipeline {
   // other sessions leave: for a client that floods the server. Never blocks. false when the SLAM thread
   // is not running yet or the system refused.
   bool Deprioritise();
+  // Keyframes that reach the dense stage before `until` skip it (counted in keyframes_dropped): a
+  // session over its frame-rate limit keeps its poses, and its map waits until it slows down. Never
+  // blocks.
+  void SkipDenseUntil(std::chrono::steady_clock::time_point until);
 
   PipelineStats stats() const;
   // Frames in the queue, not yet taken by the SLAM thread.
@@ -256,6 +260,7 @@ class SessionPipeline {
   PipelineStats stats_;                   // Guarded by mutex_.
   mutable std::mutex map_mutex_;          // held by dense jobs while they write the map
   std::thread slam_thread_;
+  std::atomic<std::chrono::steady_clock::rep> skip_dense_until_{0};  // steady_clock ticks
   std::atomic<int> slam_thread_id_{0};  // the kernel's id of slam_thread_ (0 until it runs)
 };
 
