@@ -168,8 +168,14 @@ void DeclareServerMetrics(Metrics* m) {
              "From a frame's arrival at the transport thread to its pose sent.", fast);
   m->Declare("prism_keyframe_to_chunk_seconds", T::kHistogram,
              "From the SLAM handing a finished keyframe to the dense stage to its chunk ready to send.", slow);
+  m->Declare("prism_keyframe_wait_seconds", T::kHistogram,
+             "From the SLAM handing a finished keyframe over to the dense stage taking it (the keyframe queue).", slow);
   m->Declare("prism_dense_keyframe_seconds", T::kHistogram,
-             "The dense stage's time per keyframe (photometric stereo, fusion, ICP, map merge).", slow);
+             "The dense stage's time per keyframe, from taking it to its chunk ready to send.", slow);
+  m->Declare("prism_dense_part_seconds", T::kHistogram,
+             "The dense stage's time per keyframe by part: photometric (stereo), fusion, map (the cloud, ICP, "
+             "the merge), encode (Draco).",
+             {0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2});
   // Frames, poses, chunks.
   m->Declare("prism_messages_received_total", T::kCounter, "ZeroMQ messages received.");
   m->Declare("prism_frames_received_total", T::kCounter, "Frames accepted into a session's queue.");

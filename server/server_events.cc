@@ -92,10 +92,16 @@ void Server::Impl::HandleEvent(Outgoing& out) {
       c->set_map_points(e.map_points);
       c->set_replaces_map(e.replaces_map);
       metrics.Add("prism_keyframes_merged_total");
-      if (e.keyframe_queued_at != Clock::time_point()) {
+      if (const DenseTiming& t = e.timing; t.queued_at != Clock::time_point()) {
         metrics.Observe("prism_keyframe_to_chunk_seconds",
-                        std::chrono::duration<double>(Clock::now() - e.keyframe_queued_at).count());
-        metrics.Observe("prism_dense_keyframe_seconds", e.dense_ms / 1000.0);
+                        std::chrono::duration<double>(Clock::now() - t.queued_at).count());
+        metrics.Observe("prism_keyframe_wait_seconds",
+                        std::chrono::duration<double>(t.started_at - t.queued_at).count());
+        metrics.Observe("prism_dense_keyframe_seconds", t.total_ms / 1000.0);
+        metrics.Observe("prism_dense_part_seconds{part=\"photometric\"}", t.photometric_ms / 1000.0);
+        metrics.Observe("prism_dense_part_seconds{part=\"fusion\"}", t.fusion_ms / 1000.0);
+        metrics.Observe("prism_dense_part_seconds{part=\"map\"}", t.map_ms / 1000.0);
+        metrics.Observe("prism_dense_part_seconds{part=\"encode\"}", t.encode_ms / 1000.0);
       }
       // Persisted before it is queued: a chunk the client may have seen is always on disk.
       if (Status w = store.WriteChunk(s->id, *c, e.draco); !w.ok()) {

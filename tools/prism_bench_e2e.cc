@@ -29,6 +29,7 @@
 #include "prism/client/client.h"
 #include "tools/cli.h"
 #include "tools/client_rig.h"
+#include "tools/http_get.h"
 #include "tools/json_output.h"
 
 extern char** environ;
@@ -51,7 +52,9 @@ keyframe_to_chunk_ms p50/p95 (the pose of the frame that became keyframe k + 1, 
 keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point, chunks,
 keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
 ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
-against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped.)";
+against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped;
+server_ms_per_keyframe: from the server's /metrics, the mean per keyframe of its wait in the keyframe
+queue, the dense stage's time on it (dense_total) and its parts (photometric, fusion, map, encode).)";
 
 // Two decimals are all a timing or a size here is worth.
 double Round2(double v) { return std::round(v * 100) / 100; }
@@ -95,7 +98,7 @@ struct RenderedPreset {
 // A prism-server process on a free port, with its files in a temporary folder.
 struct ServerProcess {
   pid_t pid = 0;
-  std::string tmp, err_file, endpoint;
+  std::string tmp, err_file, endpoint, metrics_url;
 
   // Stops the server and removes its folder.
   void Stop() {
@@ -177,19 +180,9 @@ int StartServer(const std::string& argv0, const std::vector<std::string>& server
   posix_spawn_file_actions_addopen(&actions, 1, out_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   posix_spawn_file_actions_addopen(&actions, 2, err_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   const std::string data_dir = tmp + "/data";
-  std::vector<std::string> args = {binary,
-                                   "--bind",
-                                   "tcp://127.0.0.1:*",
-                                   "--data-dir",
-                                   data_dir,
-                                   "--input-policy",
-                                   "upload",
-                                   "--keyframe-queue",
-                                   "64",
-                                   "--metrics",
-                                   "off",
-                                   "--log-level",
-                                   "warning"};
+  std::vector<std::string> args = {
+      binary, "--bind",    "tcp://127.0.0.1:*", "--data-dir",  data_dir, "--input-policy", "upload", "--keyframe-queue",
+      "64",   "--metrics", "127.0.0.1:0",       "--log-level", "warning"};
   args.insert(args.end(), server_options.begin(), server_options.end());
   std::vector<char*> cargs;
   for (std::string& s : args) cargs.push_back(s.data());
@@ -203,6 +196,8 @@ int StartServer(const std::string& argv0, const std::vector<std::string>& server
     std::string s((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
     const size_t a = s.find("\"endpoint\": \"");
     if (a != std::string::npos) endpoint = s.substr(a + 13, s.find('"', a + 13) - (a + 13));
+    const size_t m = s.find("\"metrics\": \"");
+    if (m != std::string::npos) server->metrics_url = s.substr(m + 12, s.find('"', m + 12) - (m + 12));
   }
   if (endpoint.empty()) {
     server->Stop();
@@ -299,9 +294,52 @@ double AtePercentOfPath(const StreamEvents& events, const prism::Trajectory& tra
 
 // Streams the frames through one session with the codec and measures it into *result (server_pid's
 // RSS after it included): an empty string, or what failed.
+// The _sum and _count of the server's histograms (prism-server's /metrics), by series name.
+std::map<std::string, double> HistogramTotals(const std::string& metrics_url) {
+  std::map<std::string, double> totals;
+  if (metrics_url.empty()) return totals;
+  const prism::HttpResponse r = prism::FetchHttp(metrics_url + "/metrics", 5000);
+  std::istringstream lines(r.body);
+  std::string line;
+  while (std::getline(lines, line)) {
+    if (line.empty() || line[0] == '#') continue;
+    const size_t space = line.rfind(' ');
+    const std::string name = line.substr(0, space);
+    const std::string family = name.substr(0, name.find('{'));
+    auto ends_with = [&](const std::string& tail) {
+      return family.size() > tail.size() && family.compare(family.size() - tail.size(), tail.size(), tail) == 0;
+    };
+    if (ends_with("_sum") || ends_with("_count")) totals[name] = std::atof(line.c_str() + space + 1);
+  }
+  return totals;
+}
+
+// Where a keyframe's time went on the server during one run: the mean ms per keyframe of the keyframe
+// queue's wait, the dense stage and its parts (from the differences of the histograms' totals).
+prism::Json DenseBreakdown(const std::map<std::string, double>& before, const std::map<std::string, double>& after) {
+  auto delta = [&](const std::string& name) {
+    auto a = after.find(name);
+    auto b = before.find(name);
+    return (a == after.end() ? 0.0 : a->second) - (b == before.end() ? 0.0 : b->second);
+  };
+  auto mean_ms = [&](const std::string& family, const std::string& labels) {
+    const std::string suffix = labels.empty() ? "" : "{" + labels + "}";
+    const double n = delta(family + "_count" + suffix);
+    return n > 0 ? Round2(1000.0 * delta(family + "_sum" + suffix) / n) : -1.0;
+  };
+  prism::Json j = {{"keyframes", delta("prism_dense_keyframe_seconds_count")},
+                   {"queue_wait", mean_ms("prism_keyframe_wait_seconds", "")},
+                   {"dense_total", mean_ms("prism_dense_keyframe_seconds", "")}};
+  for (const char* part : {"photometric", "fusion", "map", "encode"})
+    j[part] = mean_ms("prism_dense_part_seconds", std::string("part=\"") + part + "\"");
+  return j;
+}
+
 std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, const prism::client::Rig& rig,
-                     const std::string& endpoint, pid_t server_pid, const std::string& codec_name,
-                     prism::Json* result) {
+                     const ServerProcess& server, const std::string& codec_name, prism::Json* result) {
+  const std::string& endpoint = server.endpoint;
+  const pid_t server_pid = server.pid;
+  const std::map<std::string, double> totals_before = HistogramTotals(server.metrics_url);
   const int frames = settings.frames;
   prism::client::SessionOptions so;
   if (codec_name == "png") so.codec = prism::client::Codec::kPng;
@@ -350,7 +388,8 @@ std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, c
       {"frames_depth_update_skipped", summary.frames_depth_update_skipped},
       {"frames_dropped", summary.frames_dropped},
       {"ate_percent_of_path", Round2(ate_percent)},
-      {"server_rss_mb_after", Round2(ProcStatusMb(server_pid, "VmRSS"))}};
+      {"server_rss_mb_after", Round2(ProcStatusMb(server_pid, "VmRSS"))},
+      {"server_ms_per_keyframe", DenseBreakdown(totals_before, HistogramTotals(server.metrics_url))}};
   return "";
 }
 
@@ -380,8 +419,7 @@ int main(int argc, char** argv) {
   std::string codec_name;
   while (std::getline(codec_list, codec_name, ',')) {
     prism::Json result;
-    const std::string error =
-        RunCodec(settings, rendered, client_rig, server.endpoint, server.pid, codec_name, &result);
+    const std::string error = RunCodec(settings, rendered, client_rig, server, codec_name, &result);
     if (!error.empty()) {
       server.Stop();
       return Fail(error);

@@ -432,8 +432,8 @@ size_t SessionPipeline::queued_keyframes() const {
 }
 
 void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, const Rigid3d& world_from_keyframe,
-                                size_t map_points, std::chrono::steady_clock::time_point keyframe_queued_at,
-                                double dense_ms) {
+                                size_t map_points, DenseTiming timing) {
+  const auto encode_start = std::chrono::steady_clock::now();
   MapChunkCodecOptions chunk_options = options_.chunk;
   chunk_options.voxel_m = options_.dense.map.voxel_m;
   StatusOr<EncodedMapChunk> encoded = EncodeMapChunk(changes.cloud, chunk_options);
@@ -455,8 +455,11 @@ void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, c
   e.replaces_map = changes.replaces_map;
   e.map_voxels = dense_->map().size();
   e.kept_points = dense_->kept_points();
-  e.keyframe_queued_at = keyframe_queued_at;
-  e.dense_ms = dense_ms;
+  e.timing = timing;
+  if (timing.started_at != std::chrono::steady_clock::time_point()) {
+    e.timing.encode_ms = MsSince(encode_start);
+    e.timing.total_ms = MsSince(timing.started_at);
+  }
   {
     std::lock_guard<std::mutex> lock(mutex_);
     ++stats_.chunks;
@@ -485,6 +488,9 @@ void SessionPipeline::DenseJob() {
   }
   try {
     const auto t0 = std::chrono::steady_clock::now();
+    DenseTiming timing;
+    timing.queued_at = queued_at;
+    timing.started_at = t0;
     DenseKeyframe dk;
     dk.id = static_cast<uint64_t>(kf.id);
     dk.rgb = kf.rgb;
@@ -512,9 +518,11 @@ void SessionPipeline::DenseJob() {
     metres_per_unit_ = r->metres_per_unit;
     if (r->changes.empty()) return;
     const double s = r->metres_per_unit;
-    const double dense_ms = MsSince(t0);
+    timing.photometric_ms = r->photometric_ms;
+    timing.fusion_ms = r->fusion_ms;
+    timing.map_ms = r->map_ms;
     EmitChunk(r->changes, dk.id, Rigid3d(kf.world_from_keyframe.rotation, s * kf.world_from_keyframe.translation),
-              map_points, queued_at, dense_ms);
+              map_points, timing);
     std::lock_guard<std::mutex> lock(mutex_);
     stats_.dense_ms_total += MsSince(t0);
   } catch (const std::exception& ex) {

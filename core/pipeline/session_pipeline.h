@@ -107,6 +107,17 @@ struct PipelineStats {
   double start_pair_spread = 0;
 };
 
+// One keyframe through the dense stage: when the SLAM handed it over and when the dense stage took it
+// (the wait between is the keyframe queue's), then the stage's time on it in ms, in all and by part.
+struct DenseTiming {
+  std::chrono::steady_clock::time_point queued_at, started_at;
+  double photometric_ms = 0;  // photometric stereo
+  double fusion_ms = 0;       // positions and normals
+  double map_ms = 0;          // the keyframe cloud, ICP, the merge
+  double encode_ms = 0;       // the chunk's Draco encoding
+  double total_ms = 0;        // from started_at to the chunk ready to send
+};
+
 struct PipelineEvent {
   enum class Kind { kPose, kChunk, kError, kFinished };
   Kind kind = Kind::kPose;
@@ -132,10 +143,8 @@ struct PipelineEvent {
   // MapOptions::min_keyframes) and the points of the keyframe clouds kept for the rebuild.
   size_t map_voxels = 0;
   int64_t kept_points = 0;
-  // When the SLAM handed the keyframe to the dense stage, and the dense stage's time on it (0 for the
-  // rebuilt map and the last chunk of a stream).
-  std::chrono::steady_clock::time_point keyframe_queued_at;
-  double dense_ms = 0;
+  // Where a keyframe's time went (all zero for the rebuilt map and the last chunk of a stream).
+  DenseTiming timing;
   // kError: a frame or keyframe failed (has_frame), or the session failed (fatal).
   Status status;
   bool has_frame = false;
@@ -213,7 +222,7 @@ class SessionPipeline {
   void DenseJob();
   // Encodes the changed voxels and hands the chunk to the sink (strand jobs only).
   void EmitChunk(const MapChunk& changes, uint64_t keyframe_id, const Rigid3d& world_from_keyframe, size_t map_points,
-                 std::chrono::steady_clock::time_point keyframe_queued_at = {}, double dense_ms = 0);
+                 DenseTiming timing = {});
   void Fail(const Status& status);
 
   const RigCalibration rig_;
