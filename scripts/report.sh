@@ -170,6 +170,17 @@ for path, mode in ((sys.argv[1], "as fast as credits allow"), (sys.argv[2], "liv
               f"{c['keyframe_to_chunk_ms_p50'] / 1000:.2f} / {c['keyframe_to_chunk_ms_p95'] / 1000:.2f} | "
               f"{c['map_done_after_last_pose_s']:.1f} | {c['chunk_bits_per_point']:.1f} | {c['ate_percent_of_path']:.2f} | "
               f"{d['server_peak_rss_mb']:.0f} |")
+print()
+print("Where a keyframe's time goes on the server (means per keyframe, ms, from its /metrics):")
+print()
+print("| run | wait in the keyframe queue | dense stage | photometric stereo | fusion | cloud, ICP, merge | Draco |")
+print("|---|---|---|---|---|---|---|")
+for path, mode in ((sys.argv[1], "as fast as credits allow"), (sys.argv[2], "live camera, 30 frames/s")):
+    d = json.load(open(path))
+    for codec, c in d["codecs"].items():
+        b = c["server_ms_per_keyframe"]
+        print(f"| {codec.upper()}, {mode} | {b['queue_wait']:.0f} | {b['dense_total']:.0f} | {b['photometric']:.0f} | "
+              f"{b['fusion']:.0f} | {b['map']:.0f} | {b['encode']:.0f} |")
 PY
     rm -rf "$dir"
     echo
