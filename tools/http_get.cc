@@ -10,6 +10,7 @@
 #include <chrono>
 #include <cstdlib>
 #include <cstring>
+#include <sstream>
 
 namespace prism {
 
@@ -102,6 +103,19 @@ HttpResponse FetchHttp(const std::string& url, int timeout_ms) {
   out.status = std::atoi(response.c_str() + space + 1);
   out.body = response.substr(header_end + 4);
   return out;
+}
+
+std::map<std::string, double> FetchMetrics(const std::string& base_url, int timeout_ms) {
+  std::map<std::string, double> series;
+  const HttpResponse r = FetchHttp(base_url + "/metrics", timeout_ms);
+  std::istringstream in(r.body);
+  std::string line;
+  while (std::getline(in, line)) {
+    if (line.empty() || line[0] == '#') continue;
+    const size_t space = line.rfind(' ');
+    if (space != std::string::npos) series[line.substr(0, space)] = std::atof(line.c_str() + space + 1);
+  }
+  return series;
 }
 
 }  // namespace prism

@@ -115,18 +115,7 @@ struct Server {
       if (line.rfind("VmRSS:", 0) == 0) return std::atof(line.c_str() + 6) / 1024.0;
     return -1;
   }
-  std::map<std::string, double> Metrics() const {
-    std::map<std::string, double> m;
-    const prism::HttpResponse r = prism::FetchHttp(metrics_url + "/metrics", 2000);
-    std::istringstream in(r.body);
-    std::string line;
-    while (std::getline(in, line)) {
-      if (line.empty() || line[0] == '#') continue;
-      const size_t sp = line.rfind(' ');
-      if (sp != std::string::npos) m[line.substr(0, sp)] = std::atof(line.c_str() + sp + 1);
-    }
-    return m;
-  }
+  std::map<std::string, double> Metrics() const { return prism::FetchMetrics(metrics_url, 2000); }
   size_t LogSize() const {
     std::error_code ec;
     const auto n = fs::file_size(log_path, ec);

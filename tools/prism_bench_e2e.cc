@@ -292,28 +292,6 @@ double AtePercentOfPath(const StreamEvents& events, const prism::Trajectory& tra
   return ate_percent;
 }
 
-// Streams the frames through one session with the codec and measures it into *result (server_pid's
-// RSS after it included): an empty string, or what failed.
-// The _sum and _count of the server's histograms (prism-server's /metrics), by series name.
-std::map<std::string, double> HistogramTotals(const std::string& metrics_url) {
-  std::map<std::string, double> totals;
-  if (metrics_url.empty()) return totals;
-  const prism::HttpResponse r = prism::FetchHttp(metrics_url + "/metrics", 5000);
-  std::istringstream lines(r.body);
-  std::string line;
-  while (std::getline(lines, line)) {
-    if (line.empty() || line[0] == '#') continue;
-    const size_t space = line.rfind(' ');
-    const std::string name = line.substr(0, space);
-    const std::string family = name.substr(0, name.find('{'));
-    auto ends_with = [&](const std::string& tail) {
-      return family.size() > tail.size() && family.compare(family.size() - tail.size(), tail.size(), tail) == 0;
-    };
-    if (ends_with("_sum") || ends_with("_count")) totals[name] = std::atof(line.c_str() + space + 1);
-  }
-  return totals;
-}
-
 // Where a keyframe's time went on the server during one run: the mean ms per keyframe of the keyframe
 // queue's wait, the dense stage and its parts (from the differences of the histograms' totals).
 prism::Json DenseBreakdown(const std::map<std::string, double>& before, const std::map<std::string, double>& after) {
@@ -335,11 +313,13 @@ prism::Json DenseBreakdown(const std::map<std::string, double>& before, const st
   return j;
 }
 
+// Streams the frames through one session with the codec and measures it into *result (the server's
+// RSS after it included): an empty string, or what failed.
 std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, const prism::client::Rig& rig,
                      const ServerProcess& server, const std::string& codec_name, prism::Json* result) {
   const std::string& endpoint = server.endpoint;
   const pid_t server_pid = server.pid;
-  const std::map<std::string, double> totals_before = HistogramTotals(server.metrics_url);
+  const std::map<std::string, double> totals_before = prism::FetchMetrics(server.metrics_url, 5000);
   const int frames = settings.frames;
   prism::client::SessionOptions so;
   if (codec_name == "png") so.codec = prism::client::Codec::kPng;
@@ -389,7 +369,7 @@ std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, c
       {"frames_dropped", summary.frames_dropped},
       {"ate_percent_of_path", Round2(ate_percent)},
       {"server_rss_mb_after", Round2(ProcStatusMb(server_pid, "VmRSS"))},
-      {"server_ms_per_keyframe", DenseBreakdown(totals_before, HistogramTotals(server.metrics_url))}};
+      {"server_ms_per_keyframe", DenseBreakdown(totals_before, prism::FetchMetrics(server.metrics_url, 5000))}};
   return "";
 }
 
