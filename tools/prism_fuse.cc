@@ -72,7 +72,7 @@ struct Settings {
   double max_icp_correction_m = 0.01, max_icp_correction_deg = 1.0;
   double max_edge_step = 0.03;
   FusionOptions fusion_options;
-  bool no_icp = false;
+  bool icp = false;
   uint32_t seed = 1;
 };
 
@@ -133,7 +133,7 @@ int ParseCommandLine(int argc, char** argv, Settings* settings) {
                  "fusion: scale of the normal correction's low-pass filter, pixels")
       ->type_name("PX")
       ->check(CLI::PositiveNumber);
-  app.add_flag("--no-icp", s.no_icp, "merge keyframe clouds at their poses without ICP");
+  app.add_flag("--icp", s.icp, "register each keyframe cloud to the map with ICP before merging it");
   app.add_option("--max-icp-correction-m", s.max_icp_correction_m,
                  "largest ICP correction applied, metres; larger ones, unconverged ones and\n"
                  "ones pairing < 30% of points are reported, not applied")
@@ -170,7 +170,7 @@ DenseStageOptions MakeDenseOptions(const Settings& s) {
   DenseStageOptions dense_options;
   dense_options.fusion = s.fusion_options;
   dense_options.map.voxel_m = s.voxel;
-  dense_options.icp_enabled = !s.no_icp;
+  dense_options.icp_enabled = s.icp;
   dense_options.scale_keyframes = s.scale_keyframes;
   dense_options.max_edge_step = s.max_edge_step;
   dense_options.max_icp_correction_m = s.max_icp_correction_m;

@@ -596,8 +596,7 @@ TEST(DenseStageRemapTest, TheMapRebuiltAtTheTruePosesIsTheMapMergedAtThem) {
   }
   DenseStageOptions options;
   options.world_in_slam_units = false;  // metric poses: every cloud is merged at once
-  options.icp_enabled = false;
-  options.map.min_keyframes = 1;  // every voxel in the output (4 keyframes far apart share few)
+  options.map.min_keyframes = 1;        // every voxel in the output (4 keyframes far apart share few)
   auto run = [&](const std::vector<DenseKeyframe>& keyframes) {
     StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(setup->rig, options, &pool);
     EXPECT_TRUE(stage.ok()) << stage.status();
@@ -711,7 +710,6 @@ TEST(DenseStageScaleTest, TheMapFixesItsScaleEarlyAndRemapMovesItToTheSessionsEs
   DenseStageOptions options;
   options.scale_keyframes = 2;
   options.max_scale_keyframes = 4;
-  options.icp_enabled = false;
   StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(setup->rig, options, &pool);
   ASSERT_TRUE(stage.ok()) << stage.status();
   std::vector<Sim3d> poses;
