@@ -1,7 +1,7 @@
 // prism-fuse: the dense stage offline on a prism-synth sequence, before SLAM exists. Ground-truth
 // poses and a simulated semi-dense SLAM depth (ground-truth depth at high-gradient pixels, with
 // noise and an unknown scale) stand in for the SLAM; per keyframe it runs multispectral photometric
-// stereo, positions+normals fusion, ICP registration to the map and voxel merging.
+// stereo, positions+normals fusion and voxel merging (ICP registration to the map with --icp).
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -10,6 +10,7 @@
 #include <string>
 
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "core/eval/normal_metrics.h"
 #include "core/fusion/fusion.h"
@@ -27,10 +28,11 @@ namespace {
 using namespace prism;
 
 constexpr char kNotes[] =
-    R"(Simulated semi-dense SLAM depth -> photometric stereo normals -> positions+normals fusion -> ICP
--> merged map, with ground-truth poses (the sequence needs groundtruth.txt and depth/, as prism-synth
+    R"(Simulated semi-dense SLAM depth -> photometric stereo normals -> positions+normals fusion ->
+merged map, with ground-truth poses (the sequence needs groundtruth.txt and depth/, as prism-synth
 writes them). Writes to DIR: normals/<t>.png (16-bit exact, image_io.h format), normals_vis/<t>.png
-(8-bit for looking at), depth/<t>.png (fused depth, TUM 16-bit), clouds/<t>.ply (dense keyframe
+(8-bit for looking at), depth/<t>.png (fused depth, TUM 16-bit; these three at the keyframe's image level),
+clouds/<t>.ply (dense keyframe
 clouds, metres, world frame), map.ply (merged map) and summary.json (also printed).)";
 
 // CV_8U, 255 where a CV_32FC3 normal map has a normal (not all zero).
@@ -73,6 +75,7 @@ struct Settings {
   double max_edge_step = 0.03;
   FusionOptions fusion_options;
   bool icp = false;
+  int max_image_level = DenseStageOptions().max_image_level;
   uint32_t seed = 1;
 };
 
@@ -133,6 +136,12 @@ int ParseCommandLine(int argc, char** argv, Settings* settings) {
                  "fusion: scale of the normal correction's low-pass filter, pixels")
       ->type_name("PX")
       ->check(CLI::PositiveNumber);
+  app.add_option("--max-image-level", s.max_image_level,
+                 "the dense stage on each keyframe at the coarsest pyramid level up to L whose\n"
+                 "pixel is no wider than a voxel (0 = full size); its fused depth and normals\n"
+                 "are compared with the truth at that level")
+      ->type_name("L")
+      ->check(CLI::Range(0, 3));
   app.add_flag("--icp", s.icp, "register each keyframe cloud to the map with ICP before merging it");
   app.add_option("--max-icp-correction-m", s.max_icp_correction_m,
                  "largest ICP correction applied, metres; larger ones, unconverged ones and\n"
@@ -176,6 +185,7 @@ DenseStageOptions MakeDenseOptions(const Settings& s) {
   dense_options.max_icp_correction_m = s.max_icp_correction_m;
   dense_options.max_icp_correction_deg = s.max_icp_correction_deg;
   dense_options.world_in_slam_units = false;  // ground-truth poses with the simulated scale: metric
+  dense_options.max_image_level = s.max_image_level;
   return dense_options;
 }
 
@@ -223,8 +233,11 @@ struct DepthComparison {
   int eval_pixels = 0;          // evaluated pixels with a true depth
 };
 
+// The semi-dense depth is at the camera's size, the fused depth at the dense stage's level: each is
+// compared with the truth (and mask) of its size.
 DepthComparison CompareDepth(double slam_scale, const InverseDepthMap& semi_dense, const cv::Mat& fused_depth,
-                             const cv::Mat& truth_depth, const cv::Mat& mask) {
+                             const cv::Mat& truth_depth, const cv::Mat& mask, const cv::Mat& level_truth_depth,
+                             const cv::Mat& level_mask) {
   cv::Mat semi_dense_m(truth_depth.size(), CV_32F, cv::Scalar(0));
   for (int y = 0; y < semi_dense_m.rows; ++y)
     for (int x = 0; x < semi_dense_m.cols; ++x) {
@@ -234,9 +247,11 @@ DepthComparison CompareDepth(double slam_scale, const InverseDepthMap& semi_dens
   DepthComparison c;
   c.fused_m = fused_depth * slam_scale;
   const cv::Mat eval_mask = mask.empty() ? cv::Mat(truth_depth.size(), CV_8U, cv::Scalar(255)) : mask;
-  c.fused_rmse = DepthRmse(c.fused_m, truth_depth, eval_mask, &c.n_fused);
+  const cv::Mat level_eval_mask =
+      level_mask.empty() ? cv::Mat(level_truth_depth.size(), CV_8U, cv::Scalar(255)) : level_mask;
+  c.fused_rmse = DepthRmse(c.fused_m, level_truth_depth, level_eval_mask, &c.n_fused);
   c.semi_rmse = DepthRmse(semi_dense_m, truth_depth, eval_mask, &c.n_semi);
-  c.eval_pixels = cv::countNonZero(eval_mask & (truth_depth > 0));
+  c.eval_pixels = cv::countNonZero(level_eval_mask & (level_truth_depth > 0));
   return c;
 }
 
@@ -282,6 +297,7 @@ Json KeyframeJson(size_t i, const std::string& name, double ps_median, double fu
               {"fused_coverage", eval_pixels ? static_cast<double>(depth.n_fused) / eval_pixels : 0.0},
               {"depth_scale", dense.photometric.depth_scale},
               {"cloud_points", dense.cloud.size()},
+              {"image_level", dense.image_level},
               {"cg_iterations", dense.fusion.iterations},
               {"icp", icp_json}};
 }
@@ -309,12 +325,23 @@ int ProcessKeyframe(const Settings& s, const Sequence& seq, size_t i, DenseStage
   totals->icp_ms += dense->map_ms;
 
   // Ground-truth comparisons (object pixels when the sequence has masks).
+  // The dense stage's outputs are at its image level: the truth there is the nearest full-size pixel.
   cv::Mat mask;
   if (StatusOr<cv::Mat> m = seq.ReadMask(i); m.ok()) mask = *m == kMaskObject;
+  const cv::Size level_size = dense->depth.size();
+  auto at_level = [&](const cv::Mat& full) {
+    if (full.empty() || full.size() == level_size) return full;
+    cv::Mat level;
+    cv::resize(full, level, level_size, 0, 0, cv::INTER_NEAREST);
+    return level;
+  };
+  const cv::Mat level_mask = at_level(mask);
   StatusOr<cv::Mat> truth_normals = seq.ReadNormals(i);
   double ps_median = -1, fused_median = -1;
-  if (truth_normals.ok()) CompareNormals(*truth_normals, mask, *dense, totals, &ps_median, &fused_median);
-  const DepthComparison depth = CompareDepth(s.slam_scale, keyframe.depth, dense->depth, *truth_depth, mask);
+  if (truth_normals.ok())
+    CompareNormals(at_level(*truth_normals), level_mask, *dense, totals, &ps_median, &fused_median);
+  const DepthComparison depth =
+      CompareDepth(s.slam_scale, keyframe.depth, dense->depth, *truth_depth, mask, at_level(*truth_depth), level_mask);
   totals->fused_sse += depth.fused_rmse * depth.fused_rmse * depth.n_fused;
   totals->semi_sse += depth.semi_rmse * depth.semi_rmse * depth.n_semi;
   totals->fused_n += depth.n_fused;

@@ -11,6 +11,7 @@
 #include <string>
 
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "core/eval/depth_metrics.h"
 #include "core/eval/trajectory_metrics.h"
@@ -170,6 +171,7 @@ struct DenseRun {
   bool eval = false;  // keep each keyframe's fused depth for the evaluation
   double seconds = 0;
   double photometric_ms = 0, fusion_ms = 0, map_ms = 0;  // DenseKeyframeResult's parts, summed
+  std::vector<int> keyframes_per_level;                  // DenseKeyframeResult::image_level
   int failed = 0;
   std::map<int, cv::Mat> fused_depth;  // keyframe id -> fused depth (SLAM units), for the evaluation
   std::string first_error;
@@ -194,6 +196,9 @@ void DenseRun::Run(const SlamKeyframe& k) {
     photometric_ms += r->photometric_ms;
     fusion_ms += r->fusion_ms;
     map_ms += r->map_ms;
+    if (keyframes_per_level.size() <= static_cast<size_t>(r->image_level))
+      keyframes_per_level.resize(static_cast<size_t>(r->image_level) + 1);
+    ++keyframes_per_level[static_cast<size_t>(r->image_level)];
   }
   if (r.ok() && eval) fused_depth[k.id] = r->depth;
   if (!r.ok()) {
@@ -640,6 +645,7 @@ Json Summary(const Settings& s, const Input& input, SlamSystem* slam, const Slam
     json["dense_ms_per_keyframe"] = 1000.0 * dense.seconds / n;
     json["dense_photometric_ms_per_keyframe"] = dense.photometric_ms / n;
     json["dense_fusion_ms_per_keyframe"] = dense.fusion_ms / n;
+    json["dense_keyframes_per_image_level"] = dense.keyframes_per_level;
     json["dense_map_ms_per_keyframe"] = dense.map_ms / n;
     json["dense_failed_keyframes"] = dense.failed;
     json["dense_metres_per_unit"] = run.dense_metres_per_unit;
@@ -704,7 +710,10 @@ void EvaluateAgainstGroundTruth(const Input& input, const SlamRun& run, const De
       StatusOr<DepthErrorStats> one = ComputeDepthError(est, *gt, cv::Mat(), per);
       auto fused = fused_depth.find(k.id);
       if (fused != fused_depth.end() && !fused->second.empty()) {
-        StatusOr<DepthErrorStats> f = ComputeDepthError(fused->second, *gt, cv::Mat(), per);
+        cv::Mat gt_at_level = *gt;  // the fused depth is at its keyframe's image level
+        if (gt_at_level.size() != fused->second.size())
+          cv::resize(*gt, gt_at_level, fused->second.size(), 0, 0, cv::INTER_NEAREST);
+        StatusOr<DepthErrorStats> f = ComputeDepthError(fused->second, gt_at_level, cv::Mat(), per);
         if (f.ok())
           per_keyframe_fused.push_back(
               Json{{"id", k.id}, {"coverage", f->coverage}, {"median_rel_error_own_scale", f->median_rel_error}});

@@ -4,6 +4,9 @@
 #include <chrono>
 #include <cmath>
 #include <string>
+#include <vector>
+
+#include <opencv2/imgproc.hpp>
 
 #include "core/util/logging.h"
 
@@ -18,6 +21,63 @@ Status Violated(const std::string& field, double value, const std::string& rule)
   return InvalidArgumentError("DenseStageOptions." + field + " = " + std::to_string(value) + "; violated: " + rule);
 }
 
+// One pyramid level up: each pixel the inverse-variance mean of the samples of its 2x2 block, or the
+// most certain of them when they disagree by more than a depth step (fore- and background).
+InverseDepthMap HalveDepth(const InverseDepthMap& depth) {
+  constexpr float kMaxSpread = 0.03f;  // relative, as DenseStageOptions::max_edge_step
+  const int w = depth.inverse_depth.cols / 2, h = depth.inverse_depth.rows / 2;
+  InverseDepthMap half{cv::Mat::zeros(h, w, CV_32F), cv::Mat::zeros(h, w, CV_32F)};
+  for (int y = 0; y < h; ++y) {
+    const float* d[2] = {depth.inverse_depth.ptr<float>(2 * y), depth.inverse_depth.ptr<float>(2 * y + 1)};
+    const bool has_variance = !depth.variance.empty();
+    const float* v[2] = {has_variance ? depth.variance.ptr<float>(2 * y) : nullptr,
+                         has_variance ? depth.variance.ptr<float>(2 * y + 1) : nullptr};
+    float* hd = half.inverse_depth.ptr<float>(y);
+    float* hv = half.variance.ptr<float>(y);
+    for (int x = 0; x < w; ++x) {
+      float weight = 0, sum = 0, lo = 0, hi = 0, best = 0, best_var = 0;
+      for (int r = 0; r < 2; ++r)
+        for (int c = 2 * x; c < 2 * x + 2; ++c) {
+          const float id = d[r][c], var = has_variance ? v[r][c] : 1.0f;
+          if (!(id > 0) || !(var > 0)) continue;
+          if (weight == 0 || var < best_var) best = id, best_var = var;
+          lo = weight == 0 ? id : std::min(lo, id);
+          hi = weight == 0 ? id : std::max(hi, id);
+          weight += 1 / var;
+          sum += id / var;
+        }
+      if (weight == 0) continue;
+      if (hi - lo <= kMaxSpread * lo) {
+        hd[x] = sum / weight;
+        hv[x] = 1 / weight;
+      } else {
+        hd[x] = best;
+        hv[x] = best_var;
+      }
+    }
+  }
+  return half;
+}
+
+// The options in pixels at a pyramid level: lengths halve per level, areas quarter (counts of samples
+// stay, the level's samples being averages).
+DenseStageOptions AtImageLevel(DenseStageOptions o, int level) {
+  const double s = 1.0 / (1 << level);
+  auto length = [s](int px, int lowest) { return std::max(lowest, static_cast<int>(std::lround(px * s))); };
+  PhotometricOptions& p = o.photometric;
+  p.plane_radius_px = length(p.plane_radius_px, 2);
+  p.image_smoothing_sigma_px *= s;
+  p.superpixel_size_px = p.superpixel_size_px > 0 ? length(p.superpixel_size_px, 1) : 0;
+  p.min_cluster_pixels = std::max(1, static_cast<int>(std::lround(p.min_cluster_pixels * s * s)));
+  p.densify.sigma_px = std::max(0.5, p.densify.sigma_px * s);
+  p.prior.step_px = length(p.prior.step_px, 1);
+  p.prior.smoothing_sigma_px *= s;
+  FusionOptions& f = o.fusion;
+  f.correction_sigma_px *= s;
+  f.min_unsupported_region_px = std::max(1, static_cast<int>(std::lround(f.min_unsupported_region_px * s * s)));
+  return o;
+}
+
 }  // namespace
 
 Status DenseStageOptions::Check() const {
@@ -25,6 +85,7 @@ Status DenseStageOptions::Check() const {
   PRISM_RETURN_IF_ERROR(fusion.Check());
   PRISM_RETURN_IF_ERROR(map.Check());
   PRISM_RETURN_IF_ERROR(icp.Check());
+  if (max_image_level < 0 || max_image_level > 3) return Violated("max_image_level", max_image_level, "in [0, 3]");
   if (scale_keyframes < 1) return Violated("scale_keyframes", scale_keyframes, ">= 1");
   if (max_scale_keyframes < scale_keyframes)
     return Violated("max_scale_keyframes", max_scale_keyframes, ">= scale_keyframes");
@@ -46,7 +107,34 @@ StatusOr<std::unique_ptr<DenseStage>> DenseStage::Create(const RigCalibration& r
 }
 
 DenseStage::DenseStage(const RigCalibration& rig, const DenseStageOptions& options, ThreadPool* pool)
-    : rig_(rig), options_(options), pool_(pool), fusion_(options.fusion, pool), map_(options.map) {}
+    : rig_(rig), options_(options), pool_(pool), map_(options.map) {
+  for (int level = 0; level <= options.max_image_level; ++level) {
+    Level l{rig, AtImageLevel(options, level), nullptr};
+    l.rig.camera = rig.camera.AtPyramidLevel(level);
+    l.fusion = std::make_unique<DepthNormalFusion>(l.options.fusion, pool);
+    levels_.push_back(std::move(l));
+  }
+}
+
+int DenseStage::ChooseLevel(const DenseKeyframe& keyframe) const {
+  if (options_.max_image_level == 0 || !depth_scale_.has_value()) return 0;
+  std::vector<float> inverse_depths;
+  const cv::Mat& id = keyframe.depth.inverse_depth;
+  for (int y = 0; y < id.rows; ++y) {
+    const float* row = id.ptr<float>(y);
+    for (int x = 0; x < id.cols; ++x)
+      if (row[x] > 0) inverse_depths.push_back(row[x]);
+  }
+  if (inverse_depths.empty()) return 0;
+  auto median = inverse_depths.begin() + inverse_depths.size() / 2;
+  std::nth_element(inverse_depths.begin(), median, inverse_depths.end());
+  const double unit = options_.world_in_slam_units ? keyframe.world_from_keyframe.scale : 1.0;
+  const double depth_m = depth_scale_.value() * unit / *median;
+  const double pixel_m = depth_m / rig_.camera.fx;  // at level 0
+  int level = 0;
+  while (level < options_.max_image_level && pixel_m * (2 << level) <= options_.map.voxel_m) ++level;
+  return level;
+}
 
 DenseStage::~DenseStage() = default;
 
@@ -64,17 +152,26 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
 
   DenseKeyframeResult result;
   result.keyframe_id = keyframe.id;
+  result.image_level = ChooseLevel(keyframe);
+  const Level& at = levels_[static_cast<size_t>(result.image_level)];
+  const PinholeCamera& level_camera = at.rig.camera;
+  cv::Mat rgb = keyframe.rgb;
+  InverseDepthMap depth = keyframe.depth;
+  for (int level = 0; level < result.image_level; ++level) {
+    cv::resize(rgb, rgb, cv::Size(rgb.cols / 2, rgb.rows / 2), 0, 0, cv::INTER_AREA);
+    depth = HalveDepth(depth);
+  }
 
   // Photometric stereo: the first keyframes estimate the depth scale, then the session fixes it.
   auto t0 = std::chrono::steady_clock::now();
-  PhotometricOptions ps_options = options_.photometric;
+  PhotometricOptions ps_options = at.options.photometric;
   result.estimated_depth_scale = depth_scale_.count() < options_.max_scale_keyframes;
   ps_options.estimate_depth_scale = result.estimated_depth_scale;
   // The photometric depth scale is metres per unit of this keyframe's depth; the session's is metres
   // per SLAM world unit. They differ by the keyframe's Sim(3) scale (1 until a loop closure).
   const double unit = options_.world_in_slam_units ? keyframe.world_from_keyframe.scale : 1.0;
   if (!result.estimated_depth_scale) ps_options.depth_scale = depth_scale_.value() * unit;
-  PRISM_ASSIGN_OR_RETURN(result.photometric, EstimateNormals(keyframe.rgb, keyframe.depth, rig_, ps_options, pool_));
+  PRISM_ASSIGN_OR_RETURN(result.photometric, EstimateNormals(rgb, depth, at.rig, ps_options, pool_));
   result.photometric_ms = MsSince(t0);
   if (result.estimated_depth_scale) {
     depth_scale_.Add(result.photometric.depth_scale / unit);
@@ -90,12 +187,12 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   // Fusion of the SLAM positions and the PS normals.
   t0 = std::chrono::steady_clock::now();
   FusionInput input;
-  input.camera = camera;
+  input.camera = level_camera;
   input.normals = result.photometric.normals;
   input.confidence = result.photometric.confidence;
-  input.semi_dense = keyframe.depth;
+  input.semi_dense = depth;
   input.prior_inverse_depth = result.photometric.dense_inverse_depth;
-  PRISM_ASSIGN_OR_RETURN(result.fusion, fusion_.Fuse(input));
+  PRISM_ASSIGN_OR_RETURN(result.fusion, at.fusion->Fuse(input));
   result.fusion_ms = MsSince(t0);
 
   // Pixels along depth steps (flying pixels where the surface bridges a silhouette) leave the
@@ -111,11 +208,11 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   cv::Mat bright;
   if (options_.min_brightness > 0) {
     cv::Mat grey;
-    cv::transform(keyframe.rgb, grey, cv::Matx13f(1.0f / 3, 1.0f / 3, 1.0f / 3));
+    cv::transform(rgb, grey, cv::Matx13f(1.0f / 3, 1.0f / 3, 1.0f / 3));
     bright = grey >= options_.min_brightness;
   }
   PRISM_ASSIGN_OR_RETURN(PointCloud cloud_in_keyframe,
-                         DepthToCloud(result.depth, result.fusion.normals, keyframe.rgb, camera, Sim3d(), 1, bright,
+                         DepthToCloud(result.depth, result.fusion.normals, rgb, level_camera, Sim3d(), 1, bright,
                                       result.photometric.confidence));
   result.cloud = TransformCloud(cloud_in_keyframe, keyframe.world_from_keyframe);
   Keep(keyframe.id, keyframe.world_from_keyframe, cloud_in_keyframe);

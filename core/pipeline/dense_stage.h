@@ -12,6 +12,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <vector>
 
 #include <opencv2/core.hpp>
 
@@ -37,6 +38,13 @@ struct DenseStageOptions {
   // keeps what two keyframes saw".
   MapOptions map{/*voxel_m=*/0.002, /*min_keyframes=*/2};
   IcpOptions icp;
+  // Each keyframe goes through the stage at the coarsest pyramid level, up to this one, whose pixel at
+  // the keyframe's median depth is no wider than a map voxel (map.voxel_m): a finer level only adds
+  // samples within the same voxels. Each level halves the image: the colour image by 2x2 averaging,
+  // the semi-dense depth by its samples' inverse-variance mean. Until the session has a depth scale,
+  // level 0. In [0, 3]; 0 = always the camera's resolution. The options in pixels below are at the
+  // camera's resolution (the stage scales them to the level).
+  int max_image_level = 1;
   // Register each keyframe cloud to the map with ICP before merging it. Off: with the SLAM's poses the
   // guard keeps about half of the corrections out, the rest move the map's F-score by under 0.006 (5
   // presets and 6 family scenes), and ICP was 62-66% of the stage's time. For poses from elsewhere.
@@ -108,6 +116,9 @@ struct DenseKeyframeResult {
   bool icp_applied = false;  // icp_estimate passed the guard and was applied
   MapInsertStats insert;
   MapChunk changes;  // voxels created or changed by this keyframe (GlobalMap::TakeChanges)
+  // The pyramid level the keyframe went through the stage at (DenseStageOptions::max_image_level); the
+  // images above (normals, depth) are of that level's size.
+  int image_level = 0;
   double photometric_ms = 0, fusion_ms = 0, map_ms = 0;
 };
 
@@ -170,7 +181,16 @@ class DenseStage {
   RigCalibration rig_;
   DenseStageOptions options_;
   ThreadPool* pool_;
-  DepthNormalFusion fusion_;
+  // Per pyramid level up to options_.max_image_level: the rig's camera, the options with their pixel
+  // lengths, and the fusion at that level.
+  struct Level {
+    RigCalibration rig;
+    DenseStageOptions options;
+    std::unique_ptr<DepthNormalFusion> fusion;
+  };
+  std::vector<Level> levels_;
+  // The level for a keyframe (see DenseStageOptions::max_image_level).
+  int ChooseLevel(const DenseKeyframe& keyframe) const;
   GlobalMap map_;
   SessionDepthScale depth_scale_;
   double map_metres_per_unit_ = 0;

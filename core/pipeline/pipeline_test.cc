@@ -596,6 +596,7 @@ TEST(DenseStageRemapTest, TheMapRebuiltAtTheTruePosesIsTheMapMergedAtThem) {
   }
   DenseStageOptions options;
   options.world_in_slam_units = false;  // metric poses: every cloud is merged at once
+  options.max_image_level = 0;          // the rendered 256x256: a pixel is about a voxel
   options.map.min_keyframes = 1;        // every voxel in the output (4 keyframes far apart share few)
   auto run = [&](const std::vector<DenseKeyframe>& keyframes) {
     StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(setup->rig, options, &pool);
