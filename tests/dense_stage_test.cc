@@ -64,8 +64,9 @@ TEST_P(DenseStageTest, MergedMapMatchesTheGroundTruthSurface) {
             << "min coverage " << JsonNumber(r.out, "min_fused_coverage") << ", normals PS " << ps_median
             << " -> fused " << fused_median << " deg\n";
   EXPECT_LE(rmse_ratio, c.max_fused_to_semi_dense_rmse);
-  if (c.max_image_level > 0)  // the first keyframe has no depth scale yet and runs at full size
+  if (c.max_image_level > 0) {  // the first keyframe has no depth scale yet and runs at full size
     EXPECT_NE(r.out.find("\"image_level\": 1"), std::string::npos) << "no keyframe went through at half size";
+  }
   EXPECT_GE(JsonNumber(r.out, "min_fused_coverage"), c.min_dense_coverage_of_object);
   // Fused normals no worse than the PS normals, on the same pixels (object pixels where both have a
   // normal), pooled over the keyframes. Measured (correction_sigma_px 8, corrected_pass_position_scale
