@@ -47,10 +47,12 @@ skip-depth-update-backlog-live applies; the SDK still waits for a frame credit b
 
 Prints one JSON object, per codec: frames_per_s (frames sent / time until the last pose),
 map_frames_per_s (frames sent / time until the session summary, i.e. every keyframe's chunks
-delivered), map_done_after_last_pose_s, frame_to_pose_ms p50/p95 (frame sent -> its pose received),
-keyframe_to_chunk_ms p50/p95 (the pose of the frame that became keyframe k + 1, which finishes
-keyframe k, -> keyframe k's first chunk), uplink_bytes_per_frame, chunk_bits_per_point, chunks,
-keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
+delivered), map_complete_after_last_pose_s (the last keyframe's first chunk after the last pose: every
+keyframe is in the map), map_done_after_last_pose_s (the session summary after the last pose: the map
+rebuilt at the refined poses has arrived too), frame_to_pose_ms p50/p95 (frame sent -> its pose
+received), keyframe_to_chunk_ms p50/p95 (the pose of the frame that became keyframe k + 1, which
+finishes keyframe k, or the last pose for the last keyframe, -> keyframe k's first chunk),
+uplink_bytes_per_frame, chunk_bits_per_point, chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
 ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
 against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped;
 server_ms_per_keyframe: from the server's /metrics, the mean per keyframe of its wait in the keyframe
@@ -246,7 +248,7 @@ void StreamEvents::Handle(const prism::client::Event& e) {
     ++chunks;
     chunk_bytes += e.chunk.draco.size();
     chunk_points += e.chunk.points.size();
-    chunk_time.emplace(e.chunk.keyframe_id, now);
+    if (!e.chunk.replaces_map) chunk_time.emplace(e.chunk.keyframe_id, now);
   }
 }
 
@@ -344,15 +346,19 @@ std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, c
   const double ate_percent = AtePercentOfPath(events, rendered.trajectory, frames);
   const double map_seconds = std::chrono::duration<double>(t_done - t0).count();
   std::vector<double> kf_to_chunk;
+  Clock::time_point last_chunk = events.last_pose;
   for (const auto& [kf, t] : events.chunk_time) {
-    // Keyframe kf is finished when keyframe kf + 1 is made (or at the end of the stream).
-    if (auto next = events.keyframe_pose_time.find(kf + 1); next != events.keyframe_pose_time.end())
-      kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - next->second).count());
+    // Keyframe kf is finished when keyframe kf + 1 is made, or at the end of the stream (the last pose).
+    auto next = events.keyframe_pose_time.find(kf + 1);
+    const Clock::time_point finished = next != events.keyframe_pose_time.end() ? next->second : events.last_pose;
+    kf_to_chunk.push_back(std::chrono::duration<double, std::milli>(t - finished).count());
+    last_chunk = std::max(last_chunk, t);
   }
   const std::vector<double>& frame_to_pose = events.frame_to_pose;
   *result = {
       {"frames_per_s", Round2(frames / std::max(1e-9, seconds))},
       {"map_frames_per_s", Round2(frames / std::max(1e-9, map_seconds))},
+      {"map_complete_after_last_pose_s", Round2(std::chrono::duration<double>(last_chunk - events.last_pose).count())},
       {"map_done_after_last_pose_s", Round2(map_seconds - seconds)},
       {"poses", frame_to_pose.size()},
       {"frame_to_pose_ms_p50", Round2(Percentile(frame_to_pose, 0.5))},

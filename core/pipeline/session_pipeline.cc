@@ -261,7 +261,9 @@ void SessionPipeline::SendFrameError(uint64_t sequence_number, const Status& sta
 
 void SessionPipeline::FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::vector<PipelineEvent>* refined) {
   try {
-    for (SlamKeyframe& kf : slam_->Finish()) QueueKeyframe(std::move(kf));
+    // The last keyframes go to the dense stage before the final adjustment: the map is complete while
+    // the poses are refined (the map rebuilt at the final poses follows, FinishMap).
+    for (SlamKeyframe& kf : slam_->FinishTracking()) QueueKeyframe(std::move(kf));
     const bool second_start_at_finish = UpdateStartCheck();
     if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
     if (options_.slam.scale_drift_correction) {

@@ -42,6 +42,12 @@ std::vector<SlamKeyframe> SlamSystem::TakeFinishedKeyframes() {
 }
 
 std::vector<SlamKeyframe> SlamSystem::Finish() {
+  std::vector<SlamKeyframe> last = FinishTracking();
+  if (impl_->options.final_adjustment) AdjustAllKeyframes();
+  return last;
+}
+
+std::vector<SlamKeyframe> SlamSystem::FinishTracking() {
   if (start_check_ && impl_->pending_start_check) {
     // The pair scales still on their thread (start_check_async): reported; no second start can run now.
     const ScopedSeconds timer(&start_check_report_.seconds);
@@ -72,9 +78,7 @@ std::vector<SlamKeyframe> SlamSystem::Finish() {
     // The last keyframe may close a loop too.
     if (impl_->options.loop_closure) impl_->CloseLoops(static_cast<int>(impl_->keyframes.size()) - 1);
   }
-  std::vector<SlamKeyframe> last = TakeFinishedKeyframes();
-  if (impl_->options.final_adjustment) AdjustAllKeyframes();
-  return last;
+  return TakeFinishedKeyframes();
 }
 
 void SlamSystem::AdjustAllKeyframes() {

@@ -400,6 +400,9 @@ class SlamSystem {
   // Ends the sequence: the current keyframe is finished too and returned with any not yet taken. With
   // SlamOptions::final_adjustment it then runs AdjustAllKeyframes.
   std::vector<SlamKeyframe> Finish();
+  // Finish without the final adjustment, so that the last keyframes can be handed on at once (the
+  // caller runs AdjustAllKeyframes after, as SessionPipeline does).
+  std::vector<SlamKeyframe> FinishTracking();
   // The final adjustment (SlamOptions::final_adjustment): after Finish, the direct adjustment of every
   // keyframe at once, when there are at most final_adjustment_max_keyframes, then the feature adjustment
   // (final_feature_adjustment); beyond that, up to feature_adjustment_max_keyframes, the feature
