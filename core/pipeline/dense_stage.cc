@@ -147,6 +147,10 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   if (keyframe.depth.inverse_depth.type() != CV_32F || keyframe.depth.inverse_depth.size() != size)
     return InvalidArgumentError("keyframe " + std::to_string(keyframe.id) +
                                 ": inverse depth must be CV_32F of the camera's size");
+  if (!keyframe.depth.variance.empty() &&
+      (keyframe.depth.variance.type() != CV_32F || keyframe.depth.variance.size() != size))
+    return InvalidArgumentError("keyframe " + std::to_string(keyframe.id) +
+                                ": inverse depth variance must be empty or CV_32F of the camera's size");
   if (!(keyframe.world_from_keyframe.scale > 0) || !std::isfinite(keyframe.world_from_keyframe.scale))
     return InvalidArgumentError("keyframe " + std::to_string(keyframe.id) + ": world_from_keyframe scale must be > 0");
 

@@ -762,5 +762,34 @@ TEST(SessionPipelineTest, InvalidOptionsAreRefused) {
             StatusCode::kInvalidArgument);
 }
 
+// Keyframes of the wrong type or size, and options out of range, are refused with INVALID_ARGUMENT
+// before anything is computed; the stage takes a good keyframe after them.
+TEST(DenseStageTest, BadKeyframesAndOptionsAreRefused) {
+  const RigCalibration rig = synth::MakeDefaultRig(64, 48);
+  DenseStageOptions options;
+  options.max_image_level = 4;
+  EXPECT_EQ(DenseStage::Create(rig, options, nullptr).status().code(), StatusCode::kInvalidArgument);
+  options.max_image_level = 1;
+  StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(rig, options, nullptr);
+  ASSERT_TRUE(stage.ok()) << stage.status();
+  DenseKeyframe good;
+  good.rgb = cv::Mat(48, 64, CV_8UC3, cv::Scalar(90, 90, 90));
+  good.depth.inverse_depth = cv::Mat(48, 64, CV_32F, cv::Scalar(2.0f));
+  good.depth.variance = cv::Mat(48, 64, CV_32F, cv::Scalar(0.01f));
+  DenseKeyframe bad = good;
+  bad.rgb = cv::Mat(48, 32, CV_8UC3, cv::Scalar(90, 90, 90));
+  EXPECT_EQ((*stage)->Process(bad).status().code(), StatusCode::kInvalidArgument);
+  bad = good;
+  bad.depth.inverse_depth = cv::Mat(24, 32, CV_32F, cv::Scalar(2.0f));
+  EXPECT_EQ((*stage)->Process(bad).status().code(), StatusCode::kInvalidArgument);
+  bad = good;
+  bad.depth.variance = cv::Mat(24, 32, CV_32F, cv::Scalar(0.01f));
+  const Status refused = (*stage)->Process(bad).status();
+  EXPECT_EQ(refused.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.message().find("variance"), std::string::npos) << refused;
+  EXPECT_EQ((*stage)->depth_scale().count(), 0);
+  EXPECT_TRUE((*stage)->map().empty());
+}
+
 }  // namespace
 }  // namespace prism
