@@ -56,7 +56,9 @@ uplink_bytes_per_frame, chunk_bits_per_point, chunks, keyframes; server_rss_mb b
 ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
 against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped;
 server_ms_per_keyframe: from the server's /metrics, the mean per keyframe of its wait in the keyframe
-queue, the dense stage's time on it (dense_total) and its parts (photometric, fusion, map, encode).)";
+queue, the dense stage's time on it (dense_total) and its parts (photometric, fusion, map, encode).
+With --sessions N > 1, N sessions stream at once per codec and the codec's entry is {"sessions": [one
+object as above per session]}; server_ms_per_keyframe then covers every session of the run.)";
 
 // Two decimals are all a timing or a size here is worth.
 double Round2(double v) { return std::round(v * 100) / 100; }
@@ -87,6 +89,7 @@ struct Settings {
   int frames = 150;
   double fps = 0;
   bool live = false;
+  int sessions = 1;                         // sessions at once per codec
   std::vector<std::string> server_options;  // --KEY VALUE pairs for prism-server
 };
 
@@ -118,7 +121,7 @@ int ParseCommandLine(int argc, char** argv, Settings* settings) {
   CLI::App app{"", "prism-bench-e2e"};
   prism::cli::Setup(&app, "the networked system end to end: prism-server and the SDK streaming a rendered preset",
                     {"prism-bench-e2e [--preset NAME] [--frames N] [--codecs png,jpeg,raw] [--fps F] [--live]",
-                     "                [--server-option KEY=VALUE ...]"},
+                     "                [--sessions N] [--server-option KEY=VALUE ...]"},
                     kNotes);
   app.add_option("--preset", s.preset, "the scene (prism-synth --list-presets)")->type_name("NAME");
   app.add_option("--frames", s.frames, "frames rendered and streamed, >= 20")
@@ -129,6 +132,9 @@ int ParseCommandLine(int argc, char** argv, Settings* settings) {
       ->type_name("F")
       ->check(CLI::NonNegativeNumber);
   app.add_flag("--live", s.live, "open the sessions as a live camera's");
+  app.add_option("--sessions", s.sessions, "sessions streaming at once per codec, 1-8")
+      ->type_name("N")
+      ->check(CLI::Range(1, 8));
   app.add_option("--server-option", server_option_pairs, "passed to prism-server as --KEY VALUE (repeatable)")
       ->type_name("KEY=VALUE")
       ->expected(1)
@@ -404,13 +410,23 @@ int main(int argc, char** argv) {
   std::stringstream codec_list(settings.codecs);
   std::string codec_name;
   while (std::getline(codec_list, codec_name, ',')) {
-    prism::Json result;
-    const std::string error = RunCodec(settings, rendered, client_rig, server, codec_name, &result);
-    if (!error.empty()) {
+    std::vector<prism::Json> results(static_cast<size_t>(settings.sessions));
+    std::vector<std::string> errors(results.size());
+    std::vector<std::thread> threads;
+    for (size_t i = 0; i < results.size(); ++i)
+      threads.emplace_back(
+          [&, i] { errors[i] = RunCodec(settings, rendered, client_rig, server, codec_name, &results[i]); });
+    for (std::thread& t : threads) t.join();
+    for (const std::string& error : errors) {
+      if (error.empty()) continue;
       server.Stop();
       return Fail(error);
     }
-    json["codecs"][codec_name] = result;
+    if (settings.sessions == 1) {
+      json["codecs"][codec_name] = results[0];
+    } else {
+      json["codecs"][codec_name] = prism::Json{{"sessions", results}};
+    }
   }
   json["server_peak_rss_mb"] = Round2(ProcStatusMb(server.pid, "VmHWM"));
   server.Stop();
