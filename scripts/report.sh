@@ -5,7 +5,7 @@
 #   scripts/report.sh slam [--write]      prism-slam on the standard presets, seeds 1-6 and held-out 7-9 (~50 min)
 #   scripts/report.sh maps [--write]      prism-slam --dense on the standard presets, seed 1: map accuracy (~30 min)
 #   scripts/report.sh generalisation [--write]  prism-slam --dense on 40 held-out family scenes (~60 min)
-#   scripts/report.sh e2e [--write]       prism-bench-e2e: unpaced per codec, and a live camera at 30 frames/s (~6 min)
+#   scripts/report.sh e2e [--write]       prism-bench-e2e: unpaced per codec, a live camera at 30 frames/s, 2 and 4 at 15 (~6 min)
 #   scripts/report.sh speed [--write]     slam_benchmark: tracking and mapping per frame per preset (~15 min)
 #   scripts/report.sh parts [--write]     the dense stage's parts and the codecs, medians of 5 (~5 min)
 #   scripts/report.sh slam-options [--write]  the SLAM options a user sets, with defaults (docs/method.md)
@@ -157,10 +157,12 @@ PY
     dir=$(mktemp -d)
     "$BIN/prism-bench-e2e" --codecs png,jpeg "${@:2}" > "$dir/unpaced.json"
     "$BIN/prism-bench-e2e" --codecs jpeg --fps 30 --live "${@:2}" > "$dir/live.json"
+    "$BIN/prism-bench-e2e" --codecs jpeg --fps 15 --live --sessions 2 "${@:2}" > "$dir/load2.json"
+    "$BIN/prism-bench-e2e" --codecs jpeg --fps 15 --live --sessions 4 "${@:2}" > "$dir/load4.json"
     echo "| run | poses, frames/s | map, frames/s | frame to pose p50 / p95, ms | keyframe to chunk p50 / p95, s |" \
       "map complete / rebuilt after the last pose, s | chunk bits per point | ATE, % of path | server peak RSS, MB |"
     echo "|---|---|---|---|---|---|---|---|---|"
-    python3 - "$dir/unpaced.json" "$dir/live.json" <<'PY'
+    python3 - "$dir/unpaced.json" "$dir/live.json" "$dir/load2.json" "$dir/load4.json" <<'PY'
 import json, sys
 for path, mode in ((sys.argv[1], "as fast as credits allow"), (sys.argv[2], "live camera, 30 frames/s")):
     d = json.load(open(path))
@@ -181,11 +183,25 @@ for path, mode in ((sys.argv[1], "as fast as credits allow"), (sys.argv[2], "liv
         b = c["server_ms_per_keyframe"]
         print(f"| {codec.upper()}, {mode} | {b['queue_wait']:.0f} | {b['dense_total']:.0f} | {b['photometric']:.0f} | "
               f"{b['fusion']:.0f} | {b['map']:.0f} | {b['encode']:.0f} |")
+print()
+print("Sessions at once, each a live camera at 15 frames/s (JPEG), one row per session:")
+print()
+print("| sessions | session | poses, frames/s | frame to pose p50 / p95, ms | keyframe to chunk p50 / p95, s | "
+      "map complete after the last pose, s | keyframes (dropped) | ATE, % of path |")
+print("|---|---|---|---|---|---|---|---|")
+for path in sys.argv[3:]:
+    sessions = json.load(open(path))["codecs"]["jpeg"]["sessions"]
+    for i, c in enumerate(sessions):
+        print(f"| {len(sessions)} | {i + 1} | {c['frames_per_s']:.1f} | "
+              f"{c['frame_to_pose_ms_p50']:.0f} / {c['frame_to_pose_ms_p95']:.0f} | "
+              f"{c['keyframe_to_chunk_ms_p50'] / 1000:.1f} / {c['keyframe_to_chunk_ms_p95'] / 1000:.1f} | "
+              f"{c['map_complete_after_last_pose_s']:.1f} | {c['keyframes']} ({c['keyframes_dropped']}) | "
+              f"{c['ate_percent_of_path']:.2f} |")
 PY
     rm -rf "$dir"
     echo
     echo "Made by \`scripts/report.sh e2e\` (\`prism-bench-e2e\`: bunny-multicolor-forward, 150 frames of 512x512," \
-      "one session per row) on $(machine)."
+      "one session per row in the first two tables) on $(machine)."
     ;;
   speed)
     dir=$(mktemp -d)
