@@ -27,9 +27,9 @@ InverseDepthMap HalveDepth(const InverseDepthMap& depth) {
   constexpr float kMaxSpread = 0.03f;  // relative, as DenseStageOptions::max_edge_step
   const int w = depth.inverse_depth.cols / 2, h = depth.inverse_depth.rows / 2;
   InverseDepthMap half{cv::Mat::zeros(h, w, CV_32F), cv::Mat::zeros(h, w, CV_32F)};
+  const bool has_variance = !depth.variance.empty();
   for (int y = 0; y < h; ++y) {
     const float* d[2] = {depth.inverse_depth.ptr<float>(2 * y), depth.inverse_depth.ptr<float>(2 * y + 1)};
-    const bool has_variance = !depth.variance.empty();
     const float* v[2] = {has_variance ? depth.variance.ptr<float>(2 * y) : nullptr,
                          has_variance ? depth.variance.ptr<float>(2 * y + 1) : nullptr};
     float* hd = half.inverse_depth.ptr<float>(y);
@@ -109,9 +109,9 @@ StatusOr<std::unique_ptr<DenseStage>> DenseStage::Create(const RigCalibration& r
 DenseStage::DenseStage(const RigCalibration& rig, const DenseStageOptions& options, ThreadPool* pool)
     : rig_(rig), options_(options), pool_(pool), map_(options.map) {
   for (int level = 0; level <= options.max_image_level; ++level) {
-    Level l{rig, AtImageLevel(options, level), nullptr};
+    const DenseStageOptions at_level = AtImageLevel(options, level);
+    Level l{rig, at_level.photometric, std::make_unique<DepthNormalFusion>(at_level.fusion, pool)};
     l.rig.camera = rig.camera.AtPyramidLevel(level);
-    l.fusion = std::make_unique<DepthNormalFusion>(l.options.fusion, pool);
     levels_.push_back(std::move(l));
   }
 }
@@ -168,7 +168,7 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
 
   // Photometric stereo: the first keyframes estimate the depth scale, then the session fixes it.
   auto t0 = std::chrono::steady_clock::now();
-  PhotometricOptions ps_options = at.options.photometric;
+  PhotometricOptions ps_options = at.photometric;
   result.estimated_depth_scale = depth_scale_.count() < options_.max_scale_keyframes;
   ps_options.estimate_depth_scale = result.estimated_depth_scale;
   // The photometric depth scale is metres per unit of this keyframe's depth; the session's is metres

@@ -181,11 +181,11 @@ class DenseStage {
   RigCalibration rig_;
   DenseStageOptions options_;
   ThreadPool* pool_;
-  // Per pyramid level up to options_.max_image_level: the rig's camera, the options with their pixel
-  // lengths, and the fusion at that level.
+  // Per pyramid level up to options_.max_image_level: the rig's camera, the photometric options with
+  // their pixel lengths, and the fusion at that level.
   struct Level {
     RigCalibration rig;
-    DenseStageOptions options;
+    PhotometricOptions photometric;
     std::unique_ptr<DepthNormalFusion> fusion;
   };
   std::vector<Level> levels_;
