@@ -170,6 +170,8 @@ struct SessionResult {
   std::string error;
   std::vector<double> frame_to_pose_ms;
   size_t tracked = 0;
+  uint64_t slowest_frame = 0;  // the frame whose pose took longest
+  double slowest_ms = 0;
   double p95() const { return Percentile(frame_to_pose_ms, 0.95); }
 };
 
@@ -201,8 +203,13 @@ SessionResult RunSession(const Server& server, const Sequence& seq, double fps, 
   std::map<uint64_t, Clock::time_point> sent;
   session->SetEventCallback([&](const prism::client::Event& e) {
     if (e.kind != prism::client::Event::Kind::kPose || e.pose.refined) return;
-    if (auto it = sent.find(e.pose.frame_sequence_number); it != sent.end())
+    if (auto it = sent.find(e.pose.frame_sequence_number); it != sent.end()) {
       out.frame_to_pose_ms.push_back(MsSince(it->second));
+      if (out.frame_to_pose_ms.back() > out.slowest_ms) {
+        out.slowest_ms = out.frame_to_pose_ms.back();
+        out.slowest_frame = e.pose.frame_sequence_number;
+      }
+    }
     if (e.pose.state == prism::client::TrackingState::kTracking) ++out.tracked;
   });
   const auto t0 = Clock::now();
@@ -451,7 +458,8 @@ int RunBaseline(const Settings& s, const Context& c, bool curve, const GroupServ
     std::cerr << (curve ? "curve " : "") << "baseline run " << r << ": p50/p90/p95/p99 "
               << Percentile(b.frame_to_pose_ms, 0.5) << "/" << Percentile(b.frame_to_pose_ms, 0.9) << "/" << b.p95()
               << "/" << Percentile(b.frame_to_pose_ms, 0.99) << " ms, " << b.frame_to_pose_ms.size()
-              << " poses, server RSS " << server.RssMb() << " MB\n";
+              << " poses (slowest: frame " << b.slowest_frame << ", " << b.slowest_ms << " ms), server RSS "
+              << server.RssMb() << " MB\n";
   }
   base->p95_all = Percentile(base_all, 0.95);
   return kContinue;

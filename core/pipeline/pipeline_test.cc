@@ -514,23 +514,21 @@ TEST(SessionPipelineTest, TheStartCheckIsReportedWhenTheFirstStartIsKept) {
   }
 }
 
-// The uniform bunny's seed 1 at 512x512 (slam_system_test: a first start in the bas-relief valley, 3.9%
-// of the path without the check), streamed through a session: the second start replaces the first
-// (2), every pose the client had from the first start is sent again (refined) as soon as that happens,
-// before the session's end, and the latest poses make one trajectory within the bar.
+// The uniform bunny's seed 1 at 512x512 with a start that fails the start check (slam_system_test,
+// TheStartCheckReplacesAStartThatSpreadsMore), streamed through a session: the second start replaces the
+// first (2), every pose the client had from the first start is sent again (refined) as soon as that
+// happens, before the session's end, and the latest poses make one trajectory within the bar.
 TEST(SessionPipelineTest, ASecondStartReplacesTheFirstAndItsPosesAreSentAgain) {
   const RenderedSequence seq = RenderSequence("bunny-uniform-sideways", 150, {0, 0, 0, 0, 0}, 512);
   if (seq.frames.empty()) GTEST_SKIP() << "bunny mesh unavailable (Debian's libcgal-demo)";
   SessionPipelineOptions options;
   options.input_policy = OverflowPolicy::kReject;
-  // The distorted first start comes from the initialisation's features on raw grey; on J (the default
-  // since the thirty-sixth round) this seed starts right.
   options.slam.init_track_normalised = false;
   options.slam.init_min_feature_local_mean = 0;
-  // And keyframes by rotation at 15 deg (the default before the forty-sixth round). At 10 this start's
-  // first six keyframes spread by 0.123, under the check's 0.16: the check misses it, and the session
-  // ends at 3.55% of the path (slam_system_test, TheStartCheckReplacesADistortedStart).
   options.slam.keyframe_max_rotation_deg = 15;
+  options.slam.init_min_frames = 6;
+  options.slam.init_min_parallax_fraction = 0.005;
+  options.slam.start_check_max_pair_spread = 0.05;
   EventLog log;
   size_t tracked = 0;
   const double percent = RunSessionAndScoreTheLatestPoses(seq, options, &log, &tracked);

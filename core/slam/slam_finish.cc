@@ -61,6 +61,10 @@ std::vector<SlamKeyframe> SlamSystem::FinishTracking() {
                     << (start_check_report_.checked ? ", spread " + std::to_string(start_check_report_.first_spread)
                                                     : std::string());
   }
+  if (start_check_ && start_check_->second_start.valid()) {
+    CloseSecondStart(nullptr);  // the frames so far; the second start may still be kept
+    impl_->start_check_running = false;
+  }
   if (start_check_) {
     PRISM_LOG(INFO) << "slam: start check not done at Finish; the " << (start_check_->retry ? "first " : "")
                     << "start is kept";

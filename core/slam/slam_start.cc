@@ -58,7 +58,7 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
   StartCheck& c = *start_check_;
   const SlamOptions o = impl_->options;  // a copy: impl_ may be replaced below
   const size_t n = static_cast<size_t>(o.start_check_keyframes);
-  c.frames.push_back({timestamp, rgb.clone()});
+  c.AddFrame(timestamp, rgb);
   if (!c.retry) {
     if (impl_->keyframes.size() < n) {
       if (static_cast<int>(c.frames.size()) >= o.start_check_max_frames) {
@@ -124,16 +124,23 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
     c.retry = std::move(*retry);
     c.retry->start_check_running = true;
     start_check_report_.retried = true;
+    if (o.start_check_async) {
+      // On its own thread: the frames so far, then each new one, while the first start goes on here.
+      c.StartSecondStartThread(n, static_cast<size_t>(o.start_check_max_frames), start_check_report_.first_spread);
+      return;
+    }
     // The second start runs over the frames up to the one the first was checked at, at once (inline that
     // is this frame; on its thread an earlier one), then frame by frame, checked after each as if it had
     // run alongside the first from the check's frame on.
     for (size_t i = 0; i < c.check_frame; ++i) {
+      ++start_check_report_.second_frames_on_caller;
       StatusOr<SlamFrameResult> r = c.retry->Process(c.frames[i].timestamp, c.frames[i].rgb);
       if (!r.ok()) {
         PRISM_LOG(WARNING) << "slam: start check: second start: " << r.status();
       }
     }
     for (size_t i = c.check_frame; i < c.frames.size(); ++i) {
+      ++start_check_report_.second_frames_on_caller;
       StatusOr<SlamFrameResult> second = c.retry->Process(c.frames[i].timestamp, c.frames[i].rgb);
       if (!StepSecondStart(i, &second)) continue;
       // Closed at frame i. Kept, the second start goes on over the frames after it (as the only start, as
@@ -148,6 +155,12 @@ void SlamSystem::StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<S
     }
     return;
   }
+  if (c.second_start.valid()) {
+    if (!c.keeping && c.second_start.wait_for(std::chrono::seconds(0)) != std::future_status::ready) return;
+    CloseSecondStart(result);
+    return;
+  }
+  ++start_check_report_.second_frames_on_caller;
   StatusOr<SlamFrameResult> second = c.retry->Process(timestamp, rgb);
   if (!StepSecondStart(c.frames.size() - 1, &second)) return;
   if (start_check_report_.second_kept) *result = std::move(second);
@@ -162,7 +175,84 @@ std::vector<double> SlamSystem::TakeStartCheckScales() {
   return std::move(pending->scales);
 }
 
-bool SlamSystem::StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second) {
+SlamSystem::StartCheck::~StartCheck() {
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    stop = true;
+  }
+  more.notify_all();
+  if (second_start.valid()) second_start.wait();
+}
+
+void SlamSystem::StartCheck::AddFrame(double timestamp, const cv::Mat& rgb) {
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    frames.push_back({timestamp, rgb.clone()});
+  }
+  more.notify_one();
+}
+
+void SlamSystem::StartCheck::StartSecondStartThread(size_t num_keyframes, size_t max_frames, double first_spread) {
+  second_start = std::async(std::launch::async, [this, num_keyframes, max_frames, first_spread] {
+    SetCurrentThreadName("slam-2nd-start");
+    SecondStartEnd end;
+    for (size_t i = 0;; ++i) {
+      Frame f;
+      {
+        std::unique_lock<std::mutex> lock(mutex);
+        more.wait(lock, [&] { return stop || i < frames.size() || (catch_up && i == frames.size()); });
+        if (stop || i == frames.size()) return end;  // abandoned; or caught up (kept, or at Finish)
+        f = frames[i];
+      }
+      StatusOr<SlamFrameResult> r = retry->Process(f.timestamp, f.rgb);
+      if (!r.ok()) {
+        PRISM_LOG(WARNING) << "slam: start check: second start: " << r.status();
+      }
+      if (end.result) {  // kept: catching up
+        end.last = std::move(r);
+        continue;
+      }
+      if (i < check_frame) continue;
+      end.enough_keyframes = retry->keyframes.size() >= num_keyframes;
+      if (!end.enough_keyframes && i + 1 < max_frames) continue;
+      if (end.enough_keyframes) {
+        retry->ApplyPendingAdjustment();
+        end.scales = retry->PairShadingScales(num_keyframes);
+      }
+      end.decided = true;
+      end.frame = i;
+      const bool keep =
+          end.enough_keyframes && r.ok() && end.scales.size() >= 3 && PairSpread(end.scales) < first_spread;
+      end.result = std::move(r);
+      if (!keep) return end;
+      end.last = end.result;
+      retry->start_check_running = false;  // as the only start from here on
+      keeping = true;                      // the caller stops the first start and waits for this one
+    }
+  });
+}
+
+void SlamSystem::CloseSecondStart(StatusOr<SlamFrameResult>* result) {
+  StartCheck& c = *start_check_;
+  {
+    std::lock_guard<std::mutex> lock(c.mutex);
+    c.catch_up = true;
+  }
+  c.more.notify_one();
+  StartCheck::SecondStartEnd end = c.second_start.get();
+  if (end.decided) {
+    StatusOr<SlamFrameResult> second = std::move(*end.result);
+    StepSecondStart(end.frame, &second, end.enough_keyframes ? &end.scales : nullptr);
+    // Kept, it has caught up with every frame on its thread: the newest frame's result is its own.
+    if (start_check_report_.second_kept && result != nullptr) *result = std::move(*end.last);
+  } else {
+    PRISM_LOG(WARNING) << "slam: start check: the second start had fewer than " << impl_->options.start_check_keyframes
+                       << " keyframes at the last frame; the first start is kept";
+  }
+  start_check_.reset();
+}
+
+bool SlamSystem::StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second, const std::vector<double>* scales) {
   StartCheck& c = *start_check_;
   const SlamOptions o = impl_->options;  // a copy: impl_ may be replaced below
   const size_t n = static_cast<size_t>(o.start_check_keyframes);
@@ -174,8 +264,13 @@ bool SlamSystem::StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second
     }
     return false;
   }
-  c.retry->ApplyPendingAdjustment();
-  const std::vector<double> again = c.retry->PairShadingScales(n);
+  std::vector<double> again;
+  if (scales != nullptr) {
+    again = *scales;
+  } else {
+    c.retry->ApplyPendingAdjustment();
+    again = c.retry->PairShadingScales(n);
+  }
   const double spread = again.size() >= 3 ? PairSpread(again) : std::numeric_limits<double>::infinity();
   start_check_report_.second_checked = true;
   start_check_report_.second_spread = spread;

@@ -371,7 +371,10 @@ struct StartCheckReport {
   bool second_checked = false;  // the second start reached as many keyframes in time
   double second_spread = 0;     // its spread (infinity when fewer than 3 of its pairs gave a scale)
   bool second_kept = false;     // the second start replaced the first
-  bool done = false;            // the check is closed (also when it is off or could not run)
+  // Frames the second start processed inside ProcessFrame (all of its frames inline; with start_check_async
+  // none: it runs on its own thread).
+  int second_frames_on_caller = 0;
+  bool done = false;  // the check is closed (also when it is off or could not run)
   // Wall time of the check inside ProcessFrame: the pair shading scales (a one-time pause of the frame
   // that reaches start_check_keyframes; with start_check_async only the copy of the pairs and a keyframe's
   // wait for their thread) and, when a second start runs, its replay and its frames.
@@ -478,9 +481,12 @@ class SlamSystem {
                                                  ThreadPool* pool);
   // SlamOptions::start_check_*: keeps the frame, runs the second start, decides.
   void StepStartCheck(double timestamp, const cv::Mat& rgb, StatusOr<SlamFrameResult>* result);
-  // The second start's check after it has processed frame `frame` (its result `second`): true when the
-  // check closes there (impl_ is then the start kept).
-  bool StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second);
+  // The second start's check after it has processed frame `frame` (its result `second`; its pair shading
+  // scales when given, else computed here): true when the check closes there (impl_ is then the start kept).
+  bool StepSecondStart(size_t frame, StatusOr<SlamFrameResult>* second, const std::vector<double>* scales = nullptr);
+  // The second start on its thread (start_check_async): waits for it to have every frame, then decides
+  // as StepSecondStart; `result` (may be null) is the newest frame's, replaced when the second is kept.
+  void CloseSecondStart(StatusOr<SlamFrameResult>* result);
   // The pair scales of the start check on its thread (start_check_async; waits for them), with their times
   // in the report.
   std::vector<double> TakeStartCheckScales();

@@ -4,11 +4,15 @@
 // keyframe adjustments, the shading pairs) and slam_finish.cc (the end of the sequence).
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <cstdint>
 #include <future>
 #include <memory>
+#include <mutex>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -316,9 +320,35 @@ struct SlamSystem::StartCheck {
     double timestamp;
     cv::Mat rgb;
   };
-  std::vector<Frame> frames;    // every frame so far
+  // Where the second start on its thread closed the check: at `frame`, with that frame's result and, when
+  // it had start_check_keyframes keyframes there, its pair shading scales; kept, the result of the last
+  // frame it caught up with.
+  struct SecondStartEnd {
+    bool decided = false;  // it reached start_check_keyframes keyframes or start_check_max_frames frames
+    size_t frame = 0;
+    std::optional<StatusOr<SlamFrameResult>> result;
+    std::optional<StatusOr<SlamFrameResult>> last;
+    bool enough_keyframes = false;
+    std::vector<double> scales;
+  };
+  ~StartCheck();
+  // Runs the second start (retry) on its own thread over `frames`, waiting for each new one, until it has
+  // start_check_keyframes keyframes or start_check_max_frames frames. When it spreads less than
+  // `first_spread` (kept) it sets `keeping` and goes on over the frames until the caller sets catch_up
+  // and it has them all.
+  void StartSecondStartThread(size_t num_keyframes, size_t max_frames, double first_spread);
+  void AddFrame(double timestamp, const cv::Mat& rgb);
+
+  std::mutex mutex;
+  std::condition_variable more;
+  std::vector<Frame> frames;  // every frame so far; guarded by mutex while second_start runs
+  bool stop = false;          // guarded by mutex: the thread returns before its next frame
+  bool catch_up = false;      // guarded by mutex: the thread returns once it has every frame
+  std::atomic<bool> keeping{false};
   size_t check_frame = 0;       // the index of the frame the first start was checked at
   std::unique_ptr<Impl> retry;  // the second start, once the first failed the check
+  // SlamOptions::start_check_async: the second start's thread. Last member: waited for before retry goes.
+  std::future<SecondStartEnd> second_start;
 };
 
 }  // namespace prism

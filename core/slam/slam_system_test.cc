@@ -385,7 +385,7 @@ TEST(SlamSystem, TheShadingCheckReportsADistortedReconstruction) {
   if (!Render("bunny-uniform-sideways", 150, 1, &r, &why)) GTEST_SKIP() << "preset unavailable: " << why;
   ThreadPool pool(2);
   SlamOptions options;
-  options.start_check_keyframes = 0;  // the distorted start stays (see TheStartCheckReplacesADistortedStart)
+  options.start_check_keyframes = 0;  // the distorted start stays
   // The distorted start comes from the initialisation's features on raw grey; on J (the default since the
   // thirty-sixth round) this seed starts right (0.11% of path).
   options.init_track_normalised = false;
@@ -645,26 +645,31 @@ TEST(SlamSystem, TheUniformSpheresForwardStartWithoutTheEdgeTestInTheFirstDepth)
   ExpectTrackedWithinTheBar(run, "uniform sphere, forward start, seed 2");
 }
 
-// The uniform bunny's seed 1 starts in the bas-relief valley (the test above: ATE 3.9% of path). The
-// online start check sees it after 6 keyframes and a second start with a longer baseline replaces it.
+// The start check on a start that fails it: the uniform bunny's seed 1 with the first start's
+// initialisation from 6 frames and any parallax, checked against a limit of 0.05 (default 0.16). The
+// first start's pairs spread by 0.077 (measured), so a second start with the default retry baseline runs
+// beside it; it spreads by 0.033 and replaces it. (With the default options this seed starts well and
+// passes the check, as every preset seed has since the thirty-sixth round.)
 constexpr double kStartCheckAtePercent = 1.0;  // the bar
 
-TEST(SlamSystem, TheStartCheckReplacesADistortedStart) {
+SlamOptions AStartThatFailsTheCheck() {
+  SlamOptions options;
+  options.start_check_keyframes = 6;
+  options.init_track_normalised = false;
+  options.init_min_feature_local_mean = 0;
+  options.keyframe_max_rotation_deg = 15;
+  options.init_min_frames = 6;
+  options.init_min_parallax_fraction = 0.005;
+  options.start_check_max_pair_spread = 0.05;
+  return options;
+}
+
+TEST(SlamSystem, TheStartCheckReplacesAStartThatSpreadsMore) {
   Rendered r;
   std::string why;
   if (!Render("bunny-uniform-sideways", 150, 1, &r, &why)) GTEST_SKIP() << "preset unavailable: " << why;
   ThreadPool pool(2);
-  SlamOptions options;
-  options.start_check_keyframes = 6;
-  options.init_track_normalised = false;  // the distorted first start (see above)
-  options.init_min_feature_local_mean = 0;
-  // With keyframes by rotation at 15 deg (the default before the forty-sixth round). At 10 the first
-  // start's six keyframes turn less (prism-slam: 11 keyframes in all against 19) and spread by 0.123, under
-  // the check's 0.16: the check misses this start, which ends at 3.22% of the path (the shading check at
-  // the end flags it, spread 0.224). A limit of the check measured here, not a behaviour to keep.
-  // The same with the start check's window cells at 12 px (start_check_window_cell_px; fiftieth round):
-  // spread 0.116, missed, 3.9% of the path in the pipeline's run.
-  options.keyframe_max_rotation_deg = 15;
+  const SlamOptions options = AStartThatFailsTheCheck();
   StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
   ASSERT_TRUE(slam.ok()) << slam.status();
   std::vector<SlamKeyframe> keyframes;
@@ -690,6 +695,8 @@ TEST(SlamSystem, TheStartCheckReplacesADistortedStart) {
   ASSERT_TRUE(check.second_checked);
   EXPECT_LE(check.second_spread, options.start_check_max_pair_spread);
   EXPECT_TRUE(check.second_kept);
+  // The second start ran on its own thread: the frames did not wait for its replay.
+  EXPECT_LT(check.second_frames_on_caller, 5);
   // Keyframes were held until the check was done, then handed out once each, in order, from the second
   // start.
   EXPECT_GT(first_handed_out, 0);
@@ -706,20 +713,22 @@ TEST(SlamSystem, TheStartCheckReplacesADistortedStart) {
   StatusOr<AteResult> ate = Sim3Ate(r.trajectory, estimate);
   ASSERT_TRUE(ate.ok()) << ate.status();
   const double ate_percent = PercentOfPath(*ate);
-  std::printf("uniform bunny, seed 1, start check on: ATE %.3f%% of path after the final adjustment\n", ate_percent);
+  std::printf("uniform bunny, seed 1, a start that fails the check: ATE %.3f%% of path after the final adjustment\n",
+              ate_percent);
   EXPECT_LE(ate_percent, kStartCheckAtePercent);
 }
 
-// SlamOptions::start_check_async: the first start's pair shading scales on their own thread give the same
-// run to the bit as inline, on a start that passes the check and on one that fails it (the second start
-// kept; as in TheStartCheckReplacesADistortedStart). Only the frame the check closes at may move (later).
+// SlamOptions::start_check_async: the first start's pair shading scales and the second start on their own
+// threads give the same run to the bit as inline, on a start that passes the check and on one that fails it
+// (the second start kept; as in TheStartCheckReplacesAStartThatSpreadsMore). Only the frame the check
+// closes at may move (later), and the second start's frames no longer pause the caller's.
 TEST(SlamSystem, TheStartCheckOnItsThreadGivesTheSameRun) {
   Rendered r;
   std::string why;
   if (!Render("bunny-uniform-sideways", 150, 1, &r, &why)) GTEST_SKIP() << "preset unavailable: " << why;
   ThreadPool pool(2);
-  for (const bool distorted : {false, true}) {
-    SCOPED_TRACE(distorted ? "a distorted start" : "a good start");
+  for (const bool failing : {false, true}) {
+    SCOPED_TRACE(failing ? "a start that fails the check" : "a good start");
     struct Run {
       std::vector<SlamFrameResult> trajectory;
       std::vector<Sim3d> keyframe_poses;
@@ -729,13 +738,8 @@ TEST(SlamSystem, TheStartCheckOnItsThreadGivesTheSameRun) {
     };
     Run runs[2];
     for (const bool async : {false, true}) {
-      SlamOptions options;
+      SlamOptions options = failing ? AStartThatFailsTheCheck() : SlamOptions();
       options.start_check_async = async;
-      if (distorted) {  // as in TheStartCheckReplacesADistortedStart
-        options.init_track_normalised = false;
-        options.init_min_feature_local_mean = 0;
-        options.keyframe_max_rotation_deg = 15;
-      }
       StatusOr<std::unique_ptr<SlamSystem>> slam = SlamSystem::Create(r.setup.rig, options, &pool);
       ASSERT_TRUE(slam.ok()) << slam.status();
       Run& run = runs[async];
@@ -757,12 +761,12 @@ TEST(SlamSystem, TheStartCheckOnItsThreadGivesTheSameRun) {
     std::printf(
         "%s: first spread %.4f, second kept %d; check inline %.1f ms in the frames, on its thread %.1f ms in "
         "the frames and %.1f ms on the thread; keyframes handed out from frame %d inline, %d on the thread\n",
-        distorted ? "distorted start" : "good start", async_run.check.first_spread, async_run.check.second_kept ? 1 : 0,
+        failing ? "failing start" : "good start", async_run.check.first_spread, async_run.check.second_kept ? 1 : 0,
         1000 * inline_run.check.seconds, 1000 * async_run.check.seconds, 1000 * async_run.check.thread_seconds,
         inline_run.first_handed_out, async_run.first_handed_out);
     ASSERT_TRUE(inline_run.check.checked);
-    EXPECT_EQ(inline_run.check.passed, !distorted);
-    EXPECT_EQ(inline_run.check.second_kept, distorted);
+    EXPECT_EQ(inline_run.check.passed, !failing);
+    EXPECT_EQ(inline_run.check.second_kept, failing);
     EXPECT_TRUE(async_run.check.checked);
     EXPECT_TRUE(async_run.check.done);
     EXPECT_EQ(async_run.check.first_spread, inline_run.check.first_spread);
@@ -772,6 +776,10 @@ TEST(SlamSystem, TheStartCheckOnItsThreadGivesTheSameRun) {
     EXPECT_EQ(async_run.check.second_kept, inline_run.check.second_kept);
     EXPECT_EQ(inline_run.check.thread_seconds, 0.0);
     EXPECT_GT(async_run.check.thread_seconds, 0.0);
+    if (failing) {
+      EXPECT_GT(inline_run.check.second_frames_on_caller, 30);
+      EXPECT_LT(async_run.check.second_frames_on_caller, 5);
+    }
     EXPECT_GE(async_run.first_handed_out, inline_run.first_handed_out);
 
     ASSERT_NO_FATAL_FAILURE(ExpectSamePoses(async_run.trajectory, async_run.keyframe_poses, inline_run.trajectory,
