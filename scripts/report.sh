@@ -160,10 +160,14 @@ PY
     "$BIN/prism-bench-e2e" --codecs jpeg --fps 15 --live --sessions 2 "${@:2}" > "$dir/load2.json"
     "$BIN/prism-bench-e2e" --codecs jpeg --fps 15 --live --sessions 4 "${@:2}" > "$dir/load4.json"
     echo "| run | poses, frames/s | map, frames/s | frame to pose p50 / p95, ms | keyframe to chunk p50 / p95, s |" \
-      "map complete / rebuilt after the last pose, s | chunk bits per point | ATE, % of path | server peak RSS, MB |"
-    echo "|---|---|---|---|---|---|---|---|---|"
+      "map complete / rebuilt after the last pose, s | chunk bits per point | ATE, % of path | map F (precision / completeness) |" \
+      "server peak RSS, MB |"
+    echo "|---|---|---|---|---|---|---|---|---|---|"
     python3 - "$dir/unpaced.json" "$dir/live.json" "$dir/load2.json" "$dir/load4.json" <<'PY'
 import json, sys
+def score(c):
+    m = c.get("map") or {}
+    return f"{m['fscore']:.2f} ({m['precision']:.2f} / {m['completeness']:.2f})" if "fscore" in m else "-"
 for path, mode in ((sys.argv[1], "as fast as credits allow"), (sys.argv[2], "live camera, 30 frames/s")):
     d = json.load(open(path))
     for codec, c in d["codecs"].items():
@@ -171,7 +175,7 @@ for path, mode in ((sys.argv[1], "as fast as credits allow"), (sys.argv[2], "liv
               f"{c['frame_to_pose_ms_p50']:.0f} / {c['frame_to_pose_ms_p95']:.0f} | "
               f"{c['keyframe_to_chunk_ms_p50'] / 1000:.2f} / {c['keyframe_to_chunk_ms_p95'] / 1000:.2f} | "
               f"{c['map_complete_after_last_pose_s']:.1f} / {c['map_done_after_last_pose_s']:.1f} | {c['chunk_bits_per_point']:.1f} | {c['ate_percent_of_path']:.2f} | "
-              f"{d['server_peak_rss_mb']:.0f} |")
+              f"{score(c)} | {d['server_peak_rss_mb']:.0f} |")
 print()
 print("Where a keyframe's time goes on the server (means per keyframe, ms, from its /metrics):")
 print()
@@ -187,8 +191,8 @@ print()
 print("Sessions at once, each a live camera at 15 frames/s (JPEG), one row per session:")
 print()
 print("| sessions | session | poses, frames/s | frame to pose p50 / p95, ms | keyframe to chunk p50 / p95, s | "
-      "map complete after the last pose, s | keyframes (dropped) | ATE, % of path |")
-print("|---|---|---|---|---|---|---|---|")
+      "map complete after the last pose, s | keyframes (dropped) | ATE, % of path | map F (precision / completeness) |")
+print("|---|---|---|---|---|---|---|---|---|")
 for path in sys.argv[3:]:
     sessions = json.load(open(path))["codecs"]["jpeg"]["sessions"]
     for i, c in enumerate(sessions):
@@ -196,7 +200,7 @@ for path in sys.argv[3:]:
               f"{c['frame_to_pose_ms_p50']:.0f} / {c['frame_to_pose_ms_p95']:.0f} | "
               f"{c['keyframe_to_chunk_ms_p50'] / 1000:.1f} / {c['keyframe_to_chunk_ms_p95'] / 1000:.1f} | "
               f"{c['map_complete_after_last_pose_s']:.1f} | {c['keyframes']} ({c['keyframes_dropped']}) | "
-              f"{c['ate_percent_of_path']:.2f} |")
+              f"{c['ate_percent_of_path']:.2f} | {score(c)} |")
 PY
     rm -rf "$dir"
     echo

@@ -186,7 +186,9 @@ void DeclareServerMetrics(Metrics* m) {
   m->Declare("prism_poses_sent_total", T::kCounter, "Poses sent.");
   m->Declare("prism_poses_refined_total", T::kCounter, "Refined poses sent (end of session, loop closures).");
   m->Declare("prism_keyframes_merged_total", T::kCounter, "Keyframes merged into a map (a chunk each).");
-  m->Declare("prism_keyframes_dropped_total", T::kCounter, "Keyframes the dense stage skipped (queue overflow).");
+  m->Declare("prism_keyframes_dropped_total", T::kCounter,
+             "Keyframes the dense stage skipped (queue overflow, a session over max-frame-rate-hz, or covered "
+             "by the map while another keyframe waited).");
   m->Declare("prism_chunks_sent_total", T::kCounter, "Map chunks sent.");
   m->Declare("prism_chunk_credit_stalls_total", T::kCounter,
              "Chunks made while their session had no chunk credit left (the client is not keeping up).");

@@ -153,6 +153,10 @@ std::vector<ServerOptionKey> MakeKeys() {
        [](const O& o) { return std::string(o.pipeline.input_policy == OverflowPolicy::kReject ? "upload" : "live"); }},
       IntKey("keyframe-queue", "N", "finished keyframes queued per session for the dense stage",
              [](O& o) -> int& { return o.pipeline.keyframe_queue_capacity; }),
+      DoubleKey("covered-keyframe-fraction", "F",
+                "with another keyframe of the session waiting, a keyframe the map already\n"
+                "covers to more than F skips the dense stage (in (0, 1]; 1 = never)",
+                [](O& o) -> double& { return o.pipeline.covered_keyframe_fraction; }),
       IntKey("skip-depth-update-backlog", "N",
              "when N frames wait for an upload session's SLAM, the next frame is tracked\n"
              "without its stereo depth update (behind: poses first; 0 = never)",

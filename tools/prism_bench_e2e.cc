@@ -14,6 +14,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <iomanip>
 #include <iostream>
 #include <map>
 #include <sstream>
@@ -22,6 +23,7 @@
 #include <vector>
 
 #include "core/eval/trajectory_metrics.h"
+#include "core/io/ply_io.h"
 #include "core/synth/presets.h"
 #include "core/synth/renderer.h"
 #include "core/synth/trajectory.h"
@@ -55,6 +57,9 @@ finishes keyframe k, or the last pose for the last keyframe, -> keyframe k's fir
 uplink_bytes_per_frame, chunk_bits_per_point, chunks, keyframes; server_rss_mb before the first session and after each, server_peak_rss_mb;
 ate_percent_of_path (the poses received, the refined ones replacing the first, tracked frames only,
 against the rendered truth after a Sim(3) alignment), frames_depth_update_skipped and frames_dropped;
+map: the session's final map (the SDK's Session::Map) scored as docs/benchmarks.md scores maps (prism-eval
+cloud --object-only on the preset written by prism-synth, placed by the received poses' Sim(3) alignment):
+fscore, precision, completeness, accuracy_median_mm;
 server_ms_per_keyframe: from the server's /metrics, the mean per keyframe of its wait in the keyframe
 queue, the dense stage's time on it (dense_total) and its parts (photometric, fusion, map, encode).
 With --sessions N > 1, N sessions stream at once per codec and the codec's entry is {"sessions": [one
@@ -91,6 +96,8 @@ struct Settings {
   bool live = false;
   int sessions = 1;                         // sessions at once per codec
   std::vector<std::string> server_options;  // --KEY VALUE pairs for prism-server
+  std::string argv0;
+  std::string truth_dir;  // the preset written by prism-synth: the true surface for prism-eval
 };
 
 // The preset rendered in memory.
@@ -99,6 +106,29 @@ struct RenderedPreset {
   prism::Trajectory trajectory;
   std::vector<cv::Mat> images;
 };
+
+// Runs a program next to this one (argv0's folder) with its stdout in `out_file`; its exit status, or -1
+// when it could not start.
+int RunNextTo(const std::string& argv0, const std::string& program, std::vector<std::string> args,
+              const std::string& out_file) {
+  const std::string dir = std::filesystem::path(argv0).parent_path().string();
+  const std::string binary = (dir.empty() ? std::string(".") : dir) + "/" + program;
+  args.insert(args.begin(), binary);
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, 1, out_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  posix_spawn_file_actions_addopen(&actions, 2, "/dev/null", O_WRONLY, 0);
+  std::vector<char*> cargs;
+  for (std::string& a : args) cargs.push_back(a.data());
+  cargs.push_back(nullptr);
+  pid_t pid = 0;
+  const int spawned = posix_spawn(&pid, binary.c_str(), &actions, nullptr, cargs.data(), environ);
+  posix_spawn_file_actions_destroy(&actions);
+  if (spawned != 0) return -1;
+  int status = 0;
+  waitpid(pid, &status, 0);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
 
 // A prism-server process on a free port, with its files in a temporary folder.
 struct ServerProcess {
@@ -321,10 +351,48 @@ prism::Json DenseBreakdown(const std::map<std::string, double>& before, const st
   return j;
 }
 
+// The session's final map against the preset's true object surface, as docs/benchmarks.md scores maps:
+// prism-eval cloud --object-only, the map placed by the Sim(3) alignment of the received poses (in
+// metres) to the truth. F-score, precision, completeness and median accuracy (mm); an empty object when
+// it could not be scored.
+prism::Json ScoreMap(const Settings& settings, const RenderedPreset& rendered, const StreamEvents& events,
+                     const std::vector<prism::client::Point>& map, double metres_per_unit, const std::string& tag) {
+  if (settings.truth_dir.empty() || map.empty() || !(metres_per_unit > 0)) return prism::Json::object();
+  const std::string base = settings.truth_dir + "/../" + tag;
+  prism::PointCloud cloud;
+  for (const prism::client::Point& p : map) cloud.positions.emplace_back(p.position[0], p.position[1], p.position[2]);
+  if (!prism::WritePointCloudPly(base + "_map.ply", cloud).ok()) return prism::Json::object();
+  {
+    std::ofstream t(base + "_trajectory_metres.txt");
+    t << std::setprecision(17);
+    for (const auto& [seq, pose] : events.tracked_poses) {
+      if (seq >= rendered.trajectory.size()) continue;
+      const Eigen::Quaterniond q(pose.rotation);
+      const Eigen::Vector3d c = pose.translation * metres_per_unit;
+      t << rendered.trajectory[seq].timestamp_s << " " << c.x() << " " << c.y() << " " << c.z() << " " << q.x() << " "
+        << q.y() << " " << q.z() << " " << q.w() << "\n";
+    }
+  }
+  const int exit = RunNextTo(settings.argv0, "prism-eval",
+                             {"cloud", "--sequence", settings.truth_dir, "--cloud", base + "_map.ply", "--object-only",
+                              "--align-trajectory", base + "_trajectory_metres.txt"},
+                             base + "_eval.json");
+  if (exit != 0) return prism::Json::object();
+  std::ifstream f(base + "_eval.json");
+  const nlohmann::json e = nlohmann::json::parse(f, nullptr, /*allow_exceptions=*/false);
+  if (e.is_discarded() || !e.contains("fscore")) return prism::Json::object();
+  auto round3 = [](double v) { return std::round(v * 1000) / 1000; };
+  return {{"fscore", round3(e["fscore"].get<double>())},
+          {"precision", round3(e["precision"].get<double>())},
+          {"completeness", round3(e["completeness"].get<double>())},
+          {"accuracy_median_mm", Round2(1000 * e["accuracy_median_m"].get<double>())}};
+}
+
 // Streams the frames through one session with the codec and measures it into *result (the server's
 // RSS after it included): an empty string, or what failed.
 std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, const prism::client::Rig& rig,
-                     const ServerProcess& server, const std::string& codec_name, prism::Json* result) {
+                     const ServerProcess& server, const std::string& codec_name, const std::string& tag,
+                     prism::Json* result) {
   const std::string& endpoint = server.endpoint;
   const pid_t server_pid = server.pid;
   const std::map<std::string, double> totals_before = prism::FetchMetrics(server.metrics_url, 5000);
@@ -381,7 +449,8 @@ std::string RunCodec(const Settings& settings, const RenderedPreset& rendered, c
       {"frames_dropped", summary.frames_dropped},
       {"ate_percent_of_path", Round2(ate_percent)},
       {"server_rss_mb_after", Round2(ProcStatusMb(server_pid, "VmRSS"))},
-      {"server_ms_per_keyframe", DenseBreakdown(totals_before, prism::FetchMetrics(server.metrics_url, 5000))}};
+      {"server_ms_per_keyframe", DenseBreakdown(totals_before, prism::FetchMetrics(server.metrics_url, 5000))},
+      {"map", ScoreMap(settings, rendered, events, session->Map(), summary.metres_per_unit, tag)}};
   return "";
 }
 
@@ -395,6 +464,16 @@ int main(int argc, char** argv) {
   ServerProcess server;
   if (const int exit = StartServer(argv[0], settings.server_options, &server); exit != prism::cli::kContinue)
     return exit;
+  // The preset again on disk (the same frames: prism-synth's seed 1 is this render's) for ScoreMap.
+  settings.argv0 = argv[0];
+  settings.truth_dir = server.tmp + "/truth";
+  if (RunNextTo(argv[0], "prism-synth",
+                {"--preset", settings.preset, "--frames", std::to_string(settings.frames), "--seed", "1", "--out",
+                 settings.truth_dir},
+                server.tmp + "/synth.out") != 0) {
+    std::cerr << "prism-bench-e2e: prism-synth could not write the preset; the maps are not scored\n";
+    settings.truth_dir.clear();
+  }
 
   const prism::RigCalibration& rig = rendered.setup.rig;
   prism::Json json;
@@ -414,8 +493,10 @@ int main(int argc, char** argv) {
     std::vector<std::string> errors(results.size());
     std::vector<std::thread> threads;
     for (size_t i = 0; i < results.size(); ++i)
-      threads.emplace_back(
-          [&, i] { errors[i] = RunCodec(settings, rendered, client_rig, server, codec_name, &results[i]); });
+      threads.emplace_back([&, i] {
+        errors[i] = RunCodec(settings, rendered, client_rig, server, codec_name, codec_name + "_" + std::to_string(i),
+                             &results[i]);
+      });
     for (std::thread& t : threads) t.join();
     for (const std::string& error : errors) {
       if (error.empty()) continue;

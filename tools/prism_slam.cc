@@ -422,7 +422,7 @@ int RunSlam(const Settings& s, const Input& input, SlamSystem* slam, DenseRun* d
     }
   }
   const auto finish_start = std::chrono::steady_clock::now();
-  std::vector<SlamKeyframe> last_keyframes = slam->Finish();
+  std::vector<SlamKeyframe> last_keyframes = slam->FinishTracking();  // the rest: RefineAndScale
   run->finish_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - finish_start).count();
   for (SlamKeyframe& k : last_keyframes) {
     if (s.dense_online) dense->Run(k);
@@ -435,37 +435,26 @@ int RunSlam(const Settings& s, const Input& input, SlamSystem* slam, DenseRun* d
   return cli::kContinue;
 }
 
-// After the frames: the keyframe depth refinement, the scale drift correction and the metric scale.
+// After the frames: the SLAM's end of the stream (SlamSystem::FinishStream, as the server runs it, with
+// the keyframes' depth refinement on the keyframes kept here): the final adjustment, the refinement, the
+// scale drift correction and the metric scale.
 void RefineAndScale(const Settings& s, SlamSystem* slam, SlamRun* run) {
-  const SlamOptions& options = s.options;
-  // The keyframes' depth re-estimated at the final poses (SlamOptions::final_refinement_neighbours; the
-  // dense stage above ran on each keyframe as handed over).
-  const auto refine_start = std::chrono::steady_clock::now();
-  slam->RefineKeyframeDepths(options.final_refinement_neighbours, options.final_refinement_relative_sigma,
-                             options.final_refinement_rounds, &run->keyframes);
-  run->refine_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
-  // The scale drift between keyframes corrected with the co-moving lights (SlamSystem::CorrectScaleDrift).
-  if (options.scale_drift_correction) {
-    const auto start = std::chrono::steady_clock::now();
-    StatusOr<ScaleDriftCorrection> c = slam->CorrectScaleDrift();
-    run->drift_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (c.ok()) run->drift = *c;
-    else run->drift_error = std::string(c.status().message());
-  }
-  // The metres per world unit from the co-moving lights (SlamSystem::EstimateMetricScale).
-  std::optional<MetricScaleEstimate>& shading_scale = run->shading_scale;
-  if (s.metric_scale) {
-    const auto start = std::chrono::steady_clock::now();
-    StatusOr<MetricScaleEstimate> e = slam->EstimateMetricScale();
-    run->shading_scale_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (e.ok()) shading_scale = *e;
-    else run->shading_scale_error = std::string(e.status().message());
-    if (shading_scale && !shading_scale->consistent)
-      std::cerr << "prism-slam: warning: the reconstruction disagrees with the co-moving lights' shading (keyframe "
-                   "pairs' shading scales spread by "
-                << shading_scale->pair_spread << " of their median, limit " << options.metric_scale_max_pair_spread
-                << "): the trajectory and depth are probably distorted\n";
-  }
+  const SlamStreamEnd end = slam->FinishStream(s.metric_scale, &run->keyframes);
+  run->finish_seconds += end.adjustment_seconds;
+  run->refine_seconds = end.refinement_seconds;
+  run->drift = end.drift;
+  run->drift_error = end.drift_error;
+  run->drift_seconds = end.drift_seconds;
+  if (!s.metric_scale) return;
+  run->shading_scale = end.metric;
+  run->shading_scale_error = end.metric_error;
+  run->shading_scale_seconds = end.metric_seconds;
+  const std::optional<MetricScaleEstimate>& shading_scale = run->shading_scale;
+  if (shading_scale && !shading_scale->consistent)
+    std::cerr << "prism-slam: warning: the reconstruction disagrees with the co-moving lights' shading (keyframe "
+                 "pairs' shading scales spread by "
+              << shading_scale->pair_spread << " of their median, limit " << s.options.metric_scale_max_pair_spread
+              << "): the trajectory and depth are probably distorted\n";
 }
 
 // The dense stage's end (--dense: every final keyframe through it; --dense-online: the map rebuilt at

@@ -235,6 +235,36 @@ StatusOr<DenseKeyframeResult> DenseStage::Process(const DenseKeyframe& keyframe)
   return result;
 }
 
+double DenseStage::MapCoverage(const DenseKeyframe& keyframe) const {
+  const double metres = options_.world_in_slam_units ? map_metres_per_unit_ : 1.0;
+  const cv::Mat& id = keyframe.depth.inverse_depth;
+  if (!(metres > 0) || map_.empty() || id.type() != CV_32F) return 0;
+  const PinholeCamera& c = rig_.camera;
+  const Sim3d& pose = keyframe.world_from_keyframe;
+  constexpr int kStep = 4;
+  constexpr int kReach = 2;  // voxels: the semi-dense depth's noise (a few mm at 1 m)
+  const float voxel = static_cast<float>(options_.map.voxel_m);
+  size_t points = 0, covered = 0;
+  for (int y = 0; y < id.rows; y += kStep) {
+    const float* row = id.ptr<float>(y);
+    for (int x = 0; x < id.cols; x += kStep) {
+      if (!(row[x] > 0)) continue;
+      const Eigen::Vector3d ray((x - c.cx) / c.fx, (y - c.cy) / c.fy, 1.0);
+      const Eigen::Vector3f p = (metres * (pose * (ray / row[x]))).cast<float>();
+      Eigen::Vector3i v;
+      if (!map_.VoxelOf(p, &v)) continue;
+      ++points;
+      bool found = false;
+      for (int dz = -kReach; dz <= kReach && !found; ++dz)
+        for (int dy = -kReach; dy <= kReach && !found; ++dy)
+          for (int dx = -kReach; dx <= kReach && !found; ++dx)
+            found = map_.VoxelOf(p + voxel * Eigen::Vector3f(dx, dy, dz), &v) && map_.Observations(PackVoxelKey(v)) > 0;
+      covered += found;
+    }
+  }
+  return points > 0 ? static_cast<double>(covered) / static_cast<double>(points) : 0.0;
+}
+
 Status DenseStage::Merge(const PointCloud& cloud, uint64_t keyframe_id, bool icp, DenseKeyframeResult* result) {
   Rigid3d correction;  // map_from_cloud; identity unless ICP passes the guard
   result->icp_attempted = false;

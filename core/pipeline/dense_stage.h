@@ -134,6 +134,11 @@ class DenseStage {
   // the wrong type or size.
   StatusOr<DenseKeyframeResult> Process(const DenseKeyframe& keyframe);
 
+  // What the map already holds of what the keyframe sees: the fraction of its semi-dense points (every
+  // 4th pixel of every 4th row) that fall within 2 voxels of a map voxel (each axis), at the keyframe's
+  // pose and the map's scale. 0 while the map has no scale or no voxel.
+  double MapCoverage(const DenseKeyframe& keyframe) const;
+
   // Merges the clouds still waiting for the session scale with the current estimate (end of a session
   // before the scale settled) and returns the changed voxels; empty when none wait.
   StatusOr<MapChunk> Flush();

@@ -36,6 +36,9 @@ Status SessionPipelineOptions::Check() const {
   if (keyframe_queue_capacity < 1 || keyframe_queue_capacity > 256)
     return InvalidArgumentError("SessionPipelineOptions.keyframe_queue_capacity = " +
                                 std::to_string(keyframe_queue_capacity) + "; violated: in [1, 256]");
+  if (!(covered_keyframe_fraction > 0 && covered_keyframe_fraction <= 1))
+    return InvalidArgumentError("SessionPipelineOptions.covered_keyframe_fraction = " +
+                                std::to_string(covered_keyframe_fraction) + "; violated: in (0, 1]");
   return Status::Ok();
 }
 
@@ -265,14 +268,11 @@ void SessionPipeline::FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::
     // the poses are refined (the map rebuilt at the final poses follows, FinishMap).
     for (SlamKeyframe& kf : slam_->FinishTracking()) QueueKeyframe(std::move(kf));
     const bool second_start_at_finish = UpdateStartCheck();
-    if (options_.slam.final_adjustment) slam_->AdjustAllKeyframes();
-    if (options_.slam.scale_drift_correction) {
-      StatusOr<ScaleDriftCorrection> drift = slam_->CorrectScaleDrift();
-      if (!drift.ok()) {
-        PRISM_LOG(INFO) << "pipeline: no scale drift correction: " << drift.status();
-      }
+    const SlamStreamEnd end = slam_->FinishStream(options_.remap_at_end && options_.metric_scale_at_end);
+    if (options_.slam.scale_drift_correction && !end.drift) {
+      PRISM_LOG(INFO) << "pipeline: no scale drift correction: " << end.drift_error;
     }
-    if (options_.remap_at_end && options_.metric_scale_at_end) EstimateFinalMetricScale();
+    if (options_.remap_at_end && options_.metric_scale_at_end) TakeFinalMetricScale(end);
     *refined = RefinedPoses(/*untracked_too=*/second_start_at_finish);
     if (options_.remap_at_end) *final_keyframe_poses = slam_->KeyframePoses();
   } catch (const std::exception& ex) {
@@ -280,15 +280,15 @@ void SessionPipeline::FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::
   }
 }
 
-void SessionPipeline::EstimateFinalMetricScale() {
-  const auto t0 = std::chrono::steady_clock::now();
-  StatusOr<MetricScaleEstimate> metric = slam_->EstimateMetricScale();
-  if (!metric.ok()) {
-    PRISM_LOG(INFO) << "pipeline: no metric scale from the co-moving lights: " << metric.status();
+void SessionPipeline::TakeFinalMetricScale(const SlamStreamEnd& end) {
+  if (!end.metric) {
+    PRISM_LOG(INFO) << "pipeline: no metric scale from the co-moving lights: " << end.metric_error;
     return;
   }
+  const MetricScaleEstimate* metric = &*end.metric;
   PRISM_LOG(INFO) << "pipeline: metric scale from the co-moving lights " << metric->metres_per_world_unit
-                  << " m per unit (dense stage " << metres_per_unit_ << ") in " << MsSince(t0) << " ms";
+                  << " m per unit (dense stage " << metres_per_unit_ << ") in " << 1000 * end.metric_seconds
+                  << " ms (final adjustment " << 1000 * end.adjustment_seconds << " ms)";
   final_metres_per_unit_ = metric->metres_per_world_unit;
   final_shading_consistent_ = metric->consistent;
   {
@@ -475,6 +475,7 @@ void SessionPipeline::EmitChunk(const MapChunk& changes, uint64_t keyframe_id, c
 void SessionPipeline::DenseJob() {
   SlamKeyframe kf;
   std::chrono::steady_clock::time_point queued_at;
+  bool backlog = false;  // another of the session's keyframes waits behind this one
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (keyframes_.empty()) return;  // dropped by the overflow policy or Abort
@@ -487,6 +488,7 @@ void SessionPipeline::DenseJob() {
       ++stats_.keyframes_dropped;
       return;
     }
+    backlog = !keyframes_.empty();
   }
   try {
     const auto t0 = std::chrono::steady_clock::now();
@@ -502,6 +504,16 @@ void SessionPipeline::DenseJob() {
     size_t map_points = 0;
     {
       std::lock_guard<std::mutex> lock(map_mutex_);
+      if (backlog && options_.covered_keyframe_fraction < 1) {
+        const double coverage = dense_->MapCoverage(dk);
+        if (coverage > options_.covered_keyframe_fraction) {
+          PRISM_LOG(INFO) << "pipeline: keyframe " << kf.id << " skips the dense stage: the map covers " << coverage
+                          << " of it and another keyframe waits";
+          std::lock_guard<std::mutex> stats_lock(mutex_);
+          ++stats_.keyframes_dropped;
+          return;
+        }
+      }
       r = dense_->Process(dk);
       map_points = dense_->map().output_size();
     }

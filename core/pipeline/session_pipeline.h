@@ -51,6 +51,11 @@ struct SessionPipelineOptions {
   // room, so it stops consuming frames, the frame queue fills and the server stops granting frame
   // credits (memory stays bounded by the two queue capacities).
   int keyframe_queue_capacity = 4;
+  // When another of the session's keyframes waits behind it, a keyframe whose semi-dense points the map
+  // already covers to more than this fraction (DenseStage::MapCoverage) skips the dense stage (counted in
+  // keyframes_dropped): a dense stage that has fallen behind spends its time where the map lacks surface.
+  // In (0, 1]; 1 = never.
+  double covered_keyframe_fraction = 0.8;
   // When at least this many frames wait in the frame queue as the SLAM thread takes the next one, that
   // frame skips the SLAM's stereo depth update (SlamSystem::ProcessFrame's skip_depth_update; a frame
   // that makes a keyframe still updates): a SLAM that has fallen behind its input spends its time on
@@ -209,8 +214,9 @@ class SessionPipeline {
   // adjustment, the scale drift correction and the metric scale; gives the final keyframe poses
   // (remap_at_end) and the refined pose events for FinishMap.
   void FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::vector<PipelineEvent>* refined);
-  // The SLAM's metric scale from the co-moving lights into final_metres_per_unit_ and the stats.
-  void EstimateFinalMetricScale();
+  // The SLAM's metric scale from the co-moving lights (FinishStream's) into final_metres_per_unit_ and
+  // the stats.
+  void TakeFinalMetricScale(const SlamStreamEnd& end);
   // The strand's last job. Clouds still waiting for the session scale (it had not settled:
   // DenseStageOptions::scale_keyframes) enter the map; then the map is rebuilt at the final keyframe
   // poses when they moved (remap_at_end). The refined poses go out once the session's final scale is

@@ -99,6 +99,33 @@ void SlamSystem::AdjustAllKeyframes() {
   }
 }
 
+SlamStreamEnd SlamSystem::FinishStream(bool metric_scale, std::vector<SlamKeyframe>* refine) {
+  SlamStreamEnd end;
+  const SlamOptions& o = impl_->options;
+  if (o.final_adjustment) {
+    const ScopedSeconds timer(&end.adjustment_seconds);
+    AdjustAllKeyframes();
+  }
+  if (refine != nullptr) {
+    const ScopedSeconds timer(&end.refinement_seconds);
+    RefineKeyframeDepths(o.final_refinement_neighbours, o.final_refinement_relative_sigma, o.final_refinement_rounds,
+                         refine);
+  }
+  if (o.scale_drift_correction) {
+    const ScopedSeconds timer(&end.drift_seconds);
+    StatusOr<ScaleDriftCorrection> drift = CorrectScaleDrift();
+    if (drift.ok()) end.drift = *drift;
+    else end.drift_error = std::string(drift.status().message());
+  }
+  if (metric_scale) {
+    const ScopedSeconds timer(&end.metric_seconds);
+    StatusOr<MetricScaleEstimate> metric = EstimateMetricScale();
+    if (metric.ok()) end.metric = *metric;
+    else end.metric_error = std::string(metric.status().message());
+  }
+  return end;
+}
+
 StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   impl_->ApplyPendingAdjustment();
   Impl& m = *impl_;

@@ -15,6 +15,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -265,6 +266,15 @@ struct ScaleDriftCorrection {
   int loop_edges = 0;  // loop edges kept as measured in the re-optimised pose graph
 };
 
+// What SlamSystem::FinishStream did, and its times.
+struct SlamStreamEnd {
+  std::optional<ScaleDriftCorrection> drift;  // SlamOptions::scale_drift_correction
+  std::string drift_error;                    // why there is none (when it was asked for)
+  std::optional<MetricScaleEstimate> metric;  // with FinishStream's metric_scale
+  std::string metric_error;
+  double adjustment_seconds = 0, refinement_seconds = 0, drift_seconds = 0, metric_seconds = 0;
+};
+
 enum class SlamState {
   kInitializing,  // first keyframe, depth not converged yet; poses are provisional
   kTracking,      // pose is good
@@ -414,6 +424,12 @@ class SlamSystem {
   // caller that hands the last keyframes on first (the server's session pipeline: the map is done
   // without waiting for it) with final_adjustment off; runs once (later calls do nothing).
   void AdjustAllKeyframes();
+  // The stream's end after FinishTracking (the last keyframes handed on), the one sequence prism-slam,
+  // the server and the tests run: AdjustAllKeyframes (SlamOptions::final_adjustment); with `refine` (the
+  // keyframes as handed out, kept by the caller) RefineKeyframeDepths on them with
+  // SlamOptions::final_refinement_*; CorrectScaleDrift (scale_drift_correction); with `metric_scale`,
+  // EstimateMetricScale.
+  SlamStreamEnd FinishStream(bool metric_scale, std::vector<SlamKeyframe>* refine = nullptr);
   // The metres per world unit from the rig's co-moving lights (after Finish): the relit keyframe
   // adjustment (keyframe_ba.h, DirectBaRelit) over the keyframes (at most
   // final_adjustment_max_keyframes, the newest) with log K free, started from the median of
