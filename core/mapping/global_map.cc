@@ -313,6 +313,11 @@ uint32_t GlobalMap::Observations(VoxelKey key) const {
   return index == kEmptySlot ? 0 : voxels_[index].observations;
 }
 
+uint32_t GlobalMap::Keyframes(VoxelKey key) const {
+  const uint32_t index = Find(key);
+  return index == kEmptySlot ? 0 : voxels_[index].keyframes;
+}
+
 bool GlobalMap::LastKeyframe(VoxelKey key, uint64_t* keyframe_id) const {
   const uint32_t index = Find(key);
   if (index == kEmptySlot) return false;

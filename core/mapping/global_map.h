@@ -114,6 +114,8 @@ class GlobalMap {
   bool VoxelOf(const Eigen::Vector3f& point, Eigen::Vector3i* voxel) const;
   // Observations of the voxel holding `key`, 0 when it does not exist.
   uint32_t Observations(VoxelKey key) const;
+  // Distinct keyframes merged into the voxel holding `key`, 0 when it does not exist.
+  uint32_t Keyframes(VoxelKey key) const;
   // Last keyframe merged into the voxel holding `key`; false when it does not exist.
   bool LastKeyframe(VoxelKey key, uint64_t* keyframe_id) const;
 

@@ -243,6 +243,7 @@ double DenseStage::MapCoverage(const DenseKeyframe& keyframe) const {
   const Sim3d& pose = keyframe.world_from_keyframe;
   constexpr int kStep = 4;
   constexpr int kReach = 2;  // voxels: the semi-dense depth's noise (a few mm at 1 m)
+  const uint32_t min_keyframes = static_cast<uint32_t>(options_.map.min_keyframes);
   const float voxel = static_cast<float>(options_.map.voxel_m);
   size_t points = 0, covered = 0;
   for (int y = 0; y < id.rows; y += kStep) {
@@ -258,7 +259,8 @@ double DenseStage::MapCoverage(const DenseKeyframe& keyframe) const {
       for (int dz = -kReach; dz <= kReach && !found; ++dz)
         for (int dy = -kReach; dy <= kReach && !found; ++dy)
           for (int dx = -kReach; dx <= kReach && !found; ++dx)
-            found = map_.VoxelOf(p + voxel * Eigen::Vector3f(dx, dy, dz), &v) && map_.Observations(PackVoxelKey(v)) > 0;
+            found = map_.VoxelOf(p + voxel * Eigen::Vector3f(dx, dy, dz), &v) &&
+                    map_.Keyframes(PackVoxelKey(v)) >= min_keyframes;
       covered += found;
     }
   }

@@ -135,8 +135,9 @@ class DenseStage {
   StatusOr<DenseKeyframeResult> Process(const DenseKeyframe& keyframe);
 
   // What the map already holds of what the keyframe sees: the fraction of its semi-dense points (every
-  // 4th pixel of every 4th row) that fall within 2 voxels of a map voxel (each axis), at the keyframe's
-  // pose and the map's scale. 0 while the map has no scale or no voxel.
+  // 4th pixel of every 4th row) that fall within 2 voxels (each axis) of a voxel of the map's output (one
+  // with MapOptions::min_keyframes keyframes), at the keyframe's pose and the map's scale. 0 while the map
+  // has no scale or no such voxel.
   double MapCoverage(const DenseKeyframe& keyframe) const;
 
   // Merges the clouds still waiting for the session scale with the current estimate (end of a session

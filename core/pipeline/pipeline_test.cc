@@ -585,6 +585,7 @@ TEST(DenseStageTest, MapCoverageIsTheShareOfTheKeyframeTheMapHolds) {
   DenseStageOptions options;
   options.world_in_slam_units = false;
   options.max_image_level = 0;
+  options.map.min_keyframes = 1;  // one keyframe's voxels are the map's output
   StatusOr<std::unique_ptr<DenseStage>> stage = DenseStage::Create(setup->rig, options, &pool);
   ASSERT_TRUE(stage.ok()) << stage.status();
   const DenseKeyframe first = RenderedKeyframe(*setup, trajectory[0].world_from_camera, 0, 1, &pool);
