@@ -566,6 +566,15 @@ DenseKeyframe RenderedKeyframe(const synth::SynthSetup& setup, const Rigid3d& po
   return k;
 }
 
+// The multi-coloured sphere, sideways, 40 frames at 256x256 (a pixel is about a voxel at its distance).
+StatusOr<synth::SynthSetup> SmallSphere() {
+  synth::PresetOptions po;
+  po.width = 256;
+  po.height = 256;
+  po.frames = 40;
+  return synth::MakePreset("sphere-multicolor-sideways", po);
+}
+
 // DenseStage::MapCoverage, what the session pipeline's load policy reads (covered_keyframe_fraction): none
 // on an empty map; a keyframe the map was made from is covered almost wholly (measured 0.89: some
 // semi-dense points are further than 2 voxels from the fused surface), the next one 10 frames on less
@@ -574,11 +583,7 @@ constexpr double kCoveredByItself = 0.85;
 constexpr double kCoveredElsewhere = 0.15;
 
 TEST(DenseStageTest, MapCoverageIsTheShareOfTheKeyframeTheMapHolds) {
-  synth::PresetOptions po;
-  po.width = 256;
-  po.height = 256;
-  po.frames = 40;
-  StatusOr<synth::SynthSetup> setup = synth::MakePreset("sphere-multicolor-sideways", po);
+  StatusOr<synth::SynthSetup> setup = SmallSphere();
   ASSERT_TRUE(setup.ok()) << setup.status();
   const Trajectory trajectory = synth::MakeTrajectory(setup->trajectory);
   ThreadPool pool(2);
@@ -611,11 +616,7 @@ TEST(DenseStageTest, MapCoverageIsTheShareOfTheKeyframeTheMapHolds) {
 // means. A second Remap at the same poses changes nothing; a budget too small for the clouds thins
 // them, and one too small even for one point in 64 refuses the rebuild.
 TEST(DenseStageRemapTest, TheMapRebuiltAtTheTruePosesIsTheMapMergedAtThem) {
-  synth::PresetOptions po;
-  po.width = 256;
-  po.height = 256;
-  po.frames = 40;
-  StatusOr<synth::SynthSetup> setup = synth::MakePreset("sphere-multicolor-sideways", po);
+  StatusOr<synth::SynthSetup> setup = SmallSphere();
   ASSERT_TRUE(setup.ok()) << setup.status();
   const Trajectory trajectory = synth::MakeTrajectory(setup->trajectory);
   ThreadPool pool(2);
