@@ -58,10 +58,7 @@ constexpr char kNotes[] = R"(Writes to DIR:
                    and the net rotation (first to last frame, estimate and truth), and the keyframe
                    depth error (printed too)
 
---slam-config, --set and the --no-* switches of SLAM options apply in command-line order.
---set scale_drift_correction=true re-measures each keyframe's depth unit from the co-moving lights
-after the refinement rounds (SlamSystem::CorrectScaleDrift; off by default: it helps grey scenes that
-drift and hurts multi-coloured ones; summary.json then has scale_drift_correction).)";
+--slam-config, --set and the --no-* switches of SLAM options apply in command-line order.)";
 
 // SlamSystem::start_check() as a JSON object (null for a spread that is not a number).
 Json StartCheckJson(const StartCheckReport& r) {
@@ -215,9 +212,6 @@ struct SlamRun {
   std::vector<std::string> skipped;  // "frame i (t = ...): error"
   std::string stop_error;
   double slam_seconds = 0, finish_seconds = 0, refine_seconds = 0;
-  std::optional<ScaleDriftCorrection> drift;
-  std::string drift_error;
-  double drift_seconds = 0;
   std::optional<MetricScaleEstimate> shading_scale;
   std::string shading_scale_error;
   double shading_scale_seconds = 0;
@@ -436,15 +430,12 @@ int RunSlam(const Settings& s, const Input& input, SlamSystem* slam, DenseRun* d
 }
 
 // After the frames: the SLAM's end of the stream (SlamSystem::FinishStream, as the server runs it, with
-// the keyframes' depth refinement on the keyframes kept here): the final adjustment, the refinement, the
-// scale drift correction and the metric scale.
+// the keyframes' depth refinement on the keyframes kept here): the final adjustment, the refinement and
+// the metric scale.
 void RefineAndScale(const Settings& s, SlamSystem* slam, SlamRun* run) {
   const SlamStreamEnd end = slam->FinishStream(s.metric_scale, &run->keyframes);
   run->finish_seconds += end.adjustment_seconds;
   run->refine_seconds = end.refinement_seconds;
-  run->drift = end.drift;
-  run->drift_error = end.drift_error;
-  run->drift_seconds = end.drift_seconds;
   if (!s.metric_scale) return;
   run->shading_scale = end.metric;
   run->shading_scale_error = end.metric_error;
@@ -564,7 +555,6 @@ int WriteOutputs(const Settings& s, SlamSystem* slam, const SlamRun& run, Output
 Json Summary(const Settings& s, const Input& input, SlamSystem* slam, const SlamRun& run, const DenseRun& dense,
              const Outputs& outputs) {
   const std::optional<MetricScaleEstimate>& shading_scale = run.shading_scale;
-  const std::optional<ScaleDriftCorrection>& drift = run.drift;
   const std::vector<SlamKeyframe>& keyframes = run.keyframes;
   const std::unique_ptr<DenseStage>& dense_stage = dense.stage;
   const double metres_per_unit = run.metres_per_unit;
@@ -608,15 +598,6 @@ Json Summary(const Settings& s, const Input& input, SlamSystem* slam, const Slam
   if (metres_per_unit > 0) {
     json["metres_per_unit"] = metres_per_unit;
     json["metres_per_unit_source"] = run.metres_per_unit_from_shading ? "shading" : "dense_stage";
-  }
-  if (drift) {
-    json["scale_drift_correction"] = Json{{"pairs", drift->pairs},
-                                          {"min_factor", drift->min_factor},
-                                          {"max_factor", drift->max_factor},
-                                          {"loop_edges", drift->loop_edges},
-                                          {"ms", 1000.0 * run.drift_seconds}};
-  } else if (s.options.scale_drift_correction) {
-    json["scale_drift_correction_error"] = run.drift_error;
   }
   if (shading_scale) {
     json["shading_metres_per_unit"] = shading_scale->metres_per_world_unit;

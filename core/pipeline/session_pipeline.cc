@@ -269,9 +269,6 @@ void SessionPipeline::FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::
     for (SlamKeyframe& kf : slam_->FinishTracking()) QueueKeyframe(std::move(kf));
     const bool second_start_at_finish = UpdateStartCheck();
     const SlamStreamEnd end = slam_->FinishStream(options_.remap_at_end && options_.metric_scale_at_end);
-    if (options_.slam.scale_drift_correction && !end.drift) {
-      PRISM_LOG(INFO) << "pipeline: no scale drift correction: " << end.drift_error;
-    }
     if (options_.remap_at_end && options_.metric_scale_at_end) TakeFinalMetricScale(end);
     *refined = RefinedPoses(/*untracked_too=*/second_start_at_finish);
     if (options_.remap_at_end) *final_keyframe_poses = slam_->KeyframePoses();

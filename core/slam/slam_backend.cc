@@ -57,8 +57,7 @@ double SlamSystem::Impl::RelitMetresPerWorldUnit() {
     PRISM_LOG(INFO) << "slam: relit adjustment off: " << estimates.size() << " keyframe pairs gave a shading scale";
     return -1;
   }
-  // After CorrectScaleDrift the pairs agree by construction: the check keeps the scales from before it.
-  if (relit_pair_estimates.empty()) relit_pair_estimates = estimates;
+  relit_pair_estimates = estimates;
   std::nth_element(estimates.begin(), estimates.begin() + estimates.size() / 2, estimates.end());
   relit_metres_per_world_unit = estimates[estimates.size() / 2];
   PRISM_LOG(INFO) << "slam: relit adjustment at " << relit_metres_per_world_unit << " metres per world unit ("

@@ -48,7 +48,6 @@ std::vector<Field> Fields(SlamOptions& o) {
       {"final_feature_adjustment", &o.final_feature_adjustment},
       {"final_refinement_neighbours", &o.final_refinement_neighbours},
       {"final_refinement_rounds", &o.final_refinement_rounds},
-      {"scale_drift_correction", &o.scale_drift_correction},
       {"start_check_keyframes", &o.start_check_keyframes},
       {"start_check_async", &o.start_check_async},
       {"tracker.pyramid_levels", &o.tracker.pyramid_levels},

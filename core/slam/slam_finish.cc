@@ -5,7 +5,6 @@
 #include <limits>
 #include <string>
 
-#include "core/slam/pose_graph.h"
 #include "core/slam/slam_system.h"
 #include "core/slam/slam_system_impl.h"
 #include "core/util/logging.h"
@@ -111,12 +110,6 @@ SlamStreamEnd SlamSystem::FinishStream(bool metric_scale, std::vector<SlamKeyfra
     RefineKeyframeDepths(o.final_refinement_neighbours, o.final_refinement_relative_sigma, o.final_refinement_rounds,
                          refine);
   }
-  if (o.scale_drift_correction) {
-    const ScopedSeconds timer(&end.drift_seconds);
-    StatusOr<ScaleDriftCorrection> drift = CorrectScaleDrift();
-    if (drift.ok()) end.drift = *drift;
-    else end.drift_error = std::string(drift.status().message());
-  }
   if (metric_scale) {
     const ScopedSeconds timer(&end.metric_seconds);
     StatusOr<MetricScaleEstimate> metric = EstimateMetricScale();
@@ -174,77 +167,6 @@ StatusOr<MetricScaleEstimate> SlamSystem::EstimateMetricScale() {
   e.metres_per_world_unit = k;
   e.keyframes = n - first;
   return e;
-}
-
-StatusOr<ScaleDriftCorrection> SlamSystem::CorrectScaleDrift() {
-  impl_->ApplyPendingAdjustment();
-  Impl& m = *impl_;
-  const int n = static_cast<int>(m.keyframes.size());
-  if (n < 3 || !m.keyframes.back().finished)
-    return FailedPreconditionError("CorrectScaleDrift: needs at least 3 finished keyframes (call Finish first)");
-  if (!AllPointLights(m.rig)) return FailedPreconditionError("CorrectScaleDrift: needs three point lights on the rig");
-  const std::vector<std::pair<int, double>> pairs = m.IndexedPairShadingScales(static_cast<size_t>(n));
-  if (pairs.size() < 3)
-    return FailedPreconditionError("CorrectScaleDrift: " + std::to_string(pairs.size()) +
-                                   " keyframe pairs gave a shading scale (3 needed)");
-  // The consistency check (EstimateMetricScale) sees the scales from before the correction.
-  m.relit_pair_estimates.clear();
-  for (const auto& [k, scale] : pairs) m.relit_pair_estimates.push_back(scale);
-  m.relit_metres_per_world_unit = 0;  // estimated again at the corrected poses
-  // Keyframe k's depth unit in metres: its pair's scale times its own Sim(3) scale (the pair's scale is
-  // metres per world unit through k's unit). Pairs without a scale, and the last keyframe, take the
-  // nearest pair's.
-  std::vector<double> by_pair(static_cast<size_t>(n - 1), std::numeric_limits<double>::quiet_NaN());
-  for (const auto& [k, scale] : pairs) by_pair[static_cast<size_t>(k)] = scale;
-  const int w = m.options.scale_drift_window;
-  std::vector<double> metres_per_world_unit(static_cast<size_t>(n));
-  for (int k = 0; k < n; ++k) {
-    const int centre = std::min(k, n - 2);
-    std::vector<double> near;
-    for (int reach = w; near.empty(); ++reach) {
-      for (int j = std::max(0, centre - reach); j <= std::min(n - 2, centre + reach); ++j)
-        if (std::isfinite(by_pair[static_cast<size_t>(j)])) near.push_back(by_pair[static_cast<size_t>(j)]);
-    }
-    std::sort(near.begin(), near.end());
-    const size_t h = near.size() / 2;
-    metres_per_world_unit[static_cast<size_t>(k)] = near.size() % 2 ? near[h] : 0.5 * (near[h - 1] + near[h]);
-  }
-  ScaleDriftCorrection c;
-  c.pairs = static_cast<int>(pairs.size());
-  c.min_factor = c.max_factor = 1;
-  std::vector<double> factor(static_cast<size_t>(n));
-  for (int k = 0; k < n; ++k) {
-    factor[static_cast<size_t>(k)] = metres_per_world_unit[static_cast<size_t>(k)] / metres_per_world_unit[0];
-    c.min_factor = std::min(c.min_factor, factor[static_cast<size_t>(k)]);
-    c.max_factor = std::max(c.max_factor, factor[static_cast<size_t>(k)]);
-  }
-  // Odometry edges: the same rotation and translation (in the older keyframe's units), the corrected
-  // ratio of depth units. Loop edges as measured.
-  std::vector<PoseGraphEdge> edges = m.graph_edges;
-  for (size_t e = 0; e < edges.size(); ++e) {
-    if (m.graph_edge_is_loop[e]) {
-      ++c.loop_edges;
-      continue;
-    }
-    PoseGraphEdge& edge = edges[e];
-    edge.from_from_to = m.keyframes[static_cast<size_t>(edge.from)].world_from_keyframe.Inverse() *
-                        m.keyframes[static_cast<size_t>(edge.to)].world_from_keyframe;
-    edge.from_from_to.scale *= factor[static_cast<size_t>(edge.to)] / factor[static_cast<size_t>(edge.from)];
-  }
-  std::vector<Sim3d> nodes;
-  for (const Impl::Keyframe& k : m.keyframes) nodes.push_back(k.world_from_keyframe);
-  PoseGraphOptions go;
-  go.max_iterations = 100;
-  PRISM_ASSIGN_OR_RETURN(PoseGraphSummary summary, OptimisePoseGraph(edges, go, &nodes));
-  for (int k = 0; k < n; ++k) m.keyframes[static_cast<size_t>(k)].world_from_keyframe = nodes[static_cast<size_t>(k)];
-  m.graph_edges = std::move(edges);
-  for (Impl::FrameRecord& f : m.frames)
-    if (f.result.state == SlamState::kTracking && f.result.keyframe_id >= 0)
-      f.result.world_from_camera = m.WorldFromFrame(f);
-  PRISM_LOG(INFO) << "slam: scale drift corrected from " << c.pairs << " keyframe pairs' shading scales: depth units x"
-                  << c.min_factor << " .. x" << c.max_factor << " (pose graph cost " << summary.initial_cost << " -> "
-                  << summary.final_cost << ", " << c.loop_edges << " loop edges)";
-  return c;
 }
 
 void SlamSystem::RefineKeyframeDepths(int neighbours, double relative_sigma, int rounds,

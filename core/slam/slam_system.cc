@@ -151,7 +151,6 @@ Status SlamOptions::Check() const {
   PRISM_RETURN_IF_ERROR(final_adjustment_relit_ba.Check());
   if (!(metric_scale_max_pair_spread > 0))
     return InvalidArgumentError("SlamOptions: metric_scale_max_pair_spread must be > 0");
-  if (scale_drift_window < 0) return InvalidArgumentError("SlamOptions: scale_drift_window must be >= 0");
   if (start_check_keyframes != 0 && start_check_keyframes < 4)
     return InvalidArgumentError("SlamOptions: start_check_keyframes must be 0 (off) or >= 4");
   if (!(start_check_max_pair_spread > 0) || !(start_check_retry_parallax_fraction > 0))

@@ -213,10 +213,6 @@ struct SlamOptions {
   double metric_scale_min_band_fraction = 0.3;
   // EstimateMetricScale: pair-scale spread above this is reported inconsistent with the shading (a warning), > 0.
   double metric_scale_max_pair_spread = 0.16;
-  // CorrectScaleDrift at the end: helps grey scenes, hurts coloured ones (albedo the grey model does not explain).
-  bool scale_drift_correction = false;
-  // Its running median's half-width, keyframe pairs, >= 0: wider = smoother, less local.
-  int scale_drift_window = 2;
   // Start check at this many keyframes, 0 = off or >= 4: pair shading scales that disagree run a second start.
   int start_check_keyframes = 6;
   // Their largest spread, > 0: lower = more second starts (a few seconds each).
@@ -257,22 +253,11 @@ struct MetricScaleEstimate {
   bool consistent = true;  // pair_spread <= SlamOptions::metric_scale_max_pair_spread
 };
 
-// What SlamSystem::CorrectScaleDrift did.
-struct ScaleDriftCorrection {
-  int pairs = 0;  // consecutive keyframe pairs with a shading scale
-  // The factors the keyframes' depth units were multiplied by, relative to keyframe 0's (which holds
-  // the gauge): their extremes.
-  double min_factor = 1, max_factor = 1;
-  int loop_edges = 0;  // loop edges kept as measured in the re-optimised pose graph
-};
-
 // What SlamSystem::FinishStream did, and its times.
 struct SlamStreamEnd {
-  std::optional<ScaleDriftCorrection> drift;  // SlamOptions::scale_drift_correction
-  std::string drift_error;                    // why there is none (when it was asked for)
   std::optional<MetricScaleEstimate> metric;  // with FinishStream's metric_scale
   std::string metric_error;
-  double adjustment_seconds = 0, refinement_seconds = 0, drift_seconds = 0, metric_seconds = 0;
+  double adjustment_seconds = 0, refinement_seconds = 0, metric_seconds = 0;
 };
 
 enum class SlamState {
@@ -427,8 +412,7 @@ class SlamSystem {
   // The stream's end after FinishTracking (the last keyframes handed on), the one sequence prism-slam,
   // the server and the tests run: AdjustAllKeyframes (SlamOptions::final_adjustment); with `refine` (the
   // keyframes as handed out, kept by the caller) RefineKeyframeDepths on them with
-  // SlamOptions::final_refinement_*; CorrectScaleDrift (scale_drift_correction); with `metric_scale`,
-  // EstimateMetricScale.
+  // SlamOptions::final_refinement_*; with `metric_scale`, EstimateMetricScale.
   SlamStreamEnd FinishStream(bool metric_scale, std::vector<SlamKeyframe>* refine = nullptr);
   // The metres per world unit from the rig's co-moving lights (after Finish): the relit keyframe
   // adjustment (keyframe_ba.h, DirectBaRelit) over the keyframes (at most
@@ -438,20 +422,6 @@ class SlamSystem {
   // albedo; coloured albedo biases it (see the README for the figures). FAILED_PRECONDITION before
   // Finish, with fewer than 3 keyframes, without three point lights, or without usable points.
   StatusOr<MetricScaleEstimate> EstimateMetricScale();
-  // After Finish (and after the final adjustment and RefineKeyframeDepths, which would move the depth
-  // units again): corrects the monocular scale drift between keyframes with the co-moving lights. Each
-  // consecutive keyframe pair's shading scale (EstimateShadingScale at the current poses and depths, as
-  // EstimateMetricScale's check) measures the older keyframe's depth unit in metres; on a drift-free
-  // reconstruction every keyframe's unit is the same number of metres. Each keyframe's depth unit
-  // (its Sim(3) scale) is multiplied by its pair's scale over keyframe 0's (a running median over
-  // SlamOptions::scale_drift_window pairs on either side; the last keyframe takes its predecessor's),
-  // every odometry edge of the pose graph keeps its rotation and its translation in its own keyframe's
-  // units and takes the corrected ratio of depth units, and the graph is re-optimised with the loop
-  // edges as measured (with none it is a chain and the result is exact). KeyframePoses and Trajectory
-  // move; each keyframe's depth map (in its own units) does not. EstimateMetricScale's consistency check
-  // keeps the pairs' scales from before the correction. FAILED_PRECONDITION before Finish, without three
-  // point lights, or with fewer than 3 pairs with a shading scale.
-  StatusOr<ScaleDriftCorrection> CorrectScaleDrift();
   // After Finish: re-estimates the depth of each of `keyframes` (as handed out; matched by id) at the
   // keyframes' final poses (KeyframePoses): its own depth as the prior (relative sigma
   // `relative_sigma`, counted as 2 observations), one stereo update with each of up to `neighbours`
