@@ -123,6 +123,24 @@ Status CalibrateIntrinsics(const std::vector<fs::path>& files, const fs::path& r
   const int flags = options.fit_k3 ? 0 : cv::CALIB_FIX_K3;
   report->reprojection_rms_px = cv::aruco::calibrateCameraCharuco(corners, ids, board, *size, k, dist, rvecs, tvecs,
                                                                   std_intrinsics, std_extrinsics, per_view, flags);
+  // A lens without distortion still gets some from the fit (noise in the corners): when no coefficient
+  // differs from zero by kDistortionSignificanceSigma of its standard deviation, the pinhole model is fitted
+  // instead, and the frames are not resampled for a distortion the lens does not have.
+  constexpr double kDistortionSignificanceSigma = 3.0;
+  report->distortion_significant = false;
+  for (int i = 0; i < static_cast<int>(dist.total()) && i < 5; ++i) {
+    const double sigma = std_intrinsics.at<double>(4 + i);
+    if (std::abs(dist.at<double>(i)) > kDistortionSignificanceSigma * sigma && dist.at<double>(i) != 0)
+      report->distortion_significant = true;
+  }
+  if (!report->distortion_significant) {
+    for (int i = 0; i < 5; ++i)
+      report->distortion_fitted[i] = i < static_cast<int>(dist.total()) ? dist.at<double>(i) : 0.0;
+    dist = cv::Mat::zeros(1, 5, CV_64F);
+    report->reprojection_rms_px = cv::aruco::calibrateCameraCharuco(
+        corners, ids, board, *size, k, dist, rvecs, tvecs, std_intrinsics, std_extrinsics, per_view,
+        cv::CALIB_FIX_K1 | cv::CALIB_FIX_K2 | cv::CALIB_FIX_K3 | cv::CALIB_ZERO_TANGENT_DIST);
+  }
   if (!(report->reprojection_rms_px <= options.max_reprojection_rms_px)) {
     std::ostringstream e;
     e << "the board does not fit the images: reprojection error " << report->reprojection_rms_px << " px (at most "

@@ -63,6 +63,10 @@ struct CalibrationReport {
   double reprojection_rms_px = 0;
   Eigen::Vector4d intrinsics_std = Eigen::Vector4d::Zero();  // fx, fy, cx, cy, pixels
   std::array<double, 5> distortion_std{};
+  // Whether a distortion coefficient differed from zero by 3 standard deviations; if not, the camera is
+  // the pinhole model fitted without distortion, and distortion_fitted holds what the full fit found.
+  bool distortion_significant = true;
+  std::array<double, 5> distortion_fitted{};
   // Lights: views per folder (red, green, blue, all), samples, fit residual and uncertainty.
   std::array<int, 4> light_views{};
   std::vector<std::string> skipped;  // images without the board (relative paths)

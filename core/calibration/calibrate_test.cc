@@ -120,6 +120,10 @@ void CheckRecoversRig(const std::array<double, 5>& distortion, const std::string
   EXPECT_LT(fx_error, /*max_focal_error=*/0.005);
   EXPECT_LT(fy_error, /*max_focal_error=*/0.005);
   EXPECT_LT(k1_error, /*max_k1_error=*/0.01);
+  // A lens without distortion gets none (the fit's few thousandths are not significant); one with it keeps it.
+  const bool distorted = distortion != std::array<double, 5>{};
+  EXPECT_EQ(report->distortion_significant, distorted);
+  EXPECT_EQ(got.camera.HasDistortion(), distorted);
   EXPECT_LT(position_error_m, /*max_light_position_error_m=*/0.005);
   EXPECT_LT(intensity_error, /*max_intensity_error=*/0.03);
   EXPECT_LT(crosstalk_error, /*max_crosstalk_error=*/0.02);
