@@ -211,8 +211,8 @@ class SessionPipeline {
   // A frame's error event, the frame's sequence number before the message.
   void SendFrameError(uint64_t sequence_number, const Status& status);
   // After the last frame (SLAM thread): the SLAM's last keyframes to the dense stage, the final
-  // adjustment, the scale drift correction and the metric scale; gives the final keyframe poses
-  // (remap_at_end) and the refined pose events for FinishMap.
+  // adjustment and the metric scale; gives the final keyframe poses (remap_at_end) and the refined pose
+  // events for FinishMap.
   void FinishSlam(std::vector<Sim3d>* final_keyframe_poses, std::vector<PipelineEvent>* refined);
   // The SLAM's metric scale from the co-moving lights (FinishStream's) into final_metres_per_unit_ and
   // the stats.
