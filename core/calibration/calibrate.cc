@@ -130,8 +130,7 @@ Status CalibrateIntrinsics(const std::vector<fs::path>& files, const fs::path& r
   report->distortion_significant = false;
   for (int i = 0; i < static_cast<int>(dist.total()) && i < 5; ++i) {
     const double sigma = std_intrinsics.at<double>(4 + i);
-    if (std::abs(dist.at<double>(i)) > kDistortionSignificanceSigma * sigma && dist.at<double>(i) != 0)
-      report->distortion_significant = true;
+    if (std::abs(dist.at<double>(i)) > kDistortionSignificanceSigma * sigma) report->distortion_significant = true;
   }
   if (!report->distortion_significant) {
     for (int i = 0; i < 5; ++i)

@@ -37,14 +37,11 @@ std::vector<ShadingPair> SlamSystem::Impl::ShadingPairs(size_t num_keyframes, bo
   return pairs;
 }
 
-std::vector<std::pair<int, double>> SlamSystem::Impl::IndexedPairShadingScales(size_t num_keyframes) const {
-  if (!AllPointLights(rig)) return {};
-  return PairScales(rig, ShadingPairs(num_keyframes, /*own_depth=*/false), pool);
-}
-
 std::vector<double> SlamSystem::Impl::PairShadingScales(size_t num_keyframes) const {
   std::vector<double> estimates;
-  for (const auto& [k, scale] : IndexedPairShadingScales(num_keyframes)) estimates.push_back(scale);
+  if (!AllPointLights(rig)) return estimates;
+  for (const auto& [k, scale] : PairScales(rig, ShadingPairs(num_keyframes, /*own_depth=*/false), pool))
+    estimates.push_back(scale);
   return estimates;
 }
 

@@ -52,7 +52,6 @@ Status SlamSystem::Impl::MakeKeyframe(int64_t frame_id, double timestamp, const 
   edge.translation_sigma = options.odometry_translation_sigma;
   edge.log_scale_sigma = options.odometry_log_scale_sigma;
   graph_edges.push_back(edge);
-  graph_edge_is_loop.push_back(0);
   keyframes.push_back(std::move(k));
   if (keyframes[static_cast<size_t>(reference_kf)].next < 0)
     keyframes[static_cast<size_t>(reference_kf)].next = keyframes.back().id;
@@ -181,7 +180,6 @@ void SlamSystem::Impl::CloseLoops(int index) {
     edge.translation_sigma = options.loop_translation_sigma;
     edge.log_scale_sigma = options.loop_log_scale_sigma;
     graph_edges.push_back(edge);
-    graph_edge_is_loop.push_back(1);
     ++loop_closures;
     added = true;
     PRISM_LOG(INFO) << "slam: loop edge keyframe " << j << " - " << index << ", unit ratio " << 1.0 / j_from_k.scale;

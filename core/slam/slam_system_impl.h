@@ -78,7 +78,6 @@ struct SlamSystem::Impl {
   std::unique_ptr<Tracker> reloc_tracker;
   std::unique_ptr<Tracker> loop_tracker;
   std::vector<PoseGraphEdge> graph_edges;
-  std::vector<uint8_t> graph_edge_is_loop;  // per graph_edges entry
   int loop_closures = 0;
   int keyframe_adjustments = 0;
   bool final_adjustment_done = false;  // SlamSystem::AdjustAllKeyframes ran
@@ -93,8 +92,6 @@ struct SlamSystem::Impl {
   // (EstimateShadingScale at the current poses and depths; metres per world unit); empty without three
   // point lights.
   std::vector<double> PairShadingScales(size_t num_keyframes) const;
-  // The same with each pair's older keyframe index.
-  std::vector<std::pair<int, double>> IndexedPairShadingScales(size_t num_keyframes) const;
   // The consecutive finished pairs among the first num_keyframes. With `own_depth` the inverse depths
   // are copies (the images are shared: a keyframe's image is never written after it is made).
   std::vector<slam_internal::ShadingPair> ShadingPairs(size_t num_keyframes, bool own_depth) const;
